@@ -1,0 +1,1 @@
+"""The simulated world: targets, cameras and drone kinematics (and, later, MAVLink vehicles)."""

@@ -1,0 +1,72 @@
+"""Downward gimballed camera: range, square field of view, image-plane noise (SPEC §2, 1.6-1.9)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from swarm.core.agent import Detection
+from swarm.core.params import require, require_finite_positive
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class CameraParams:
+    range_min_m: float = 0.5  # D_m [m]
+    range_max_m: float = 8.0  # D_M [m]
+    half_fov_deg: float = 50.0  # α_M, half-angle of the square field of view [deg]
+    image_noise_std: float = 0.005  # σ_img on the normalized image plane [1]; 0 = exact
+
+    def __post_init__(self) -> None:
+        require_finite_positive("range_min_m", self.range_min_m)
+        require(math.isfinite(self.range_max_m) and self.range_max_m > self.range_min_m,
+                "range_max_m", "must be a finite number > range_min_m", self.range_max_m)
+        require(math.isfinite(self.half_fov_deg) and 0 < self.half_fov_deg < 90,
+                "half_fov_deg", "must lie in (0, 90) degrees", self.half_fov_deg)
+        require(math.isfinite(self.image_noise_std) and self.image_noise_std >= 0,
+                "image_noise_std", "must be a finite number >= 0", self.image_noise_std)
+
+    @property
+    def image_half_width(self) -> float:
+        return math.tan(math.radians(self.half_fov_deg))
+
+
+def ideal_image_point(drone_position: Array, target_position: Array,
+                      camera: CameraParams) -> Array | None:
+    """Noise-free [x̄, ȳ] if the target is detected, else None (SPEC §2, 1.8).
+
+    Detected iff D_m < d < D_M, the target is below the camera (p_ir,z < 0) and
+    |x̄|, |ȳ| ≤ tan α_M.
+    """
+    relative = target_position - drone_position
+    depth = -float(relative[2])
+    if depth <= 0.0:
+        return None
+    distance = float(np.sqrt(relative @ relative))
+    if not camera.range_min_m < distance < camera.range_max_m:
+        return None
+    point = relative[:2] / depth
+    limit = camera.image_half_width
+    if abs(point[0]) > limit or abs(point[1]) > limit:
+        return None
+    return point
+
+
+def detect(drone_position: Array, target_positions: Array, camera: CameraParams,
+           rng: np.random.Generator) -> list[Detection]:
+    """Detections of every visible target with image-plane noise ν ~ N(0, σ_img²) (1.7, 1.9).
+
+    Noise is drawn for every target, visible or not, so the random stream of one drone does
+    not depend on what it happens to see.
+    """
+    noise = rng.normal(0.0, camera.image_noise_std, size=(len(target_positions), 2))
+    detections = []
+    for r, target in enumerate(target_positions):
+        point = ideal_image_point(drone_position, target, camera)
+        if point is not None:
+            detections.append(Detection(r, point + noise[r]))
+    return detections

@@ -1,0 +1,295 @@
+"""Scenario configuration: TOML file → validated, frozen ``ScenarioConfig``.
+
+Types are checked by msgspec (it names the failing key path), values by the ``__post_init__``
+of each section and of the core parameter classes, and cross-section rules (graph connected,
+consensus steps stable for the graph, …) by ``ScenarioConfig.__post_init__``. Any problem
+becomes one ``ConfigError`` whose text is a single line naming the key and the reason.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal
+
+import msgspec
+import numpy as np
+
+from sim_world.camera import CameraParams
+from sim_world.targets import (
+    LinearTrajectory,
+    OutAndBackTrajectory,
+    SinusoidTrajectory,
+    Trajectory,
+)
+from swarm.core.graph import CommunicationGraph, pi_consensus_is_stable
+from swarm.core.params import (
+    ControlParams,
+    EstimationParams,
+    GramianParams,
+    PerceptionParams,
+    require,
+    require_finite,
+    require_finite_positive,
+)
+
+Vector3 = tuple[float, float, float]
+
+
+class ConfigError(ValueError):
+    """A scenario file that cannot be used; ``str()`` is one line naming key and reason."""
+
+
+@dataclass(frozen=True)
+class ScenarioSection:
+    name: str  # shown in summaries and recordings
+    duration_s: float  # simulated time [s]
+    dt_s: float = 0.02  # ΔT of every discretization [s]
+    seed: int = 0  # default seed; --seed overrides it
+
+    def __post_init__(self) -> None:
+        require(bool(self.name.strip()), "name", "must not be empty", self.name)
+        require_finite_positive("duration_s", self.duration_s)
+        require(math.isfinite(self.dt_s) and 0 < self.dt_s <= 0.1, "dt_s",
+                "must lie in (0, 0.1] s", self.dt_s)
+        require(self.duration_s >= self.dt_s, "duration_s", "must be at least one step (dt_s)",
+                self.duration_s)
+        require(0 <= self.seed < 2**63, "seed", "must be an integer in [0, 2^63)", self.seed)
+
+
+@dataclass(frozen=True)
+class SwarmSection:
+    n_drones: int  # N
+    edges: tuple[tuple[int, int], ...]  # undirected communication edges, drone ids 0..N−1
+    initial_box_center_m: Vector3 = (0.0, 0.0, 3.5)  # centre of the start box [m]
+    initial_box_size_m: Vector3 = (4.0, 4.0, 2.0)  # side lengths of the start box [m]
+    initial_min_separation_m: float = 1.0  # start positions are resampled until this apart [m]
+
+    def __post_init__(self) -> None:
+        require(2 <= self.n_drones <= 256, "n_drones", "must be an integer in [2, 256]",
+                self.n_drones)
+        for value in self.initial_box_center_m:
+            require_finite("initial_box_center_m", value)
+        for value in self.initial_box_size_m:
+            require(math.isfinite(value) and value >= 0, "initial_box_size_m",
+                    "must hold finite sizes >= 0", self.initial_box_size_m)
+        require_finite_positive("initial_min_separation_m", self.initial_min_separation_m)
+        try:
+            graph = self.graph
+        except ValueError as err:
+            raise ValueError(str(err)) from None
+        if not graph.is_connected():
+            raise ValueError("edges do not connect every drone: the graph is disconnected")
+
+    @property
+    def graph(self) -> CommunicationGraph:
+        return CommunicationGraph(self.n_drones, self.edges)
+
+
+TrajectoryKind = Literal["linear", "sinusoid", "out_and_back"]
+
+
+@dataclass(frozen=True)
+class TargetSection:
+    trajectory: TrajectoryKind
+    start_m: Vector3  # position at t = 0 [m]
+    velocity_m_s: Vector3 = (0.0, 0.0, 0.0)  # cruise, or drift of a sinusoid [m/s]
+    amplitude_m: Vector3 = (0.0, 0.0, 0.0)  # sinusoid amplitude per axis [m]
+    angular_rate_rad_s: float = 0.0  # sinusoid ω [rad/s]
+    turn_s: float = 0.0  # out_and_back: start of the turn [s]
+    back_s: float = 0.0  # out_and_back: back at rest at start_m [s]
+    ramp_s: float = 5.0  # raised-cosine ramp of every velocity change [s]
+
+    def __post_init__(self) -> None:
+        for name in ("start_m", "velocity_m_s", "amplitude_m"):
+            for value in getattr(self, name):
+                require_finite(name, value)
+        require_finite("angular_rate_rad_s", self.angular_rate_rad_s)
+        require_finite_positive("ramp_s", self.ramp_s)
+        if self.trajectory == "out_and_back":
+            require(math.isfinite(self.turn_s) and self.turn_s > self.ramp_s, "turn_s",
+                    "must be a finite number > ramp_s", self.turn_s)
+            require(math.isfinite(self.back_s) and self.back_s > self.turn_s + 2 * self.ramp_s,
+                    "back_s", "must be a finite number > turn_s + 2·ramp_s", self.back_s)
+
+    def build(self) -> Trajectory:
+        if self.trajectory == "linear":
+            return LinearTrajectory(self.start_m, self.velocity_m_s, self.ramp_s)
+        if self.trajectory == "sinusoid":
+            return SinusoidTrajectory(self.start_m, self.velocity_m_s, self.amplitude_m,
+                                      self.angular_rate_rad_s, self.ramp_s)
+        return OutAndBackTrajectory(self.start_m, self.velocity_m_s, self.turn_s, self.back_s,
+                                    self.ramp_s)
+
+
+@dataclass(frozen=True)
+class ChecksSection:
+    """Tolerances of the SPEC invariants checked after a run (exit code 1 when violated)."""
+
+    lambda_tolerance: float = 0.005  # λ̄ copies may dip to ε − this after control.start_s [s]
+    collision_tolerance_m: float = 1e-3  # pairwise distance may dip to Δ − this [m]
+
+    def __post_init__(self) -> None:
+        require(math.isfinite(self.lambda_tolerance) and self.lambda_tolerance >= 0,
+                "lambda_tolerance", "must be a finite number >= 0", self.lambda_tolerance)
+        require(math.isfinite(self.collision_tolerance_m) and self.collision_tolerance_m >= 0,
+                "collision_tolerance_m", "must be a finite number >= 0",
+                self.collision_tolerance_m)
+
+
+@dataclass(frozen=True)
+class ScenarioConfig:
+    scenario: ScenarioSection
+    swarm: SwarmSection
+    targets: tuple[TargetSection, ...]
+    camera: CameraParams = field(default_factory=CameraParams)
+    perception: PerceptionParams = field(default_factory=PerceptionParams)
+    estimation: EstimationParams = field(default_factory=EstimationParams)
+    gramian: GramianParams = field(default_factory=GramianParams)
+    control: ControlParams = field(default_factory=ControlParams)
+    checks: ChecksSection = field(default_factory=ChecksSection)
+    source: str = field(default="<memory>", compare=False)
+
+    def __post_init__(self) -> None:
+        _cross_check(self)
+
+    @property
+    def n_steps(self) -> int:
+        return round(self.scenario.duration_s / self.scenario.dt_s)
+
+    def with_duration(self, duration_s: float) -> ScenarioConfig:
+        return dataclasses.replace(
+            self, scenario=dataclasses.replace(self.scenario, duration_s=duration_s))
+
+
+def _cross_check(config: ScenarioConfig) -> None:
+    """Rules that involve more than one section; each names its key."""
+    if not 1 <= len(config.targets) <= 16:
+        raise ConfigError(f"targets: need 1 to 16 [[targets]] entries (got {len(config.targets)})")
+    graph = config.swarm.graph
+    dt = config.scenario.dt_s
+    est, gram, ctrl = config.estimation, config.gramian, config.control
+    max_degree = max(graph.degree(i) for i in range(graph.n_nodes))
+    if est.consensus_weights == "laplacian" and not est.laplacian_step < 1.0 / max_degree:
+        raise ConfigError(
+            f"estimation.laplacian_step must be < 1/Δ_max = {1.0 / max_degree:.4g} for this "
+            f"graph (got {est.laplacian_step})")
+    lam_max = graph.laplacian_max_eigenvalue
+    for name, gains in (("projector_consensus", gram.projector_consensus),
+                        ("weight_consensus", gram.weight_consensus)):
+        if not gains.kp * lam_max * dt < 2.0:
+            raise ConfigError(
+                f"gramian.{name}.kp: K_p·λ_max(L)·ΔT = {gains.kp * lam_max * dt:.3g} must be "
+                f"< 2 for a stable Euler step on this graph (λ_max(L) = {lam_max:.3g})")
+        stable, radius = pi_consensus_is_stable(graph, gains, dt)
+        if not stable:
+            raise ConfigError(
+                f"gramian.{name}: the Euler-discretized PI consensus is unstable on this graph "
+                f"(spectral radius {radius:.4f} >= 1); lower zeta/kp/ki or dt_s")
+    gramian_mode = 1.0 - dt * (gram.forgetting + gram.consensus_gain * lam_max)
+    if not abs(gramian_mode) < 1.0:
+        raise ConfigError(
+            f"gramian.consensus_gain: ΔT·(ρ + gain·λ_max(L)) = {1 - gramian_mode:.3g} must be "
+            f"< 2 for a stable Euler step")
+    if not config.camera.range_min_m < config.perception.d_min_th_m:
+        raise ConfigError(
+            f"perception.d_min_th_m must exceed camera.range_min_m = "
+            f"{config.camera.range_min_m} (got {config.perception.d_min_th_m})")
+    if not config.perception.d_max_th_m < config.camera.range_max_m:
+        raise ConfigError(
+            f"perception.d_max_th_m must be below camera.range_max_m = "
+            f"{config.camera.range_max_m} (got {config.perception.d_max_th_m})")
+    if not config.perception.alpha_th_deg < config.camera.half_fov_deg:
+        raise ConfigError(
+            f"perception.alpha_th_deg must be below camera.half_fov_deg = "
+            f"{config.camera.half_fov_deg} (got {config.perception.alpha_th_deg})")
+    if ctrl.start_s >= config.scenario.duration_s:
+        raise ConfigError(f"control.start_s must be before scenario.duration_s = "
+                          f"{config.scenario.duration_s} (got {ctrl.start_s})")
+    box = np.asarray(config.swarm.initial_box_size_m)
+    if config.swarm.initial_min_separation_m < ctrl.collision_distance_m:
+        raise ConfigError(
+            f"swarm.initial_min_separation_m must be >= control.collision_distance_m = "
+            f"{ctrl.collision_distance_m} (got {config.swarm.initial_min_separation_m})")
+    if float(np.prod(box + config.swarm.initial_min_separation_m)) < (
+            config.swarm.n_drones * config.swarm.initial_min_separation_m**3):
+        raise ConfigError(
+            f"swarm.initial_box_size_m {list(box)} is too small for {config.swarm.n_drones} "
+            f"drones {config.swarm.initial_min_separation_m} m apart")
+
+
+# -- loading -------------------------------------------------------------------------------
+
+
+def _check_unknown_keys(data: object, schema: object, path: str) -> None:
+    """msgspec ignores unknown keys of dataclasses; a typo must not pass silently."""
+    origin = typing.get_origin(schema)
+    if origin is tuple and isinstance(data, list):
+        args = typing.get_args(schema)
+        if len(args) == 2 and args[1] is Ellipsis:
+            for index, item in enumerate(data):
+                _check_unknown_keys(item, args[0], f"{path}[{index}]")
+        return
+    if not (dataclasses.is_dataclass(schema) and isinstance(schema, type)):
+        return
+    if not isinstance(data, dict):
+        return
+    hints = typing.get_type_hints(schema)
+    known = {f.name for f in dataclasses.fields(schema) if f.init and f.name != "source"}
+    for key, value in data.items():
+        where = f"{path}.{key}" if path else key
+        if key not in known:
+            raise ConfigError(f"{where}: unknown key (known keys here: {', '.join(sorted(known))})")
+        _check_unknown_keys(value, hints[key], where)
+
+
+def _one_line(error: msgspec.ValidationError) -> str:
+    text = str(error)
+    message, _, location = text.partition(" - at `$")
+    location = location.rstrip("`").lstrip(".")
+    if not location:
+        return message
+    if message.startswith("Expected") or message.startswith("Object missing"):
+        return f"{location}: {message}"
+    # Value errors from __post_init__ start with the field name inside that section.
+    return f"{location}.{message}"
+
+
+def config_from_dict(data: dict[str, object], source: str = "<memory>") -> ScenarioConfig:
+    """Validate a parsed TOML document; raises ConfigError with a one-line message."""
+    _check_unknown_keys(data, ScenarioConfig, "")
+    try:
+        config = msgspec.convert(data, ScenarioConfig)
+    except msgspec.ValidationError as err:
+        raise ConfigError(_one_line(err)) from None
+    except ConfigError:
+        raise
+    except ValueError as err:  # raised outside a section, e.g. from _cross_check
+        raise ConfigError(str(err)) from None
+    return dataclasses.replace(config, source=source)
+
+
+def load_config(path: str | Path) -> ScenarioConfig:
+    """Read and validate a scenario TOML file (raises ConfigError, one line)."""
+    path = Path(path)
+    try:
+        with path.open("rb") as handle:
+            data = tomllib.load(handle)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise ConfigError(f"{path}: is a directory, expected a .toml file") from None
+    except PermissionError:
+        raise ConfigError(f"{path}: permission denied") from None
+    except tomllib.TOMLDecodeError as err:
+        raise ConfigError(f"{path}: not valid TOML: {err}") from None
+    except UnicodeDecodeError:
+        raise ConfigError(f"{path}: not a UTF-8 text file") from None
+    try:
+        return config_from_dict(data, source=str(path))
+    except ConfigError as err:
+        raise ConfigError(f"{path}: {err}") from None

@@ -1,0 +1,104 @@
+"""Control barrier rows of the local QP (SPEC §8, thesis 3.20-3.25, 3.32-3.36, 4.1-4.2).
+
+Each row is returned as ``coefficients · u_i ≥ lower_bound`` (plus a slack where the QP has
+one), computed only from drone i's local copies: its Gramian copy G_ir, its consensus estimate
+s_ir of (1/N)Σ_j w_jr Π̂_jr, its estimate (p̂_ir, v̂_ir) and its own position.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from swarm.core.perception import PerceptionTerms, weighted_projector_derivative
+from swarm.core.projector import Mat3, Vec3
+from swarm.core.smooth_min import SmoothMin, inner, smooth_min_eigenvalue
+
+
+@dataclass(frozen=True)
+class LocalizationBarrier:
+    """HOCBF terms for one target at one drone (SPEC §8)."""
+
+    smooth_min: SmoothMin
+    psi0: float  # ψ0 = λ̄ − ε
+    psi1: float  # ψ1 = ⟨Γ, Ġ⟩ + ψ0
+    lie_g: Vec3  # L_gi ψ1, row 1×3
+    drift: float  # d_i
+    coupling: float  # c
+    n_agents: int
+
+    @property
+    def lambda_bar(self) -> float:
+        return self.smooth_min.value
+
+    @property
+    def lower_bound(self) -> float:
+        """Right-hand side of L_gi ψ1·u + δ ≥ −(c + ψ1)/N − d_i (thesis 3.32)."""
+        return -(self.coupling + self.psi1) / self.n_agents - self.drift
+
+
+def gramian_rate_model(
+    gramian: Mat3, projector_mean: Mat3, n_agents: int, forgetting: float, info_gain: float
+) -> Mat3:
+    """Ġ = −ρG + bN s, the model rate without the consensus term (SPEC §8)."""
+    return -forgetting * gramian + (info_gain * n_agents) * projector_mean
+
+
+def localization_barrier(
+    gramian: Mat3,
+    projector_mean: Mat3,
+    terms: PerceptionTerms,
+    target_velocity_estimate: Vec3,
+    *,
+    n_agents: int,
+    forgetting: float,
+    epsilon: float,
+    exponent: float,
+    info_gain: float,
+) -> LocalizationBarrier:
+    """ψ0, ψ1, L_gi ψ1, d_i and c for one target (SPEC §8, thesis 3.20-3.25).
+
+    L_gi ψ1 = b[⟨Γ, ∂(wΠ̂)/∂p_i,k⟩]_k; d_i = b Σ_k ⟨Γ, ∂(wΠ̂)/∂p̂_k⟩ v̂_k = −L_gi ψ1·v̂;
+    c = D²λ̄[Ġ, Ġ] + (1 − ρ)⟨Γ, Ġ⟩.
+    """
+    sm = smooth_min_eigenvalue(gramian, exponent)
+    rate = gramian_rate_model(gramian, projector_mean, n_agents, forgetting, info_gain)
+    gamma = sm.gradient
+    along_rate = inner(gamma, rate)
+    psi0 = sm.value - epsilon
+    psi1 = along_rate + psi0
+    d_weighted_projector = weighted_projector_derivative(terms)
+    lie_g = info_gain * np.einsum("kab,ab->k", d_weighted_projector, gamma)
+    drift = -float(lie_g @ target_velocity_estimate)
+    coupling = sm.second_derivative(rate) + (1.0 - forgetting) * along_rate
+    return LocalizationBarrier(sm, psi0, psi1, lie_g, drift, coupling, n_agents)
+
+
+def weight_sum_row(
+    terms: PerceptionTerms,
+    target_velocity_estimate: Vec3,
+    weight_sum_estimate: float,
+    gamma: float,
+    n_agents: int,
+) -> tuple[Vec3, float]:
+    """∂w/∂p_i·u + δw ≥ −(S_w − γ)/N − ∂w/∂p̂·v̂ (SPEC §8, thesis 3.34-3.36).
+
+    Returns (coefficients, lower bound); ∂w/∂p̂ = −∂w/∂p_i.
+    """
+    grad = terms.weight_grad_drone
+    lower = -(weight_sum_estimate - gamma) / n_agents + float(grad @ target_velocity_estimate)
+    return grad, lower
+
+
+def collision_row(
+    own_position: Vec3, other_position: Vec3, min_distance_m: float, gain: float
+) -> tuple[Vec3, float]:
+    """2(p_i − p_j)ᵀu_i ≥ −α_ca h_ij/2, h_ij = ‖p_i − p_j‖² − Δ² (SPEC §8, thesis 4.1-4.2).
+
+    Each drone of a pair takes half of the centralized constraint, so the pair satisfies it
+    when both do.
+    """
+    offset = own_position - other_position
+    h = float(offset @ offset) - min_distance_m * min_distance_m
+    return 2.0 * offset, -0.5 * gain * h

@@ -1,0 +1,95 @@
+"""Information Consensus Filter for bearing measurements (SPEC §5, thesis Algorithm 1, 2.4-2.22).
+
+The filter of one drone for one target is split at the points where it talks to neighbours:
+``initial_information`` (2.4-2.5), K calls of ``consensus_iteration`` (2.6-2.7) done by the
+caller with whatever neighbour data it has, then ``posterior`` (2.8-2.9) and ``predict``
+(2.10-2.11, or 2.21-2.22 for the single-integrator model).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from swarm.core.params import TargetModel
+
+Array = NDArray[np.float64]
+
+
+def state_dimension(model: TargetModel) -> int:
+    """6 for [p; v] (double integrator, 2.2), 3 for p (single integrator, 2.17)."""
+    return 6 if model == "double_integrator" else 3
+
+
+def transition_matrix(model: TargetModel, dt_s: float) -> Array:
+    """A_d = [[I, ΔT I], [0, I]] (2.2), or I for the single-integrator model (2.17)."""
+    n = state_dimension(model)
+    a = np.eye(n)
+    if model == "double_integrator":
+        a[0:3, 3:6] = dt_s * np.eye(3)
+    return a
+
+
+def initial_information(
+    prior_state: Array,
+    prior_information: Array,
+    measured_projector: Array | None,
+    drone_position: Array,
+    n_agents: int,
+    info_gain: float,
+) -> tuple[Array, Array]:
+    """V⁰ = W⁻/N + bμ[[Π,0],[0,0]], v⁰ = W⁻x̂⁻/N + bμ[Πp_i; 0] (2.4-2.5, 2.19-2.20).
+
+    ``measured_projector`` is Π of the *measured* bearing, or None when μ = 0. The position
+    term uses Πz = Πp_i (2.12, 2.15), so the target position itself is never needed.
+    """
+    info = prior_information / n_agents
+    vector = info @ prior_state
+    if measured_projector is not None:
+        info = info.copy()
+        info[0:3, 0:3] += info_gain * measured_projector
+        vector = vector.copy()
+        vector[0:3] += info_gain * (measured_projector @ drone_position)
+    return info, vector
+
+
+def consensus_iteration(own: Array, neighbours: Iterable[tuple[float, Array]]) -> Array:
+    """a ← a + Σ_j a_ij (a_j − a) over the neighbours whose data is at hand (2.6-2.7).
+
+    A neighbour left out (stale or lost) simply contributes nothing, which keeps the update a
+    convex combination.
+    """
+    total = own.copy()
+    for weight, value in neighbours:
+        total += weight * (value - own)
+    return total
+
+
+def posterior(information: Array, vector: Array, n_agents: int) -> tuple[Array, Array]:
+    """x̂⁺ = pinv(V)v, W⁺ = N V (2.8-2.9)."""
+    return np.linalg.pinv(information, hermitian=True) @ vector, n_agents * information
+
+
+def predict(
+    posterior_state: Array,
+    posterior_information: Array,
+    transition: Array,
+    process_noise: float,
+    communicated_velocity: Array | None = None,
+    dt_s: float = 0.0,
+) -> tuple[Array, Array]:
+    """W⁻ = (A pinv(W⁺) Aᵀ + Q)⁻¹, x̂⁻ = A x̂⁺ (2.10-2.11).
+
+    For the single-integrator model A = I and the communicated target velocity is added:
+    x̂⁻ = x̂⁺ + ΔT u_r (2.21-2.22).
+    """
+    covariance = transition @ np.linalg.pinv(posterior_information, hermitian=True) @ transition.T
+    covariance[np.diag_indices_from(covariance)] += process_noise
+    prior_information = np.linalg.inv(covariance)
+    prior_information = 0.5 * (prior_information + prior_information.T)
+    prior_state = transition @ posterior_state
+    if communicated_velocity is not None:
+        prior_state = prior_state + dt_s * communicated_velocity
+    return prior_state, prior_information

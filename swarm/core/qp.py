@@ -1,0 +1,152 @@
+"""The local QP of each drone, built as plain matrices and solved with PIQP (SPEC §9).
+
+Decision vector ``z = [u (3), δ_1..δ_M, δw_1..δw_M]`` (relaxed, 3.36) or ``z = u`` (hard, 3.37).
+Cost ``‖u − u_d‖² + Σ_r K_δ max(w_r, w_floor)(δ_r² + δw_r²)``, written for PIQP as
+``½ zᵀPz + qᵀz``. Rows ``a·z ≥ lower``. The number of rows is fixed per drone (M localization,
+M weight-sum and N − 1 collision rows) so one PIQP solver is set up once and updated each
+step; a collision row for a drone out of range is the always-true ``0 ≥ −1``.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import piqp
+from numpy.typing import NDArray
+
+INACTIVE_ROW_LOWER = -1.0  # "0·z ≥ −1": an always-satisfied placeholder row
+
+
+@dataclass(frozen=True)
+class LocalQp:
+    """One instance of the local QP, independent of any solver (SPEC §9)."""
+
+    cost_hessian: NDArray[np.float64]  # P (n×n)
+    cost_linear: NDArray[np.float64]  # q (n)
+    rows: NDArray[np.float64]  # A (m×n), constraints A z ≥ lower
+    lower: NDArray[np.float64]  # (m)
+    z_min: NDArray[np.float64]  # (n)
+    z_max: NDArray[np.float64]  # (n)
+
+    @property
+    def n_variables(self) -> int:
+        return self.cost_linear.shape[0]
+
+    def objective(self, z: NDArray[np.float64]) -> float:
+        return float(0.5 * z @ self.cost_hessian @ z + self.cost_linear @ z)
+
+    def max_violation(self, z: NDArray[np.float64]) -> float:
+        """Largest violation of any row or bound at z (0 when z is feasible)."""
+        row_gap = np.max(self.lower - self.rows @ z, initial=0.0)
+        box_gap = max(np.max(self.z_min - z), np.max(z - self.z_max), 0.0)
+        return float(max(row_gap, box_gap))
+
+
+def build_local_qp(
+    nominal_velocity: NDArray[np.float64],
+    localization_rows: NDArray[np.float64],
+    localization_lower: NDArray[np.float64],
+    weight_rows: NDArray[np.float64],
+    weight_lower: NDArray[np.float64],
+    collision_rows: NDArray[np.float64],
+    collision_lower: NDArray[np.float64],
+    weights: NDArray[np.float64],
+    *,
+    relaxed: bool,
+    slack_weight: float,
+    weight_floor: float,
+    u_max: float,
+) -> LocalQp:
+    """Assemble P, q, A, lower and the box of the local QP (SPEC §9, thesis 3.36 / 3.37).
+
+    Args:
+        nominal_velocity: u_d (3).
+        localization_rows, localization_lower: L_gi ψ1 (M×3) and −(c + ψ1)/N − d_i (M).
+        weight_rows, weight_lower: ∂w/∂p_i (M×3) and the weight-sum bound (M).
+        collision_rows, collision_lower: 2(p_i − p_j)ᵀ and −α h/2, inactive rows all zero.
+        weights: w_ir (M), scaling the slack penalties.
+        relaxed: slack columns (3.36) or none (3.37).
+    """
+    m_targets = localization_rows.shape[0]
+    n_slack = 2 * m_targets if relaxed else 0
+    n = 3 + n_slack
+    hessian = np.zeros((n, n))
+    hessian[0, 0] = hessian[1, 1] = hessian[2, 2] = 2.0
+    linear = np.zeros(n)
+    linear[:3] = -2.0 * nominal_velocity
+    z_min = np.full(n, -u_max)
+    z_max = np.full(n, u_max)
+    u_rows = np.vstack((localization_rows, weight_rows, collision_rows))
+    rows = np.zeros((u_rows.shape[0], n))
+    rows[:, :3] = u_rows
+    if relaxed:
+        penalty = 2.0 * slack_weight * np.maximum(weights, weight_floor)
+        slack_diag = np.concatenate((penalty, penalty))
+        hessian[3:, 3:] = np.diag(slack_diag)
+        z_min[3:] = 0.0
+        z_max[3:] = np.inf
+        # δ_r enters localization row r, δw_r enters weight row r.
+        rows[np.arange(2 * m_targets), 3 + np.arange(2 * m_targets)] = 1.0
+    lower = np.concatenate((localization_lower, weight_lower, collision_lower))
+    return LocalQp(hessian, linear, rows, lower, z_min, z_max)
+
+
+@dataclass(frozen=True)
+class QpSolution:
+    """Result of one local QP solve; ``found`` is False on any solver failure."""
+
+    found: bool
+    z: NDArray[np.float64]
+    status: str
+    iterations: int
+    solve_time_s: float
+    max_violation: float
+
+    @property
+    def velocity(self) -> NDArray[np.float64]:
+        return self.z[:3]
+
+
+@dataclass
+class QpSolver:
+    """One PIQP dense solver per drone and QP shape, set up once and updated each step."""
+
+    feasibility_tolerance: float = 1e-6
+    _solver: piqp.DenseSolver | None = field(default=None, init=False, repr=False)
+    _shape: tuple[int, int] | None = field(default=None, init=False, repr=False)
+
+    def solve(self, qp: LocalQp) -> QpSolution:
+        hessian = np.asfortranarray(qp.cost_hessian)
+        rows = np.asfortranarray(qp.rows)
+        upper = np.full(qp.lower.shape, np.inf)
+        start = time.perf_counter()
+        shape = qp.rows.shape
+        if self._solver is None or self._shape != shape:
+            self._solver = piqp.DenseSolver()
+            settings = self._solver.settings
+            settings.verbose = False
+            settings.eps_abs = 1e-9
+            settings.eps_rel = 1e-10
+            settings.max_iter = 200
+            self._solver.setup(hessian, qp.cost_linear, None, None, rows, qp.lower, upper,
+                               qp.z_min, qp.z_max)
+            self._shape = shape
+        else:
+            self._solver.update(P=hessian, c=qp.cost_linear, G=rows, h_l=qp.lower, h_u=upper,
+                                x_l=qp.z_min, x_u=qp.z_max)
+        status = self._solver.solve()
+        elapsed = time.perf_counter() - start
+        result = self._solver.result
+        z = np.array(result.x, dtype=float)
+        solved = status == piqp.PIQP_SOLVED and bool(np.all(np.isfinite(z)))
+        violation = qp.max_violation(z) if solved else float("inf")
+        return QpSolution(
+            found=solved and violation <= self.feasibility_tolerance,
+            z=z,
+            status=str(status).rsplit(".", 1)[-1],
+            iterations=int(result.info.iter),
+            solve_time_s=elapsed,
+            max_violation=violation,
+        )

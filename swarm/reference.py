@@ -1,0 +1,227 @@
+"""In-process reference runner: N ``DroneAgent``s, exact synchronous exchange, seeded.
+
+The world (targets, cameras, kinematics) and the agents live in one process and step in
+lockstep; every neighbour message of round κ is delivered before round κ + 1. Same config and
+seed → bit-identical output. Besides what the agents compute, the runner integrates two
+reference Gramians from ground truth for checking:
+
+- *true*: Ġ = −ρG + bΣ_i w_i Π_i with weights and projectors from the true positions (what
+  the copies would be with perfect estimation and consensus);
+- *measured*: Ġ = −ρG + bΣ_{i detects} Π_i, the information actually gathered.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from sim_world.camera import detect
+from sim_world.kinematics import sample_initial_positions, step_drone
+from swarm.config import ScenarioConfig
+from swarm.core.agent import AgentSetup, DroneAgent, StepDiagnostics
+from swarm.core.formation import circle_bearings
+from swarm.core.gramian import initial_gramian, true_gramian_step
+from swarm.core.perception import perception_terms
+from swarm.core.projector import bearing, projector
+
+Array = NDArray[np.float64]
+
+# Independent random streams, keyed so that each drone's stream does not depend on how many
+# other drones or processes exist (the process swarm draws the very same numbers).
+STREAM_INITIAL_POSITIONS = 1
+STREAM_INITIAL_GUESS = 2
+STREAM_CAMERA = 3
+
+
+def stream(seed: int, purpose: int, index: int = 0) -> np.random.Generator:
+    return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(purpose, index)))
+
+
+def initial_drone_positions(config: ScenarioConfig, seed: int) -> Array:
+    sw = config.swarm
+    return sample_initial_positions(sw.n_drones, np.array(sw.initial_box_center_m),
+                                    np.array(sw.initial_box_size_m),
+                                    sw.initial_min_separation_m,
+                                    stream(seed, STREAM_INITIAL_POSITIONS))
+
+
+def initial_target_guesses(config: ScenarioConfig, seed: int, drone_id: int) -> Array:
+    """Truth at t = 0 plus U(−x, x) per axis, drawn from drone ``drone_id``'s own stream."""
+    rng = stream(seed, STREAM_INITIAL_GUESS, drone_id)
+    offset = config.estimation.initial_offset_m
+    starts = np.array([t.start_m for t in config.targets], dtype=float)
+    return starts + rng.uniform(-offset, offset, size=starts.shape)
+
+
+def agent_setup(config: ScenarioConfig, drone_id: int) -> AgentSetup:
+    graph = config.swarm.graph
+    est = config.estimation
+    desired: dict[int, Array] = {}
+    if config.control.task == "bearing_formation":
+        bearings = circle_bearings(graph.n_nodes)
+        desired = {j: bearings[drone_id, j] for j in graph.neighbours[drone_id]}
+    return AgentSetup(
+        drone_id=drone_id,
+        n_drones=graph.n_nodes,
+        n_targets=len(config.targets),
+        dt_s=config.scenario.dt_s,
+        neighbour_weights=graph.consensus_weights(drone_id, est.consensus_weights,
+                                                  est.laplacian_step),
+        perception=config.perception,
+        estimation=est,
+        gramian=config.gramian,
+        control=config.control,
+        desired_bearings=desired,
+    )
+
+
+def build_agent(config: ScenarioConfig, seed: int, drone_id: int) -> DroneAgent:
+    return DroneAgent(agent_setup(config, drone_id), initial_target_guesses(config, seed, drone_id))
+
+
+@dataclass(frozen=True)
+class RunRecord:
+    """Time series of a run; index k is step k (t = k·ΔT), before the motion of step k."""
+
+    config: ScenarioConfig
+    seed: int
+    times_s: Array  # (K,)
+    drone_positions_m: Array  # (K, N, 3)
+    velocities_m_s: Array  # (K, N, 3) commanded
+    target_positions_m: Array  # (K, M, 3)
+    target_velocities_m_s: Array  # (K, M, 3)
+    estimates: Array  # (K, N, M, n)
+    lambda_bar: Array  # (K, N, M) λ̄ of each drone's copy
+    psi0: Array  # (K, N, M)
+    psi1: Array  # (K, N, M)
+    weights: Array  # (K, N, M)
+    slacks: Array  # (K, N, M)
+    weight_slacks: Array  # (K, N, M)
+    detected: Array  # (K, N, M) bool
+    true_lambda_min: Array  # (K, M)
+    measured_lambda_min: Array  # (K, M)
+    bearing_errors: Array  # (K, N), NaN without a formation task
+    qp_fallback: Array  # (K, N) bool
+    step_us: Array  # (K, N)
+    wall_time_s: float
+
+    @property
+    def n_steps(self) -> int:
+        return int(self.times_s.shape[0])
+
+    def position_errors(self) -> Array:
+        """‖p̂_ir − p_r‖ per step, drone and target, (K, N, M) [m]."""
+        return np.linalg.norm(self.estimates[..., :3] - self.target_positions_m[:, None], axis=-1)
+
+    def min_pairwise_distance(self) -> float:
+        p = self.drone_positions_m
+        diff = p[:, :, None, :] - p[:, None, :, :]
+        dist = np.linalg.norm(diff, axis=-1)
+        n = p.shape[1]
+        dist[:, np.arange(n), np.arange(n)] = np.inf
+        return float(dist.min())
+
+
+def _true_information_rate(config: ScenarioConfig, drones: Array, target: Array) -> Array:
+    rate = np.zeros((3, 3))
+    for p_i in drones:
+        terms = perception_terms(p_i, target, config.perception)
+        rate += terms.weight * terms.projector
+    return config.estimation.info_gain * rate
+
+
+def _measured_information_rate(config: ScenarioConfig, drones: Array, target: Array,
+                               seen: Array) -> Array:
+    rate = np.zeros((3, 3))
+    for p_i, sees in zip(drones, seen, strict=True):
+        if sees:
+            rate += projector(bearing(target - p_i)[0])
+    return config.estimation.info_gain * rate
+
+
+StepCallback = Callable[[int, list[StepDiagnostics]], None]
+
+
+def run_reference(config: ScenarioConfig, seed: int | None = None,
+                  on_step: StepCallback | None = None) -> RunRecord:
+    """Run the scenario in one process and return every time series."""
+    seed = config.scenario.seed if seed is None else seed
+    started = time.perf_counter()
+    n, m, dt = config.swarm.n_drones, len(config.targets), config.scenario.dt_s
+    steps = config.n_steps
+    graph = config.swarm.graph
+    trajectories = [t.build() for t in config.targets]
+    agents = [build_agent(config, seed, i) for i in range(n)]
+    cameras = [stream(seed, STREAM_CAMERA, i) for i in range(n)]
+    positions = initial_drone_positions(config, seed)
+    n_state = agents[0].target_estimates.shape[1]
+    gram = config.gramian
+    true_g = np.broadcast_to(initial_gramian(gram.epsilon), (m, 3, 3)).copy()
+    measured_g = true_g.copy()
+
+    rec = {
+        "pos": np.zeros((steps, n, 3)), "vel": np.zeros((steps, n, 3)),
+        "tpos": np.zeros((steps, m, 3)), "tvel": np.zeros((steps, m, 3)),
+        "est": np.zeros((steps, n, m, n_state)), "lam": np.zeros((steps, n, m)),
+        "psi0": np.zeros((steps, n, m)), "psi1": np.zeros((steps, n, m)),
+        "w": np.zeros((steps, n, m)), "slack": np.zeros((steps, n, m)),
+        "wslack": np.zeros((steps, n, m)), "det": np.zeros((steps, n, m), dtype=bool),
+        "true": np.zeros((steps, m)), "meas": np.zeros((steps, m)),
+        "berr": np.full((steps, n), np.nan), "fb": np.zeros((steps, n), dtype=bool),
+        "us": np.zeros((steps, n)),
+    }
+    for k in range(steps):
+        t = k * dt
+        targets = np.array([traj.position(t) for traj in trajectories])
+        target_vel = np.array([traj.velocity(t) for traj in trajectories])
+        detections = [detect(positions[i], targets, config.camera, cameras[i]) for i in range(n)]
+        communicated = target_vel if config.estimation.model == "single_integrator" else None
+        messages = [agents[i].begin_step(k, positions[i], detections[i], communicated)
+                    for i in range(n)]
+        for _ in range(agents[0].n_rounds):
+            inboxes = [{j: messages[j] for j in graph.neighbours[i]} for i in range(n)]
+            messages = [agents[i].consensus_round(inboxes[i]) for i in range(n)]
+        beacons = {i: positions[i] for i in range(n)}
+        results = [agents[i].finish_step(beacons) for i in range(n)]
+        diags = [r.diagnostics for r in results]
+
+        rec["pos"][k], rec["tpos"][k], rec["tvel"][k] = positions, targets, target_vel
+        for i, d in enumerate(diags):
+            rec["vel"][k, i] = d.velocity
+            rec["est"][k, i] = d.estimates
+            rec["lam"][k, i], rec["psi0"][k, i], rec["psi1"][k, i] = d.lambda_bar, d.psi0, d.psi1
+            rec["w"][k, i], rec["slack"][k, i], rec["wslack"][k, i] = (
+                d.weights, d.slacks, d.weight_slacks)
+            rec["det"][k, i], rec["fb"][k, i], rec["us"][k, i] = (
+                d.detected, d.qp_fallback, d.step_us)
+            if d.bearing_error is not None:
+                rec["berr"][k, i] = d.bearing_error
+        for r in range(m):
+            rec["true"][k, r] = np.linalg.eigvalsh(true_g[r])[0]
+            rec["meas"][k, r] = np.linalg.eigvalsh(measured_g[r])[0]
+            true_g[r] = true_gramian_step(
+                true_g[r], _true_information_rate(config, positions, targets[r]),
+                forgetting=gram.forgetting, dt_s=dt)
+            measured_g[r] = true_gramian_step(
+                measured_g[r], _measured_information_rate(config, positions, targets[r],
+                                                          rec["det"][k, :, r]),
+                forgetting=gram.forgetting, dt_s=dt)
+        if on_step is not None:
+            on_step(k, diags)
+        positions = np.array([step_drone(positions[i], results[i].velocity,
+                                         config.control.u_max_m_s, dt) for i in range(n)])
+
+    return RunRecord(
+        config=config, seed=seed, times_s=np.arange(steps) * dt,
+        drone_positions_m=rec["pos"], velocities_m_s=rec["vel"],
+        target_positions_m=rec["tpos"], target_velocities_m_s=rec["tvel"],
+        estimates=rec["est"], lambda_bar=rec["lam"], psi0=rec["psi0"], psi1=rec["psi1"],
+        weights=rec["w"], slacks=rec["slack"], weight_slacks=rec["wslack"],
+        detected=rec["det"], true_lambda_min=rec["true"], measured_lambda_min=rec["meas"],
+        bearing_errors=rec["berr"], qp_fallback=rec["fb"], step_us=rec["us"],
+        wall_time_s=time.perf_counter() - started,
+    )
