@@ -1,0 +1,317 @@
+"""High Order CBF terms, weight-sum and collision rows (SPEC §8).
+
+The central check is ``test_lie_derivatives_give_the_closed_loop_rate_of_psi1``: along the
+true centralized flow (drones with velocities u_j, a moving target, Ġ = −ρG + bΣ_j w_jΠ_j),
+dψ1/dt measured by finite differences in time must equal c + Σ_j (L_gj ψ1·u_j + d_j) built
+from ``localization_barrier`` evaluated at each drone.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.stats import special_ortho_group
+
+from swarm.core.barrier import (
+    collision_row,
+    gramian_rate_model,
+    localization_barrier,
+    weight_sum_row,
+)
+from swarm.core.params import GramianParams, PerceptionParams
+from swarm.core.perception import perception_terms, perception_weight
+from swarm.core.smooth_min import inner, smooth_min_eigenvalue
+
+from .finite_difference import (
+    REGIMES,
+    central_gradient,
+    random_drone_in_regime,
+    richardson_derivative,
+    rk4,
+)
+
+PERCEPTION = PerceptionParams()
+GRAMIAN = GramianParams()
+RHO = GRAMIAN.forgetting
+EPSILON = GRAMIAN.epsilon
+INFO_GAIN = 1.0
+EXPONENTS = [-4.0, -10.0, -30.0]
+
+
+def _barrier(gramian, projector_mean, drone, target, target_velocity, n_agents, exponent):
+    terms = perception_terms(drone, target, PERCEPTION)
+    return localization_barrier(
+        gramian, projector_mean, terms, target_velocity, n_agents=n_agents, forgetting=RHO,
+        epsilon=EPSILON, exponent=exponent, info_gain=INFO_GAIN)
+
+
+def _random_gramian(rng: np.random.Generator) -> np.ndarray:
+    rotation = special_ortho_group.rvs(3, random_state=rng)
+    return rotation @ np.diag(rng.uniform(0.05, 3.0, 3)) @ rotation.T
+
+
+def _weighted_projector(drone: np.ndarray, target: np.ndarray) -> np.ndarray:
+    terms = perception_terms(drone, target, PERCEPTION)
+    return terms.weight * terms.projector
+
+
+def _psi1(gramian: np.ndarray, projector_mean: np.ndarray, n_agents: int,
+          exponent: float) -> float:
+    """ψ1 = ⟨Γ(G), −ρG + bNs⟩ + λ̄(G) − ε, written from SPEC §8."""
+    sm = smooth_min_eigenvalue(gramian, exponent)
+    rate = -RHO * gramian + INFO_GAIN * n_agents * projector_mean
+    return inner(sm.gradient, rate) + sm.value - EPSILON
+
+
+def _six_drones(rng: np.random.Generator, target: np.ndarray) -> np.ndarray:
+    """One drone in each regime of the weight (near/nominal/far × off-/on-axis)."""
+    return np.array([random_drone_in_regime(rng, target, d, c) for d, c in REGIMES])
+
+
+# Gradient checks in the drone position: F has the smoothness of w·Π (|F'''| ≲ 1e3 m⁻³ in the
+# near regime, see test_perception), |F| ≤ 3, so with h = 1e-6 m truncation ≲ 2e-10 and
+# round-off ≲ 3ε/h ≈ 7e-10: tolerance 1e-8.
+FD_STEP_M = 1e-6
+FD_ATOL = 1e-8
+
+
+@pytest.mark.parametrize("exponent", EXPONENTS)
+@pytest.mark.parametrize(("distance_regime", "cosine_regime"), REGIMES)
+def test_lie_g_is_the_gradient_of_the_input_dependent_part(distance_regime: str,
+                                                           cosine_regime: str,
+                                                           exponent: float) -> None:
+    """L_gi ψ1 = ∂F/∂p_i with F(p_i) = b⟨Γ(G), w(p_i, p̂)Π̂(p_i, p̂)⟩ at fixed G."""
+    rng = np.random.default_rng(REGIMES.index((distance_regime, cosine_regime)) - int(exponent))
+    for _ in range(4):
+        target = rng.uniform(-1.0, 1.0, 3)
+        drone = random_drone_in_regime(rng, target, distance_regime, cosine_regime)
+        gramian = _random_gramian(rng)
+        gamma = smooth_min_eigenvalue(gramian, exponent).gradient
+        barrier = _barrier(gramian, _weighted_projector(drone, target), drone, target,
+                           np.zeros(3), 6, exponent)
+
+        def input_part(p: np.ndarray, g: np.ndarray = gamma, t: np.ndarray = target) -> float:
+            return INFO_GAIN * inner(g, _weighted_projector(p, t))
+
+        numeric = central_gradient(input_part, drone, FD_STEP_M)
+        np.testing.assert_allclose(barrier.lie_g, numeric, rtol=0, atol=FD_ATOL)
+
+
+@pytest.mark.parametrize(("distance_regime", "cosine_regime"), REGIMES)
+def test_drift_is_the_rate_of_the_input_part_along_the_target_velocity(
+    distance_regime: str, cosine_regime: str
+) -> None:
+    """d_i = ∂F/∂p̂·v̂: the central difference of F(p̂ + t v̂) in t at fixed p_i and G."""
+    rng = np.random.default_rng(50 + REGIMES.index((distance_regime, cosine_regime)))
+    for _ in range(5):
+        target = rng.uniform(-1.0, 1.0, 3)
+        drone = random_drone_in_regime(rng, target, distance_regime, cosine_regime)
+        velocity = rng.uniform(-1.0, 1.0, 3)
+        gramian = _random_gramian(rng)
+        gamma = smooth_min_eigenvalue(gramian, -10.0).gradient
+        barrier = _barrier(gramian, _weighted_projector(drone, target), drone, target,
+                           velocity, 6, -10.0)
+
+        def along_target(t: float) -> float:
+            return INFO_GAIN * inner(gamma, _weighted_projector(drone, target + t * velocity))
+
+        # |v̂| ≤ √3, so the step in p̂ is ≤ 1.7e-6 m: same error budget as the gradient test.
+        numeric = (along_target(FD_STEP_M) - along_target(-FD_STEP_M)) / (2 * FD_STEP_M)
+        assert barrier.drift == pytest.approx(numeric, rel=0, abs=2 * FD_ATOL)
+
+
+@pytest.mark.parametrize("exponent", EXPONENTS)
+def test_coupling_is_the_rate_of_psi1_along_the_model_gramian_rate(exponent: float) -> None:
+    """With s fixed, Ġ(G) = −ρG + bNs and d/dt ψ1(G + tĠ)|₀ = D²λ̄[Ġ,Ġ] + (1 − ρ)⟨Γ,Ġ⟩ = c.
+
+    Also checks ψ0, ψ1 and the row's lower bound −(c + ψ1)/N − d_i against SPEC §8. Richardson
+    differences with a step moving G by 1e-4·λ_min have O(h⁴) truncation (< 1e-9 of the
+    scale |D²λ̄[Ġ,Ġ]| + |⟨Γ,Ġ⟩| for p = −30); tolerance 1e-7 of that scale.
+    """
+    rng = np.random.default_rng(int(-exponent))
+    n_agents = 6
+    gramians = [_random_gramian(rng) for _ in range(4)]
+    gramians += [2.0 * EPSILON * np.eye(3), np.diag([0.3, 0.3, 1.2])]  # start, repeated pair
+    for gramian in gramians:
+        target = rng.uniform(-1.0, 1.0, 3)
+        drones = _six_drones(rng, target)
+        mean = np.mean([_weighted_projector(p, target) for p in drones], axis=0)
+        velocity = rng.uniform(-1.0, 1.0, 3)
+        barrier = _barrier(gramian, mean, drones[0], target, velocity, n_agents, exponent)
+        sm = smooth_min_eigenvalue(gramian, exponent)
+        rate = gramian_rate_model(gramian, mean, n_agents, RHO, INFO_GAIN)
+        np.testing.assert_allclose(rate, -RHO * gramian + INFO_GAIN * n_agents * mean)
+
+        assert barrier.psi0 == pytest.approx(sm.value - EPSILON, rel=1e-14)
+        assert barrier.psi1 == pytest.approx(_psi1(gramian, mean, n_agents, exponent),
+                                             rel=1e-12, abs=1e-14)
+        expected_lower = -(barrier.coupling + barrier.psi1) / n_agents - barrier.drift
+        assert barrier.lower_bound == pytest.approx(expected_lower, rel=1e-14)
+
+        step = 1e-4 * sm.eigenvalues[0] / np.linalg.norm(rate)
+        numeric = richardson_derivative(
+            lambda t, g=gramian, r=rate, s=mean: _psi1(g + t * r, s, n_agents, exponent), step)
+        scale = abs(sm.second_derivative(rate)) + abs(inner(sm.gradient, rate))
+        assert barrier.coupling == pytest.approx(numeric, rel=0, abs=1e-7 * scale)
+
+
+def _information_rate(drones: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """bΣ_j w_jΠ_j of the true (centralized) Gramian, from true positions."""
+    return INFO_GAIN * np.sum([_weighted_projector(p, target) for p in drones], axis=0)
+
+
+def _psi1_along_flow(t: float, gramian, drones, velocities, target, target_velocity,
+                     exponent) -> float:
+    """ψ1 at time t of the closed loop: positions move linearly, G follows Ġ = −ρG + bΣwΠ.
+
+    G(t) by RK4 with 8 steps of ≤ 1.25e-5 s: local error ~ (1.25e-5)⁵·|G⁽⁵⁾| per step, far
+    below the round-off of G itself.
+    """
+    def rate(tau: float, g: np.ndarray) -> np.ndarray:
+        return -RHO * g + _information_rate(drones + tau * velocities,
+                                            target + tau * target_velocity)
+
+    gramian_t = rk4(rate, gramian, t, 8) if t != 0.0 else gramian
+    drones_t = drones + t * velocities
+    target_t = target + t * target_velocity
+    mean = _information_rate(drones_t, target_t) / (INFO_GAIN * len(drones))
+    return _psi1(gramian_t, mean, len(drones), exponent)
+
+
+@pytest.mark.parametrize("exponent", EXPONENTS)
+@pytest.mark.parametrize("seed", range(8))
+def test_lie_derivatives_give_the_closed_loop_rate_of_psi1(seed: int, exponent: float) -> None:
+    """dψ1/dt along the centralized closed loop = c + Σ_j (L_gj ψ1·u_j + d_j) (SPEC §8).
+
+    N = 7 drones (one in each weight regime plus one random), random velocities ≤ 3 m/s per
+    axis, a moving target, G random SPD or the isotropic start 2εI; every term comes from
+    ``localization_barrier`` with s = (1/N)Σ_j w_jΠ_j, v̂ = v_r and p̂ = p_r (exact estimates).
+    Time derivative: Richardson-extrapolated central differences, O(h⁴). ψ1 varies on the time
+    scale τ = λ_min/((1 − p)‖Ġ‖) (curvature |p|/λ of λ̄ times the speed of G: 1.3 ms at 2εI
+    with p = −30), so h = min(1e-4 s, 0.05τ); positions then move ≤ 0.6 mm and every drone
+    stays inside its regime. The mismatch shrinks 16× per halving of h (checked while writing
+    this test) and is ≤ 1e-9 of the scale |c| + Σ|L_gj·u_j| + Σ|d_j|; the tolerance is 1e-7
+    of it. A wrong sign or factor in any term is an O(1) error.
+    """
+    rng = np.random.default_rng(seed + 100 * int(-exponent))
+    target = np.array([*rng.uniform(-1.0, 1.0, 2), 0.0])
+    drones = np.vstack([_six_drones(rng, target),
+                        target + rng.uniform([-4, -4, 1], [4, 4, 6], size=(1, 3))])
+    n_agents = len(drones)
+    velocities = rng.uniform(-3.0, 3.0, size=(n_agents, 3))
+    target_velocity = np.array([*rng.uniform(-0.5, 0.5, 2), 0.0])
+    gramian = 2.0 * EPSILON * np.eye(3) if seed % 4 == 0 else _random_gramian(rng)
+    mean = _information_rate(drones, target) / (INFO_GAIN * n_agents)
+
+    predicted = 0.0
+    scale = 0.0
+    coupling = None
+    for drone, velocity in zip(drones, velocities, strict=True):
+        barrier = _barrier(gramian, mean, drone, target, target_velocity, n_agents, exponent)
+        if coupling is None:
+            coupling = barrier.coupling
+        assert barrier.coupling == coupling  # c depends only on (G, s), the same at every drone
+        predicted += float(barrier.lie_g @ velocity) + barrier.drift
+        scale += abs(float(barrier.lie_g @ velocity)) + abs(barrier.drift)
+    predicted += coupling
+    scale += abs(coupling)
+
+    model_rate = -RHO * gramian + INFO_GAIN * n_agents * mean
+    time_scale = np.linalg.eigvalsh(gramian)[0] / ((1.0 - exponent) * np.linalg.norm(model_rate))
+    numeric = richardson_derivative(
+        lambda t: _psi1_along_flow(t, gramian, drones, velocities, target, target_velocity,
+                                   exponent),
+        min(1e-4, 0.05 * time_scale))
+    assert predicted == pytest.approx(numeric, rel=0, abs=1e-7 * scale)
+
+
+def test_weight_sum_row_coefficients_and_bound() -> None:
+    """Row = ∂w/∂p_i (FD) and bound = −(S_w − γ)/N − ∂w/∂p̂·v̂ with ∂w/∂p̂ by FD (SPEC §8)."""
+    rng = np.random.default_rng(9)
+    for distance_regime, cosine_regime in REGIMES:
+        target = rng.uniform(-1.0, 1.0, 3)
+        drone = random_drone_in_regime(rng, target, distance_regime, cosine_regime)
+        velocity = rng.uniform(-1.0, 1.0, 3)
+        weight_sum, gamma, n_agents = rng.uniform(0.0, 3.0), 0.5, 6
+        terms = perception_terms(drone, target, PERCEPTION)
+        coefficients, lower = weight_sum_row(terms, velocity, weight_sum, gamma, n_agents)
+        wrt_drone = central_gradient(lambda p: perception_weight(p, target, PERCEPTION), drone,
+                                     FD_STEP_M)
+        wrt_target = central_gradient(lambda t: perception_weight(drone, t, PERCEPTION), target,
+                                      FD_STEP_M)
+        np.testing.assert_allclose(coefficients, wrt_drone, rtol=0, atol=FD_ATOL)
+        expected = -(weight_sum - gamma) / n_agents - float(wrt_target @ velocity)
+        assert lower == pytest.approx(expected, rel=0, abs=2 * FD_ATOL)
+
+
+def _weight_sum(drones: np.ndarray, target: np.ndarray) -> float:
+    return float(sum(perception_weight(p, target, PERCEPTION) for p in drones))
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_weight_sum_rows_together_enforce_the_centralized_cbf(seed: int) -> None:
+    """Σ_j (a_j·u_j − lower_j) = d/dt Σ_j w_j + (S_w − γ) with S_w = Σ_j w_j (exact consensus).
+
+    Hence if every drone satisfies its row (δw = 0), d/dt Σw ≥ −(Σw − γ), the CBF of
+    h = Σ_j w_j − γ. The time derivative is a central difference with h = 1e-6 s (positions
+    move ≤ 3 µm; error budget as in the gradient tests, times N = 6): tolerance 1e-7.
+    """
+    rng = np.random.default_rng(seed)
+    gamma = 0.5
+    target = np.array([*rng.uniform(-1.0, 1.0, 2), 0.0])
+    drones = _six_drones(rng, target)
+    n_agents = len(drones)
+    target_velocity = np.array([*rng.uniform(-0.5, 0.5, 2), 0.0])
+    weight_sum = _weight_sum(drones, target)
+    rows = [weight_sum_row(perception_terms(p, target, PERCEPTION), target_velocity,
+                           weight_sum, gamma, n_agents) for p in drones]
+
+    def rate_of_weight_sum(velocities: np.ndarray) -> float:
+        step = 1e-6
+        forward = _weight_sum(drones + step * velocities, target + step * target_velocity)
+        backward = _weight_sum(drones - step * velocities, target - step * target_velocity)
+        return (forward - backward) / (2.0 * step)
+
+    velocities = rng.uniform(-3.0, 3.0, size=(n_agents, 3))
+    margins = sum(float(a @ u) - lower for (a, lower), u in zip(rows, velocities, strict=True))
+    assert margins == pytest.approx(rate_of_weight_sum(velocities) + weight_sum - gamma,
+                                    rel=0, abs=1e-7)
+
+    # Project each velocity onto its row's half-space, then the centralized CBF must hold.
+    for k, (a, lower) in enumerate(rows):
+        gap = lower - float(a @ velocities[k])
+        if gap > 0.0:
+            assert a @ a > 0.0, "a drone with w = 1 has lower = −(S_w − γ)/N ≤ 0 here"
+            velocities[k] += (gap + 1e-9) / float(a @ a) * a
+    assert rate_of_weight_sum(velocities) >= -(weight_sum - gamma) - 1e-7
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_collision_rows_of_a_pair_enforce_the_centralized_cbf(seed: int) -> None:
+    """Both halves satisfied ⇒ ḣ_ij ≥ −α h_ij with h_ij = ‖p_i − p_j‖² − Δ² (SPEC §8).
+
+    Exactly: (a_i·u_i − l_i) + (a_j·u_j − l_j) = ḣ_ij + α h_ij, with ḣ_ij = 2(p_i − p_j)ᵀ(u_i − u_j)
+    computed from the definition; equalities hold to round-off (1e-12 of the terms, ≤ 1e2).
+    """
+    rng = np.random.default_rng(seed)
+    distance, gain = 0.5, 1.0
+    p_i = rng.uniform(-2.0, 2.0, 3)
+    p_j = p_i + rng.normal(size=3) * rng.uniform(0.2, 3.0)
+    h = float((p_i - p_j) @ (p_i - p_j)) - distance**2
+    row_i, lower_i = collision_row(p_i, p_j, distance, gain)
+    row_j, lower_j = collision_row(p_j, p_i, distance, gain)
+    np.testing.assert_allclose(row_i, 2.0 * (p_i - p_j))
+    assert lower_i == pytest.approx(-0.5 * gain * h, rel=1e-14)
+    assert lower_j == lower_i
+
+    u_i, u_j = rng.uniform(-3.0, 3.0, 3), rng.uniform(-3.0, 3.0, 3)
+    h_rate = 2.0 * float((p_i - p_j) @ (u_i - u_j))
+    margins = float(row_i @ u_i) - lower_i + float(row_j @ u_j) - lower_j
+    assert margins == pytest.approx(h_rate + gain * h, rel=0, abs=1e-10)
+
+    for row, lower, u in ((row_i, lower_i, u_i), (row_j, lower_j, u_j)):
+        gap = lower - float(row @ u)
+        if gap > 0.0:
+            u += gap / float(row @ row) * row
+    h_rate = 2.0 * float((p_i - p_j) @ (u_i - u_j))
+    assert h_rate >= -gain * h - 1e-10

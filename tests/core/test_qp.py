@@ -1,0 +1,297 @@
+"""The local QP: its assembly and its PIQP solution (SPEC §9, thesis 3.36-3.37).
+
+The reference optimum is computed by brute force, independently of PIQP: the velocity u has
+only 3 components, so the optimum is the minimiser of an equality-constrained problem for
+some set of at most 3 active hard constraints (collision rows and box), and in the relaxed QP
+the optimal slacks are δ_r = max(0, l_r − a_r·u), so it is enough to also enumerate which
+slacks are positive. Every candidate is feasible by construction or rejected, so the least
+objective among candidates is the global optimum of the (strictly convex) problem.
+"""
+
+from __future__ import annotations
+
+import itertools
+from dataclasses import dataclass
+
+import numpy as np
+import piqp
+import pytest
+
+from swarm.core import qp as qp_module
+from swarm.core.barrier import collision_row
+from swarm.core.qp import INACTIVE_ROW_LOWER, LocalQp, QpSolver, build_local_qp
+
+U_MAX = 3.0
+SLACK_WEIGHT = 1e6
+WEIGHT_FLOOR = 1e-3
+N_DRONES = 4  # three collision slots
+
+
+@dataclass
+class Instance:
+    """QP data as the agent passes it to ``build_local_qp``, in SPEC §8-§9 terms."""
+
+    nominal: np.ndarray
+    localization_rows: np.ndarray
+    localization_lower: np.ndarray
+    weight_rows: np.ndarray
+    weight_lower: np.ndarray
+    collision_rows: np.ndarray
+    collision_lower: np.ndarray
+    weights: np.ndarray
+
+    def build(self, *, relaxed: bool) -> LocalQp:
+        return build_local_qp(
+            self.nominal, self.localization_rows, self.localization_lower, self.weight_rows,
+            self.weight_lower, self.collision_rows, self.collision_lower, self.weights,
+            relaxed=relaxed, slack_weight=SLACK_WEIGHT, weight_floor=WEIGHT_FLOOR, u_max=U_MAX)
+
+    @property
+    def soft_rows(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(A, l, penalty k) of the rows that carry a slack, localization then weight-sum."""
+        penalty = SLACK_WEIGHT * np.maximum(self.weights, WEIGHT_FLOOR)
+        return (np.vstack((self.localization_rows, self.weight_rows)),
+                np.concatenate((self.localization_lower, self.weight_lower)),
+                np.concatenate((penalty, penalty)))
+
+    def spec_objective(self, z: np.ndarray) -> float:
+        """‖u − u_d‖² + Σ_r K_δ max(w_r, w_floor)(δ_r² + δw_r²) (SPEC §9)."""
+        u, slacks = z[:3], z[3:]
+        _, _, penalty = self.soft_rows
+        return float((u - self.nominal) @ (u - self.nominal) + penalty[: slacks.size] @ slacks**2)
+
+    def reduced_objective(self, u: np.ndarray) -> float:
+        """Relaxed objective with the slacks at their optimum δ = max(0, l − a·u)."""
+        a, lower, penalty = self.soft_rows
+        slacks = np.maximum(0.0, lower - a @ u)
+        return float((u - self.nominal) @ (u - self.nominal) + penalty @ slacks**2)
+
+
+def random_instance(rng: np.random.Generator, m_targets: int, *, hard_feasible: bool) -> Instance:
+    """Random rows of realistic size; with ``hard_feasible`` a chosen u_f satisfies them all.
+
+    Without it the localization/weight bounds are shifted up so that some need a slack. The
+    collision rows come from ``collision_row`` for neighbours 0.6-3 m away (u_f satisfies them:
+    the offset is flipped if needed), plus one inactive slot "0 ≥ −1".
+    """
+    u_feasible = rng.uniform(-0.8, 0.8, 3) * U_MAX
+    loc_rows = rng.normal(size=(m_targets, 3)) * rng.uniform(0.1, 5.0, (m_targets, 1))
+    w_rows = rng.normal(size=(m_targets, 3)) * rng.uniform(0.01, 1.0, (m_targets, 1))
+    shift_low, shift_high = (-2.0, 0.0) if hard_feasible else (-1.0, 3.0)
+    loc_lower = loc_rows @ u_feasible + rng.uniform(shift_low, shift_high, m_targets)
+    w_lower = w_rows @ u_feasible + rng.uniform(shift_low, shift_high, m_targets)
+    col_rows = np.zeros((N_DRONES - 1, 3))
+    col_lower = np.full(N_DRONES - 1, INACTIVE_ROW_LOWER)
+    own = np.zeros(3)
+    for slot in range(N_DRONES - 2):
+        offset = rng.normal(size=3)
+        offset *= rng.uniform(0.6, 3.0) / np.linalg.norm(offset)
+        row, lower = collision_row(own, own - offset, 0.5, 1.0)
+        if row @ u_feasible < lower:
+            row, lower = collision_row(own, own + offset, 0.5, 1.0)
+        col_rows[slot], col_lower[slot] = row, lower
+    nominal = rng.uniform(-4.0, 4.0, 3)  # may lie outside the box
+    weights = rng.uniform(0.0, 1.0, m_targets)
+    weights[rng.random(m_targets) < 0.3] = 1e-5  # below the floor
+    return Instance(nominal, loc_rows, loc_lower, w_rows, w_lower, col_rows, col_lower,
+                    weights)
+
+
+def _hard_constraints(instance: Instance) -> tuple[np.ndarray, np.ndarray]:
+    """Active collision rows and the box, as A u ≥ l."""
+    active = np.any(instance.collision_rows != 0.0, axis=1)
+    box_rows = np.vstack((np.eye(3), -np.eye(3)))
+    return (np.vstack((instance.collision_rows[active], box_rows)),
+            np.concatenate((instance.collision_lower[active], np.full(6, -U_MAX))))
+
+
+def brute_force_optimum(instance: Instance, *, relaxed: bool) -> tuple[np.ndarray, float] | None:
+    """(u*, objective*) by enumerating active sets (and positive slacks), None if infeasible.
+
+    For a choice T of positive slacks and S of active hard constraints, minimise
+    ½uᵀHu − fᵀu, H = 2I + 2Σ_T k aaᵀ, f = 2u_d + 2Σ_T k l a, subject to A_S u = l_S.
+    In the hard QP all soft rows join the hard constraints and T is empty.
+    """
+    soft_a, soft_l, soft_k = instance.soft_rows
+    hard_a, hard_l = _hard_constraints(instance)
+    if not relaxed:
+        hard_a, hard_l = np.vstack((soft_a, hard_a)), np.concatenate((soft_l, hard_l))
+    slack_choices = (
+        itertools.chain.from_iterable(itertools.combinations(range(len(soft_l)), n)
+                                      for n in range(len(soft_l) + 1))
+        if relaxed else [()]
+    )
+    best: tuple[np.ndarray, float] | None = None
+    for positive in slack_choices:
+        idx = list(positive)
+        hessian = 2.0 * np.eye(3) + 2.0 * (soft_a[idx].T * soft_k[idx]) @ soft_a[idx]
+        linear = 2.0 * instance.nominal + 2.0 * soft_a[idx].T @ (soft_k[idx] * soft_l[idx])
+        for n_active in range(4):
+            for active in itertools.combinations(range(len(hard_l)), n_active):
+                a_s = hard_a[list(active)]
+                kkt = np.block([[hessian, -a_s.T], [a_s, np.zeros((n_active, n_active))]])
+                if np.linalg.matrix_rank(kkt) < 3 + n_active:
+                    continue
+                u = np.linalg.solve(kkt, np.concatenate((linear, hard_l[list(active)])))[:3]
+                if np.any(hard_a @ u < hard_l - 1e-9):
+                    continue
+                value = (instance.reduced_objective(u) if relaxed
+                         else float((u - instance.nominal) @ (u - instance.nominal)))
+                if best is None or value < best[1]:
+                    best = (u, value)
+    return best
+
+
+def test_assembly_matches_the_spec_objective_and_rows() -> None:
+    """½zᵀPz + qᵀz + ‖u_d‖² is the SPEC objective; rows put δ_r in localization row r and δw_r
+    in weight-sum row r; bounds are |u_k| ≤ u_max and δ ≥ 0 (exact up to round-off)."""
+    rng = np.random.default_rng(0)
+    for m_targets in (1, 2, 3):
+        instance = random_instance(rng, m_targets, hard_feasible=False)
+        relaxed = instance.build(relaxed=True)
+        hard = instance.build(relaxed=False)
+        n = 3 + 2 * m_targets
+        assert relaxed.n_variables == n and hard.n_variables == 3
+        n_rows = 2 * m_targets + N_DRONES - 1
+        assert relaxed.rows.shape == (n_rows, n) and hard.rows.shape == (n_rows, 3)
+        np.testing.assert_array_equal(relaxed.z_min, [-U_MAX] * 3 + [0.0] * (n - 3))
+        np.testing.assert_array_equal(relaxed.z_max, [U_MAX] * 3 + [np.inf] * (n - 3))
+        np.testing.assert_array_equal(hard.z_min, [-U_MAX] * 3)
+        np.testing.assert_array_equal(hard.z_max, [U_MAX] * 3)
+        soft_a, soft_l, _ = instance.soft_rows
+        all_u_rows = np.vstack((soft_a, instance.collision_rows))
+        all_lower = np.concatenate((soft_l, instance.collision_lower))
+        for _ in range(5):
+            z = rng.uniform(-3.0, 3.0, n)
+            nominal_sq = float(instance.nominal @ instance.nominal)
+            assert relaxed.objective(z) + nominal_sq == pytest.approx(
+                instance.spec_objective(z), rel=1e-12)
+            assert hard.objective(z[:3]) + nominal_sq == pytest.approx(
+                instance.spec_objective(z[:3]), rel=1e-12)
+            slack_per_row = np.concatenate((z[3:], np.zeros(N_DRONES - 1)))
+            np.testing.assert_allclose(relaxed.rows @ z - relaxed.lower,
+                                       all_u_rows @ z[:3] + slack_per_row - all_lower,
+                                       rtol=1e-12, atol=1e-12)
+            np.testing.assert_allclose(hard.rows @ z[:3] - hard.lower,
+                                       all_u_rows @ z[:3] - all_lower, rtol=1e-12, atol=1e-12)
+
+
+# Tolerances of the comparison with the brute-force optimum. PIQP stops at eps_abs 1e-9 /
+# eps_rel 1e-10 on residuals; with penalties up to K_δ = 1e6 a residual r moves the objective
+# by ~K_δ·r·δ, so the objective is compared to 1e-6 relative (and 1e-7 absolute). The
+# objective is 1-strongly convex in u (‖u − u_d‖²), so ‖u − u*‖² ≤ |f(u) − f*| + O(feasibility
+# error): u is compared to 1e-4 absolute (observed ≲ 1e-7).
+OBJECTIVE_RTOL = 1e-6
+OBJECTIVE_ATOL = 1e-7
+VELOCITY_ATOL = 1e-4
+
+
+@pytest.mark.parametrize("relaxed", [True, False], ids=["relaxed", "hard"])
+@pytest.mark.parametrize("m_targets", [1, 2, 3])
+def test_piqp_solution_is_feasible_and_optimal(m_targets: int, relaxed: bool) -> None:
+    """Random instances: found, every row and bound within 1e-6, optimum = brute force."""
+    rng = np.random.default_rng(10 * m_targets + relaxed)
+    solver = QpSolver()
+    for _ in range(6 if relaxed else 12):
+        instance = random_instance(rng, m_targets, hard_feasible=not relaxed)
+        local_qp = instance.build(relaxed=relaxed)
+        solution = solver.solve(local_qp)
+        assert solution.found, solution.status
+        assert solution.status == "PIQP_SOLVED"
+        assert solution.max_violation <= 1e-6
+        assert local_qp.max_violation(solution.z) == solution.max_violation
+        reference = brute_force_optimum(instance, relaxed=relaxed)
+        assert reference is not None
+        u_star, objective_star = reference
+        assert instance.spec_objective(solution.z) == pytest.approx(
+            objective_star, rel=OBJECTIVE_RTOL, abs=OBJECTIVE_ATOL)
+        np.testing.assert_allclose(solution.velocity, u_star, rtol=0, atol=VELOCITY_ATOL)
+        if relaxed:
+            # The slacks are (nearly) the least that satisfy their rows. PIQP stops at a
+            # duality gap of 1e-9 relative to the objective, which is ~K_δ·δ² (up to 1e6)
+            # when some row needs a slack: unneeded slacks may then stay at ~1e-5, costing
+            # ≤ 1e-9 of the objective; 1e-4 bounds that.
+            soft_a, soft_l, _ = instance.soft_rows
+            needed = np.maximum(0.0, soft_l - soft_a @ solution.velocity)
+            assert np.all(solution.z[3:] >= needed - 1e-6)
+            assert np.all(solution.z[3:] <= needed + 1e-4)
+
+
+def test_zero_velocity_is_chosen_without_constraints_pulling() -> None:
+    """With u_d = 0 and every row satisfied at u = 0, the optimum is u = 0 and δ = 0."""
+    instance = random_instance(np.random.default_rng(3), 2, hard_feasible=True)
+    instance.nominal = np.zeros(3)
+    instance.localization_lower = np.full(2, -1.0)
+    instance.weight_lower = np.full(2, -1.0)
+    for relaxed in (True, False):
+        solution = QpSolver().solve(instance.build(relaxed=relaxed))
+        assert solution.found
+        np.testing.assert_allclose(solution.z, 0.0, atol=1e-7)
+
+
+def test_infeasible_hard_instance_is_not_found() -> None:
+    """Hard rows u_x ≥ 1 and −u_x ≥ 1 cannot both hold: found is False, fallback is possible.
+
+    The same data relaxed (slacks) is feasible and solved.
+    """
+    instance = random_instance(np.random.default_rng(4), 2, hard_feasible=True)
+    instance.localization_rows = np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
+    instance.localization_lower = np.array([1.0, 1.0])
+    hard = QpSolver().solve(instance.build(relaxed=False))
+    assert not hard.found
+    assert hard.status != "PIQP_SOLVED"
+    relaxed = QpSolver().solve(instance.build(relaxed=True))
+    assert relaxed.found
+
+
+def test_box_bound_beyond_u_max_is_infeasible_when_hard() -> None:
+    """A row asking u_x ≥ 2 u_max is infeasible in the box."""
+    instance = random_instance(np.random.default_rng(5), 1, hard_feasible=True)
+    instance.localization_rows = np.array([[1.0, 0.0, 0.0]])
+    instance.localization_lower = np.array([2.0 * U_MAX])
+    assert not QpSolver().solve(instance.build(relaxed=False)).found
+
+
+def test_solver_is_set_up_once_per_shape_and_updated(monkeypatch: pytest.MonkeyPatch) -> None:
+    """One PIQP DenseSolver per QP shape: new data with the same shape reuses it (and gives the
+    right answer each time); a new shape creates one new solver."""
+    created: list[piqp.DenseSolver] = []
+    original = piqp.DenseSolver
+
+    def counting_factory() -> piqp.DenseSolver:
+        created.append(original())
+        return created[-1]
+
+    monkeypatch.setattr(qp_module.piqp, "DenseSolver", counting_factory)
+    rng = np.random.default_rng(6)
+    solver = QpSolver()
+    for _ in range(5):
+        instance = random_instance(rng, 2, hard_feasible=True)
+        solution = solver.solve(instance.build(relaxed=False))
+        reference = brute_force_optimum(instance, relaxed=False)
+        assert reference is not None and solution.found
+        np.testing.assert_allclose(solution.velocity, reference[0], atol=VELOCITY_ATOL)
+    assert len(created) == 1
+    # Alternating shapes: M = 1 then back to M = 2.
+    for m_targets in (1, 2):
+        instance = random_instance(rng, m_targets, hard_feasible=True)
+        solution = solver.solve(instance.build(relaxed=False))
+        reference = brute_force_optimum(instance, relaxed=False)
+        assert reference is not None and solution.found
+        np.testing.assert_allclose(solution.velocity, reference[0], atol=VELOCITY_ATOL)
+    assert len(created) == 3
+
+
+def test_infeasible_solve_does_not_poison_the_reused_solver() -> None:
+    """After an infeasible instance, the same solver solves the next feasible one correctly."""
+    rng = np.random.default_rng(8)
+    solver = QpSolver()
+    infeasible = random_instance(rng, 2, hard_feasible=True)
+    infeasible.localization_rows = np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]])
+    infeasible.localization_lower = np.array([1.0, 1.0])
+    assert not solver.solve(infeasible.build(relaxed=False)).found
+    instance = random_instance(rng, 2, hard_feasible=True)
+    solution = solver.solve(instance.build(relaxed=False))
+    reference = brute_force_optimum(instance, relaxed=False)
+    assert reference is not None and solution.found
+    np.testing.assert_allclose(solution.velocity, reference[0], atol=VELOCITY_ATOL)
