@@ -20,6 +20,10 @@ def step_drone(position_m: Array, velocity_m_s: Array, u_max_m_s: float, dt_s: f
     return position_m + dt_s * clamp_velocity(velocity_m_s, u_max_m_s)
 
 
+class InitialPlacementError(ValueError):
+    """The start box cannot hold the drones at the requested separation."""
+
+
 def sample_initial_positions(
     n_drones: int,
     center_m: Array,
@@ -30,9 +34,11 @@ def sample_initial_positions(
 ) -> Array:
     """Uniform positions in a box, resampled until every pair is ``min_separation_m`` apart.
 
-    Raises ValueError if the box cannot hold that many drones that far apart.
+    Raises InitialPlacementError if the box cannot hold that many drones that far apart.
     """
     center, size = np.asarray(center_m, float), np.asarray(size_m, float)
+    if n_drones == 0:
+        return np.zeros((0, 3))
     positions: list[Array] = []
     for _ in range(max_tries):
         candidate = center + (rng.random(3) - 0.5) * size
@@ -40,6 +46,6 @@ def sample_initial_positions(
             positions.append(candidate)
             if len(positions) == n_drones:
                 return np.array(positions)
-    raise ValueError(
+    raise InitialPlacementError(
         f"could not place {n_drones} drones {min_separation_m} m apart in a box of size "
-        f"{size.tolist()} m after {max_tries} tries; enlarge initial_box_size_m")
+        f"{[float(v) for v in size]} m after {max_tries} tries; enlarge initial_box_size_m")

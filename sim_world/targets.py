@@ -94,10 +94,12 @@ class OutAndBackTrajectory:
     ramp_s: float = 5.0
 
     def __post_init__(self) -> None:
-        if not self.back_s - self.ramp_s > self.turn_s + self.ramp_s:
+        # Start at rest at start_m, finish the turn before the final ramp, end at rest.
+        if not (0 < self.ramp_s <= self.turn_s
+                and self.turn_s + 2 * self.ramp_s < self.back_s < math.inf):
             raise ValueError(
-                f"back_s must exceed turn_s + 2·ramp_s (got turn_s={self.turn_s}, "
-                f"back_s={self.back_s}, ramp_s={self.ramp_s})")
+                f"out_and_back needs 0 < ramp_s <= turn_s and turn_s + 2·ramp_s < back_s "
+                f"(got turn_s={self.turn_s}, back_s={self.back_s}, ramp_s={self.ramp_s})")
 
     @property
     def return_speed_ratio(self) -> float:

@@ -9,12 +9,14 @@ from __future__ import annotations
 import argparse
 import math
 import sys
+import typing
 from collections.abc import Sequence
 
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
 from rich.table import Table
 
+from sim_world.kinematics import InitialPlacementError
 from swarm.checks import check_invariants, summarize_drones, summarize_targets
 from swarm.config import ConfigError, ScenarioConfig, load_config
 from swarm.core.agent import StepDiagnostics
@@ -44,8 +46,22 @@ def _seed(text: str) -> int:
     return value
 
 
+class _OneLineParser(argparse.ArgumentParser):
+    """argparse prints the usage block before an error; we keep errors to one line."""
+
+    def error(self, message: str) -> typing.NoReturn:
+        print(f"{self.prog}: error: {message} (see --help)", file=sys.stderr)
+        sys.exit(EXIT_USAGE)
+
+
+def fail(message: str) -> int:
+    """One plain line on stderr: never wrapped, never styled, no traceback."""
+    print(f"launch-swarm: {' '.join(message.split())}", file=sys.stderr)
+    return EXIT_USAGE
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _OneLineParser(
         prog="launch-swarm",
         description="Run a Vigil scenario: N camera drones keeping M targets localized.")
     parser.add_argument("config", help="scenario file, e.g. configs/case1.toml")
@@ -142,23 +158,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     console = Console()
     if not console.is_terminal:
         console = Console(width=140)  # logs and CI: keep table columns unwrapped
-    errors = Console(stderr=True)
     try:
         config = load_config(args.config)
         if args.duration is not None:
             config = config.with_duration(args.duration)
     except ConfigError as err:
-        errors.print(f"launch-swarm: config error: {err}", highlight=False, markup=False)
-        return EXIT_USAGE
+        return fail(f"config error: {err}")
     if not args.inprocess:
-        errors.print("launch-swarm: the multi-process swarm is not available yet; "
-                     "run with --inprocess", highlight=False)
-        return EXIT_USAGE
+        return fail("the multi-process swarm is not available yet; run with --inprocess")
     try:
         with _ProgressReporter(config, console, args.headless) as reporter:
             record = run_reference(config, args.seed, on_step=reporter)
+    except InitialPlacementError as err:
+        return fail(f"config error: {config.source}: swarm.initial_box_size_m: {err}")
     except KeyboardInterrupt:
-        errors.print("launch-swarm: interrupted", highlight=False)
+        print("launch-swarm: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
     return print_summary(record, console)
 

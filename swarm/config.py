@@ -20,6 +20,7 @@ import msgspec
 import numpy as np
 
 from sim_world.camera import CameraParams
+from sim_world.kinematics import InitialPlacementError, sample_initial_positions
 from sim_world.targets import (
     LinearTrajectory,
     OutAndBackTrajectory,
@@ -162,8 +163,12 @@ class ScenarioConfig:
         return round(self.scenario.duration_s / self.scenario.dt_s)
 
     def with_duration(self, duration_s: float) -> ScenarioConfig:
-        return dataclasses.replace(
-            self, scenario=dataclasses.replace(self.scenario, duration_s=duration_s))
+        """The same scenario with another length (``--duration``); ConfigError if invalid."""
+        try:
+            return dataclasses.replace(
+                self, scenario=dataclasses.replace(self.scenario, duration_s=duration_s))
+        except ValueError as err:
+            raise ConfigError(f"--duration: {err}") from None
 
 
 def _cross_check(config: ScenarioConfig) -> None:
@@ -210,7 +215,8 @@ def _cross_check(config: ScenarioConfig) -> None:
     if ctrl.start_s >= config.scenario.duration_s:
         raise ConfigError(f"control.start_s must be before scenario.duration_s = "
                           f"{config.scenario.duration_s} (got {ctrl.start_s})")
-    box = np.asarray(config.swarm.initial_box_size_m)
+    box = np.asarray(config.swarm.initial_box_size_m, dtype=float)
+    box_list = [float(v) for v in box]
     if config.swarm.initial_min_separation_m < ctrl.collision_distance_m:
         raise ConfigError(
             f"swarm.initial_min_separation_m must be >= control.collision_distance_m = "
@@ -218,8 +224,15 @@ def _cross_check(config: ScenarioConfig) -> None:
     if float(np.prod(box + config.swarm.initial_min_separation_m)) < (
             config.swarm.n_drones * config.swarm.initial_min_separation_m**3):
         raise ConfigError(
-            f"swarm.initial_box_size_m {list(box)} is too small for {config.swarm.n_drones} "
+            f"swarm.initial_box_size_m {box_list} is too small for {config.swarm.n_drones} "
             f"drones {config.swarm.initial_min_separation_m} m apart")
+    try:  # the volume bound above is necessary, not sufficient: try the config's own seed
+        sample_initial_positions(
+            config.swarm.n_drones, np.asarray(config.swarm.initial_box_center_m), box,
+            config.swarm.initial_min_separation_m,
+            np.random.default_rng(config.scenario.seed), max_tries=2_000)
+    except InitialPlacementError as err:
+        raise ConfigError(f"swarm.initial_box_size_m: {err}") from None
 
 
 # -- loading -------------------------------------------------------------------------------
@@ -241,7 +254,8 @@ def _check_unknown_keys(data: object, schema: object, path: str) -> None:
     hints = typing.get_type_hints(schema)
     known = {f.name for f in dataclasses.fields(schema) if f.init and f.name != "source"}
     for key, value in data.items():
-        where = f"{path}.{key}" if path else key
+        shown = key if key.isidentifier() else repr(key)
+        where = f"{path}.{shown}" if path else shown
         if key not in known:
             raise ConfigError(f"{where}: unknown key (known keys here: {', '.join(sorted(known))})")
         _check_unknown_keys(value, hints[key], where)
@@ -253,7 +267,7 @@ def _one_line(error: msgspec.ValidationError) -> str:
     location = location.rstrip("`").lstrip(".")
     if not location:
         return message
-    if message.startswith("Expected") or message.startswith("Object missing"):
+    if message.startswith(("Expected", "Object missing", "Invalid")):
         return f"{location}: {message}"
     # Value errors from __post_init__ start with the field name inside that section.
     return f"{location}.{message}"
