@@ -276,7 +276,8 @@ class DroneAgent:
                                         n_drones)
             self._posterior_state[r] = state
             velocity_in = (self._communicated_velocity[r]
-                           if self._communicated_velocity is not None else None)
+                           if setup.estimation.model == "single_integrator"
+                           and self._communicated_velocity is not None else None)
             self._prior_state[r], self._prior_information[r] = icf.predict(
                 state, info, self._transition, setup.estimation.process_noise,
                 communicated_velocity=velocity_in, dt_s=dt)

@@ -4,7 +4,7 @@ Evaluated in a scaled form so that no power overflows even for tiny eigenvalues 
 with f = λ̄, g_k = ∂f/∂λ_k = (λ_k/f)^(p−1) ∈ (0, 1].
 
 The second derivative uses the divided-difference (Daleckii–Krein) form, whose off-diagonal
-coefficients θ_kl = (g_k − g_l)/(λ_k − λ_l) are evaluated as
+coefficients θ_kl = (g_k − g_l)/(λ_k − λ_l) are evaluated, for nearly repeated eigenvalues, as
 ``g_l/λ_l · expm1((p−1)t)/expm1(t)`` with ``t = log(λ_k/λ_l)``: exact in the limit
 λ_k → λ_l instead of dividing two vanishing differences.
 """
@@ -19,6 +19,8 @@ from numpy.typing import NDArray
 from swarm.core.projector import Mat3, Vec3
 
 EIGENVALUE_FLOOR = 1e-9  # eigenvalues are clipped to this before powers (SPEC §7 guard)
+# |log(λ_k/λ_l)| below which θ_kl uses the expm1 form; there |(p−1)·t| ≤ 0.061 for p ≥ −60.
+NEAR_REPEATED_LOG_GAP = 1e-3
 
 
 @dataclass(frozen=True)
@@ -59,10 +61,14 @@ def smooth_min_eigenvalue(gramian: Mat3, exponent: float) -> SmoothMin:
     hessian = (1.0 - p) * np.outer(g, g) / value
     hessian[np.diag_indices(3)] += (p - 1.0) * g / lam
     log_ratio = np.log(lam[:, None] / lam[None, :])
-    with np.errstate(invalid="ignore", divide="ignore"):
+    near = np.abs(log_ratio) < NEAR_REPEATED_LOG_GAP
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        # Well-separated pairs: the plain quotient of bounded g's is exact enough and cannot
+        # overflow; near-repeated pairs: the expm1 form, whose arguments stay small there.
+        direct = (g[:, None] - g[None, :]) / (lam[:, None] - lam[None, :])
         ratio = np.expm1((p - 1.0) * log_ratio) / np.expm1(log_ratio)
-    ratio = np.where(log_ratio == 0.0, p - 1.0, ratio)
-    theta = (g / lam)[None, :] * ratio
+        ratio = np.where(log_ratio == 0.0, p - 1.0, ratio)
+        theta = np.where(near, (g / lam)[None, :] * ratio, direct)
     return SmoothMin(value, lam, vectors, g, hessian, theta)
 
 

@@ -150,3 +150,14 @@ def test_round0_message_carries_consensus_states() -> None:
     assert msg.gramian is not None and msg.gramian.shape == (1, 3, 3)
     np.testing.assert_allclose(msg.gramian[0], 2 * 0.05 * np.eye(3))
     assert msg.weight_mean is not None and 0 < msg.weight_mean[0] <= 1
+
+
+def test_single_integrator_model_with_communicated_velocities() -> None:
+    """The alternative target model (2.17-2.22): targets send their velocities; the filter
+    state is the position only and still converges on Case 1's moving target."""
+    config = load_config(CONFIGS / "case1.toml").with_duration(6.0)
+    config = dataclasses.replace(
+        config, estimation=dataclasses.replace(config.estimation, model="single_integrator"))
+    record = run_reference(config, seed=0)
+    assert record.estimates.shape[-1] == 3
+    assert record.position_errors()[-1].max() < 0.05

@@ -17,9 +17,17 @@ from .finite_difference import REGIMES, central_gradient, drone_at, random_drone
 PARAMS = PerceptionParams()
 # Step 1e-6 m: the narrowest Gaussian (σ_Dm = 0.2 m) gives |w'''| ≲ 1e3 m⁻³, so truncation
 # ≲ 1e-12·1e3/6 ≈ 2e-10 and round-off ≲ 1e-16/1e-6 = 1e-10; 1e-8 leaves a 30× margin while
-# a wrong factor in any gradient term (|∂w| up to ~5 m⁻¹) would miss by orders of magnitude.
+# a wrong factor in any gradient term (|∂w| up to ~10 m⁻¹) would miss by orders of magnitude.
 FD_STEP_M = 1e-6
 FD_ATOL = 1e-8
+
+
+def test_defaults_are_the_spec_values() -> None:
+    """SPEC §3 / Fig. 3.1: D_m^th 1, D_M^th 6 m; σ_Dm² 0.04, σ_DM² 1.8; α_M^th 35°; σ_β² 0.015."""
+    assert (PARAMS.d_min_th_m, PARAMS.d_max_th_m) == (1.0, 6.0)
+    assert (PARAMS.sigma_dmin_sq_m2, PARAMS.sigma_dmax_sq_m2) == (0.04, 1.8)
+    assert (PARAMS.alpha_th_deg, PARAMS.sigma_beta_sq) == (35.0, 0.015)
+    assert PARAMS.cos_alpha_th == pytest.approx(math.cos(math.radians(35.0)), rel=1e-15)
 
 
 def _weight(drone: np.ndarray, target: np.ndarray) -> float:
@@ -127,10 +135,11 @@ def test_weight_is_one_in_the_nominal_region(distance: float, cosine: float,
 )
 def test_weight_and_gradient_are_continuous_at_thresholds(distance: float, cosine: float,
                                                           moved: str) -> None:
-    """w and ∂w/∂p_i jump by at most O(gap) across each threshold (both are C⁰; w is C¹).
+    """w and ∂w/∂p_i are continuous across each threshold (w is C¹ with ∂w = 0 there).
 
-    Across a gap of 2e-9 on either side, |Δw| ≤ 5·2e-9 (|∂w| ≤ 5) and |Δ∂w| ≤ 1e-6
-    (|∂²w| ≲ 1/σ_Dm² = 25 per metre and /σ_β² ≈ 67 per unit cosine, times the gap).
+    Moving d̂ or c by ±1e-9 across a threshold changes w by O(|∂²w|·gap²) ≈ 1e-16 (bound
+    1e-8) and ∂w by ≤ |∂²w|·2·gap with |∂²w| ≲ 2/σ_Dm² = 50 m⁻² and 2/σ_β²/d̂ ≈ 133/d̂: ≲ 1e-7
+    (bound 1e-6). A jump of the kind a wrong case split would cause is O(1).
     """
     target = np.array([0.1, 0.0, 0.0])
     gap = 1e-9

@@ -178,14 +178,15 @@ def test_assembly_matches_the_spec_objective_and_rows() -> None:
                                        all_u_rows @ z[:3] - all_lower, rtol=1e-12, atol=1e-12)
 
 
-# Tolerances of the comparison with the brute-force optimum. PIQP stops at eps_abs 1e-9 /
-# eps_rel 1e-10 on residuals; with penalties up to K_δ = 1e6 a residual r moves the objective
-# by ~K_δ·r·δ, so the objective is compared to 1e-6 relative (and 1e-7 absolute). The
-# objective is 1-strongly convex in u (‖u − u_d‖²), so ‖u − u*‖² ≤ |f(u) − f*| + O(feasibility
-# error): u is compared to 1e-4 absolute (observed ≲ 1e-7).
+# Tolerances of the comparison with the brute-force optimum. PIQP stops at residuals
+# eps_abs 1e-9 / eps_rel 1e-10 and a duality gap 1e-9 relative to the objective, which
+# reaches ~1e7 when slacks of weight K_δ = 1e6 are active: the objective is compared to 1e-6
+# relative and 1e-7 absolute (observed ≤ 2e-8 relative). The KKT system is conditioned by
+# K_δ/1, so residuals of 1e-9 can move u by up to ~1e-3 in the worst case; observed ≤ 3e-7,
+# so u is compared to 1e-5 absolute, still far below any velocity that matters.
 OBJECTIVE_RTOL = 1e-6
 OBJECTIVE_ATOL = 1e-7
-VELOCITY_ATOL = 1e-4
+VELOCITY_ATOL = 1e-5
 
 
 @pytest.mark.parametrize("relaxed", [True, False], ids=["relaxed", "hard"])

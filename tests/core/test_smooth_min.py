@@ -66,12 +66,14 @@ def test_value_does_not_overflow_for_tiny_eigenvalues_and_large_exponent() -> No
 
 
 def test_non_positive_eigenvalues_are_clipped_to_the_floor() -> None:
-    """A singular or indefinite G (SPEC §7 guard) gives a finite λ̄ ≤ the floor."""
+    """A singular or indefinite G (SPEC §7 guard, default p) gives a finite λ̄ ≤ the floor
+    and finite derivatives."""
     for gramian in (np.diag([0.0, 1.0, 2.0]), np.diag([-0.3, 0.5, 1.0])):
         sm = smooth_min_eigenvalue(gramian, -10.0)
         assert np.all(sm.eigenvalues >= EIGENVALUE_FLOOR)
         assert 0.0 < sm.value <= EIGENVALUE_FLOOR
         assert np.all(np.isfinite(sm.gradient))
+        assert np.isfinite(sm.second_derivative(np.ones((3, 3))))
 
 
 spd_matrices = st.tuples(
@@ -175,8 +177,8 @@ def test_second_derivative_matches_second_central_difference_of_the_value(p: flo
         step = 1e-4 * lam_min
         direction = _random_symmetric(rng)
 
-        def value(t: float, h: np.ndarray = direction) -> float:
-            return smooth_min_eigenvalue(gramian + t * h, p).value
+        def value(t: float, g: np.ndarray = gramian, h: np.ndarray = direction) -> float:
+            return smooth_min_eigenvalue(g + t * h, p).value
 
         numeric = (value(step) - 2.0 * value(0.0) + value(-step)) / step**2
         analytic = smooth_min_eigenvalue(gramian, p).second_derivative(direction)
@@ -199,3 +201,54 @@ def test_second_derivative_vanishes_along_g_and_is_concave(gramian: np.ndarray,
     rng = np.random.default_rng(0)
     for _ in range(3):
         assert sm.second_derivative(_random_symmetric(rng)) <= 1e-9 * (1.0 - p) / lam[0]
+
+
+def _reference_second_derivative(eigenvalues: np.ndarray, direction: np.ndarray,
+                                 p: float) -> float:
+    """D²λ̄[H, H] for G = diag(λ), evaluated without cancellation, in log space.
+
+    With shares σ_k = λ_k^p/Σλ^p: g_k = (λ_k/f)^(p−1), ∂²f/∂λ_k∂λ_l = (1−p)g_kg_l/f for
+    k ≠ l, ∂²f/∂λ_k² = (p−1)(g_k/λ_k)Σ_{m≠k}σ_m, and θ_kl = (g_k − g_l)/(λ_k − λ_l) taken
+    literally (accurate for the well separated eigenvalues used below).
+    """
+    lam = np.asarray(eigenvalues, dtype=float)
+    log_total = logsumexp(p * np.log(lam))
+    value = float(np.exp(log_total / p))
+    shares = np.exp(p * np.log(lam) - log_total)
+    g = np.exp((p - 1.0) * np.log(lam / value))
+    hessian = (1.0 - p) * np.outer(g, g) / value
+    for k in range(3):
+        hessian[k, k] = (p - 1.0) * g[k] / lam[k] * (np.sum(shares) - shares[k])
+    diag = np.diag(direction)
+    total = float(diag @ hessian @ diag)
+    for k in range(3):
+        for m in range(3):
+            if k != m:
+                total += (g[k] - g[m]) / (lam[k] - lam[m]) * direction[k, m] ** 2
+    return total
+
+
+@pytest.mark.parametrize(
+    ("p", "eigenvalues"),
+    [
+        (-10.0, [1e-9, 1.0, 1e3]),
+        (-30.0, [2e-9, 0.5, 10.0]),
+        (-60.0, [1e-3, 1.0, 5.0]),
+        (-60.0, [1e-4, 1.0, 20.0]),  # (1−p)·log(cond) > 709: expm1 would overflow here
+        (-30.0, [1e-9, 1.0, 20.0]),
+    ],
+)
+def test_second_derivative_is_finite_for_ill_conditioned_gramians(p: float,
+                                                                  eigenvalues: list[float]) -> None:
+    """Allowed exponents (params: p ∈ [−60, −1]) with a Gramian that lost information in one
+    direction (λ_min down to the 1e-9 floor): θ is symmetric and finite and D²λ̄ matches a
+    cancellation-free reference. The implementation forms ∂²f/∂λ_k² as the difference of two
+    terms of size |p − 1|/λ_k, which costs ~ε·|p − 1|/λ_min absolute; tolerance 50× that."""
+    gramian = np.diag(eigenvalues)
+    direction = np.ones((3, 3))
+    sm = smooth_min_eigenvalue(gramian, p)
+    assert np.all(np.isfinite(sm.divided_differences))
+    np.testing.assert_allclose(sm.divided_differences, sm.divided_differences.T, rtol=1e-9)
+    expected = _reference_second_derivative(np.array(eigenvalues), direction, p)
+    assert sm.second_derivative(direction) == pytest.approx(
+        expected, rel=1e-9, abs=50 * 2.2e-16 * (1.0 - p) / min(eigenvalues))
