@@ -32,7 +32,11 @@ def ramp_distance(elapsed_s: float, ramp_s: float) -> float:
         return 0.0
     if elapsed_s >= ramp_s:
         return elapsed_s - 0.5 * ramp_s
-    return 0.5 * elapsed_s - ramp_s / (2.0 * math.pi) * math.sin(math.pi * elapsed_s / ramp_s)
+    # S = (T/2π)(x − sin x), x = πτ/T; near 0 the difference cancels, so use its series there.
+    x = math.pi * elapsed_s / ramp_s
+    x_minus_sin = x**3 / 6.0 * (1.0 - x * x / 20.0 * (1.0 - x * x / 42.0)) if x < 1e-2 else (
+        x - math.sin(x))
+    return ramp_s / (2.0 * math.pi) * x_minus_sin
 
 
 class Trajectory(Protocol):

@@ -1,16 +1,15 @@
-"""``launch-swarm``: run a scenario and print its summary.
+"""``launch-swarm``: run a scenario — as a process swarm, or in-process — and summarize it.
 
 Exit codes: 0 mission completed with every SPEC invariant within tolerance, 1 an invariant
-was violated, 2 bad command line or config (one line on stderr, no traceback), 130 Ctrl-C.
+was violated or the mission failed (a process died, the world aborted), 2 bad command line or
+config (one line on stderr, no traceback), 130 interrupted (Ctrl-C or SIGTERM).
 """
 
 from __future__ import annotations
 
-import argparse
-import math
 import sys
-import typing
 from collections.abc import Sequence
+from pathlib import Path
 
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeRemainingColumn
@@ -18,61 +17,53 @@ from rich.table import Table
 
 from sim_world.kinematics import InitialPlacementError
 from swarm.checks import check_invariants, summarize_drones, summarize_targets
-from swarm.config import ConfigError, ScenarioConfig, load_config
+from swarm.cli_common import (
+    EXIT_FAILED,
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    ConfigError,
+    OneLineParser,
+    fail,
+    load_scenario,
+    port,
+    positive_float,
+    run_id,
+    seed,
+    terminate_on_sigterm,
+)
+from swarm.config import ScenarioConfig
 from swarm.core.agent import StepDiagnostics
+from swarm.launcher import LaunchOptions, MissionError, SwarmLauncher, TelemetryCollector
 from swarm.reference import RunRecord, run_reference
 
-EXIT_OK, EXIT_VIOLATION, EXIT_USAGE, EXIT_INTERRUPTED = 0, 1, 2, 130
+EXIT_VIOLATION = EXIT_FAILED
 HEADLESS_LOG_PERIOD_S = 5.0  # sim seconds between one-line progress logs
+PROG = "launch-swarm"
 
 
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
-    return value
-
-
-def _seed(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if not 0 <= value < 2**63:
-        raise argparse.ArgumentTypeError(f"must be in [0, 2^63), got {text!r}")
-    return value
-
-
-class _OneLineParser(argparse.ArgumentParser):
-    """argparse prints the usage block before an error; we keep errors to one line."""
-
-    def error(self, message: str) -> typing.NoReturn:
-        print(f"{self.prog}: error: {message} (see --help)", file=sys.stderr)
-        sys.exit(EXIT_USAGE)
-
-
-def fail(message: str) -> int:
-    """One plain line on stderr: never wrapped, never styled, no traceback."""
-    print(f"launch-swarm: {' '.join(message.split())}", file=sys.stderr)
-    return EXIT_USAGE
-
-
-def build_parser() -> argparse.ArgumentParser:
-    parser = _OneLineParser(
-        prog="launch-swarm",
+def build_parser() -> OneLineParser:
+    parser = OneLineParser(
+        prog=PROG,
         description="Run a Vigil scenario: N camera drones keeping M targets localized.")
     parser.add_argument("config", help="scenario file, e.g. configs/case1.toml")
+    parser.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep",
+                        help="process swarm timing: deterministic lockstep (default) or 50 Hz "
+                             "wall clock")
     parser.add_argument("--inprocess", action="store_true",
                         help="run every drone in this process (the reference simulator)")
-    parser.add_argument("--seed", type=_seed, default=None,
+    parser.add_argument("--seed", type=seed, default=None,
                         help="random seed (default: scenario.seed of the config)")
-    parser.add_argument("--duration", type=_positive_float, default=None, metavar="S",
+    parser.add_argument("--duration", type=positive_float, default=None, metavar="S",
                         help="simulated seconds (default: scenario.duration_s)")
     parser.add_argument("--headless", action="store_true",
                         help="no live display: a one-line log every few simulated seconds")
+    parser.add_argument("--mavlink-base", type=port, default=0, metavar="PORT",
+                        help="vehicle i talks to agent i on UDP PORT+i (default: 14540, or "
+                             "the next free block)")
+    parser.add_argument("--run-id", type=run_id, default=None,
+                        help="Zenoh key prefix vigil/<run-id>/ (default: random)")
+    parser.add_argument("--log-dir", default=None, metavar="DIR",
+                        help="where each process writes its log (default: a temp dir)")
     return parser
 
 
@@ -102,19 +93,34 @@ class _ProgressReporter:
         if self._progress is not None:
             self._progress.__exit__(None, None, None)
 
-    def __call__(self, step: int, diagnostics: list[StepDiagnostics]) -> None:
-        time_s = diagnostics[0].time_s
+    def from_diagnostics(self, step: int, diagnostics: list[StepDiagnostics]) -> None:
         lam = [min(float(d.lambda_bar[r]) for d in diagnostics)
                for r in range(len(diagnostics[0].lambda_bar))]
-        status = "λ̄ min " + " ".join(f"{v:.3f}" for v in lam)
+        speeds = [float((d.velocity @ d.velocity) ** 0.5) for d in diagnostics]
+        self.update(step, lam, max(speeds), sum(d.qp_fallback for d in diagnostics))
+
+    def from_collector(self, step: int, collector: TelemetryCollector) -> None:
+        if step < 0:
+            return
+        with collector.lock:
+            latest = list(collector.latest.values())
+        if not latest:
+            return
+        diags = [t.to_diagnostics() for t in latest]
+        self.from_diagnostics(step, diags)
+
+    def update(self, step: int, lambda_min: list[float], max_speed: float,
+               fallbacks: int) -> None:
+        time_s = step * self._config.scenario.dt_s
+        status = "λ̄ min " + " ".join(f"{v:.3f}" for v in lambda_min)
         if self._progress is not None:
-            self._progress.update(self._task, advance=1, status=f"t={time_s:5.1f}s {status}")
+            self._progress.update(self._task, completed=step + 1,
+                                  status=f"t={time_s:5.1f}s {status}")
         elif time_s + 1e-9 >= self._next_log_s:
-            speeds = [float((d.velocity @ d.velocity) ** 0.5) for d in diagnostics]
             self._console.print(
-                f"t={time_s:6.2f}s  {status}  max|u| {max(speeds):.2f} m/s  "
-                f"fallbacks {sum(d.qp_fallback for d in diagnostics)}", highlight=False)
-            self._next_log_s += HEADLESS_LOG_PERIOD_S
+                f"t={time_s:6.2f}s  {status}  max|u| {max_speed:.2f} m/s  fallbacks {fallbacks}",
+                highlight=False)
+            self._next_log_s = time_s + HEADLESS_LOG_PERIOD_S
 
 
 def print_summary(record: RunRecord, console: Console) -> int:
@@ -159,22 +165,45 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not console.is_terminal:
         console = Console(width=140)  # logs and CI: keep table columns unwrapped
     try:
-        config = load_config(args.config)
-        if args.duration is not None:
-            config = config.with_duration(args.duration)
+        config = load_scenario(args.config, args.duration)
     except ConfigError as err:
-        return fail(f"config error: {err}")
-    if not args.inprocess:
-        return fail("the multi-process swarm is not available yet; run with --inprocess")
+        return fail(PROG, f"config error: {err}")
+    seed_value = config.scenario.seed if args.seed is None else args.seed
+    terminate_on_sigterm()
     try:
-        with _ProgressReporter(config, console, args.headless) as reporter:
-            record = run_reference(config, args.seed, on_step=reporter)
+        if args.inprocess:
+            with _ProgressReporter(config, console, args.headless) as reporter:
+                record = run_reference(config, seed_value, on_step=reporter.from_diagnostics)
+        else:
+            options = LaunchOptions(
+                config=config, config_path=str(Path(args.config).resolve()), seed=seed_value,
+                mode=args.mode, run_id=args.run_id or "", mavlink_base=args.mavlink_base,
+                log_dir=Path(args.log_dir) if args.log_dir else None)
+            launcher = SwarmLauncher(options, log=lambda line: console.print(
+                line, highlight=False, markup=False))
+            with _ProgressReporter(config, console, args.headless) as reporter:
+                record = launcher.run(on_progress=reporter.from_collector)
+            print_process_counters(launcher.collector, console)
     except InitialPlacementError as err:
-        return fail(f"config error: {config.source}: swarm.initial_box_size_m: {err}")
+        return fail(PROG, f"config error: {config.source}: swarm.initial_box_size_m: {err}")
+    except MissionError as err:
+        print(f"{PROG}: mission failed: {err}", file=sys.stderr)
+        return EXIT_FAILED
     except KeyboardInterrupt:
-        print("launch-swarm: interrupted", file=sys.stderr)
+        print(f"{PROG}: interrupted; every process stopped", file=sys.stderr)
         return EXIT_INTERRUPTED
     return print_summary(record, console)
+
+
+def print_process_counters(collector: TelemetryCollector, console: Console) -> None:
+    counts = collector.counters()
+    steps = max(counts["agent_steps"], 1)
+    console.print(
+        f"agent steps {counts['agent_steps']}, late {counts['late_steps']} "
+        f"({100.0 * counts['late_steps'] / steps:.2f} %), stale neighbour messages "
+        f"{counts['stale_neighbour_messages']}, rejected messages "
+        f"{counts['rejected_messages']}, QP fallbacks {counts['qp_fallbacks']}",
+        highlight=False)
 
 
 if __name__ == "__main__":

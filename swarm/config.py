@@ -142,6 +142,51 @@ class ChecksSection:
                 self.collision_tolerance_m)
 
 
+Flavour = Literal["px4", "ardupilot"]
+DEFAULT_SETPOINT_TIMEOUT_S = {"px4": 0.5, "ardupilot": 3.0}  # COM_OF_LOSS_T, GUID_TIMEOUT
+
+
+@dataclass(frozen=True)
+class VehiclesSection:
+    """The autopilots the agents command over MAVLink (SPEC §12)."""
+
+    flavour: Flavour = "px4"  # handshake and failsafe rules: "px4" or "ardupilot"
+    origin_offsets_m: tuple[Vector3, ...] = ()  # local-NED origin of each vehicle in W [m]
+    setpoint_timeout_s: float = 0.0  # setpoint loss → hold after this [s]; 0 = flavour default
+
+    def __post_init__(self) -> None:
+        require(self.flavour in ("px4", "ardupilot"), "flavour", "must be 'px4' or 'ardupilot'",
+                self.flavour)
+        for offset in self.origin_offsets_m:
+            for value in offset:
+                require_finite("origin_offsets_m", value)
+        require(math.isfinite(self.setpoint_timeout_s) and self.setpoint_timeout_s >= 0,
+                "setpoint_timeout_s", "must be a finite number >= 0", self.setpoint_timeout_s)
+
+    def origin_w(self, drone_id: int) -> np.ndarray:
+        if not self.origin_offsets_m:
+            return np.zeros(3)
+        return np.array(self.origin_offsets_m[drone_id], dtype=float)
+
+    @property
+    def failsafe_timeout_s(self) -> float:
+        return self.setpoint_timeout_s or DEFAULT_SETPOINT_TIMEOUT_S[self.flavour]
+
+
+@dataclass(frozen=True)
+class RuntimeSection:
+    """Timing of the process swarm (SPEC §12)."""
+
+    stale_timeout_s: float = 0.1  # realtime: neighbour data older than this is left out [s]
+    lockstep_timeout_s: float = 20.0  # lockstep: a peer silent this long aborts the mission [s]
+    start_timeout_s: float = 60.0  # every drone armed and streaming within this [s]
+
+    def __post_init__(self) -> None:
+        require_finite_positive("stale_timeout_s", self.stale_timeout_s)
+        require_finite_positive("lockstep_timeout_s", self.lockstep_timeout_s)
+        require_finite_positive("start_timeout_s", self.start_timeout_s)
+
+
 @dataclass(frozen=True)
 class ScenarioConfig:
     scenario: ScenarioSection
@@ -153,6 +198,8 @@ class ScenarioConfig:
     gramian: GramianParams = field(default_factory=GramianParams)
     control: ControlParams = field(default_factory=ControlParams)
     checks: ChecksSection = field(default_factory=ChecksSection)
+    vehicles: VehiclesSection = field(default_factory=VehiclesSection)
+    runtime: RuntimeSection = field(default_factory=RuntimeSection)
     source: str = field(default="<memory>", compare=False)
 
     def __post_init__(self) -> None:
@@ -173,6 +220,14 @@ class ScenarioConfig:
 
 def _cross_check(config: ScenarioConfig) -> None:
     """Rules that involve more than one section; each names its key."""
+    dt_ms = config.scenario.dt_s * 1000.0
+    if abs(dt_ms - round(dt_ms)) > 1e-9:
+        raise ConfigError(f"scenario.dt_s must be a whole number of milliseconds (MAVLink "
+                          f"time_boot_ms stamps the steps) (got {config.scenario.dt_s})")
+    offsets = config.vehicles.origin_offsets_m
+    if offsets and len(offsets) != config.swarm.n_drones:
+        raise ConfigError(f"vehicles.origin_offsets_m needs one [x, y, z] per drone "
+                          f"({config.swarm.n_drones}) or none (got {len(offsets)})")
     if not 1 <= len(config.targets) <= 16:
         raise ConfigError(f"targets: need 1 to 16 [[targets]] entries (got {len(config.targets)})")
     graph = config.swarm.graph

@@ -2,12 +2,11 @@
 
 The world (targets, cameras, kinematics) and the agents live in one process and step in
 lockstep; every neighbour message of round κ is delivered before round κ + 1. Same config and
-seed → bit-identical output. Besides what the agents compute, the runner integrates two
-reference Gramians from ground truth for checking:
-
-- *true*: Ġ = −ρG + bΣ_i w_i Π_i with weights and projectors from the true positions (what
-  the copies would be with perfect estimation and consensus);
-- *measured*: Ġ = −ρG + bΣ_{i detects} Π_i, the information actually gathered.
+seed → bit-identical output, and the same output as a lockstep run of the process swarm:
+the autopilot link is modelled exactly as MAVLink carries it (positions and velocity
+setpoints as float32 in each vehicle's local NED frame, ``swarm.frames``). Besides what the
+agents compute, the runner integrates the true and measured Gramians from ground truth
+(``swarm.ground_truth``) for checking.
 """
 
 from __future__ import annotations
@@ -24,9 +23,8 @@ from sim_world.kinematics import sample_initial_positions, step_drone
 from swarm.config import ScenarioConfig
 from swarm.core.agent import AgentSetup, DroneAgent, StepDiagnostics
 from swarm.core.formation import circle_bearings
-from swarm.core.gramian import initial_gramian, true_gramian_step
-from swarm.core.perception import perception_terms
-from swarm.core.projector import bearing, projector
+from swarm.frames import position_over_link, velocity_over_link
+from swarm.ground_truth import ReferenceGramians
 
 Array = NDArray[np.float64]
 
@@ -126,23 +124,6 @@ class RunRecord:
         return float(dist.min())
 
 
-def _true_information_rate(config: ScenarioConfig, drones: Array, target: Array) -> Array:
-    rate = np.zeros((3, 3))
-    for p_i in drones:
-        terms = perception_terms(p_i, target, config.perception)
-        rate += terms.weight * terms.projector
-    return config.estimation.info_gain * rate
-
-
-def _measured_information_rate(config: ScenarioConfig, drones: Array, target: Array,
-                               seen: Array) -> Array:
-    rate = np.zeros((3, 3))
-    for p_i, sees in zip(drones, seen, strict=True):
-        if sees:
-            rate += projector(bearing(target - p_i)[0])
-    return config.estimation.info_gain * rate
-
-
 StepCallback = Callable[[int, list[StepDiagnostics]], None]
 
 
@@ -159,9 +140,9 @@ def run_reference(config: ScenarioConfig, seed: int | None = None,
     cameras = [stream(seed, STREAM_CAMERA, i) for i in range(n)]
     positions = initial_drone_positions(config, seed)
     n_state = agents[0].target_estimates.shape[1]
-    gram = config.gramian
-    true_g = np.broadcast_to(initial_gramian(gram.epsilon), (m, 3, 3)).copy()
-    measured_g = true_g.copy()
+    origins = [config.vehicles.origin_w(i) for i in range(n)]
+    truth = ReferenceGramians(m, config.gramian, config.perception, config.estimation.info_gain,
+                              dt)
 
     rec = {
         "pos": np.zeros((steps, n, 3)), "vel": np.zeros((steps, n, 3)),
@@ -180,12 +161,14 @@ def run_reference(config: ScenarioConfig, seed: int | None = None,
         target_vel = np.array([traj.velocity(t) for traj in trajectories])
         detections = [detect(positions[i], targets, config.camera, cameras[i]) for i in range(n)]
         communicated = target_vel if config.estimation.model == "single_integrator" else None
-        messages = [agents[i].begin_step(k, positions[i], detections[i], communicated)
+        # What each agent reads from its autopilot (LOCAL_POSITION_NED, float32 NED).
+        seen = [position_over_link(positions[i], origins[i]) for i in range(n)]
+        messages = [agents[i].begin_step(k, seen[i], detections[i], communicated)
                     for i in range(n)]
         for _ in range(agents[0].n_rounds):
             inboxes = [{j: messages[j] for j in graph.neighbours[i]} for i in range(n)]
             messages = [agents[i].consensus_round(inboxes[i]) for i in range(n)]
-        beacons = {i: positions[i] for i in range(n)}
+        beacons = dict(enumerate(seen))
         results = [agents[i].finish_step(beacons) for i in range(n)]
         diags = [r.diagnostics for r in results]
 
@@ -200,19 +183,12 @@ def run_reference(config: ScenarioConfig, seed: int | None = None,
                 d.detected, d.qp_fallback, d.step_us)
             if d.bearing_error is not None:
                 rec["berr"][k, i] = d.bearing_error
-        for r in range(m):
-            rec["true"][k, r] = np.linalg.eigvalsh(true_g[r])[0]
-            rec["meas"][k, r] = np.linalg.eigvalsh(measured_g[r])[0]
-            true_g[r] = true_gramian_step(
-                true_g[r], _true_information_rate(config, positions, targets[r]),
-                forgetting=gram.forgetting, dt_s=dt)
-            measured_g[r] = true_gramian_step(
-                measured_g[r], _measured_information_rate(config, positions, targets[r],
-                                                          rec["det"][k, :, r]),
-                forgetting=gram.forgetting, dt_s=dt)
+        rec["true"][k], rec["meas"][k] = truth.lambda_min()
+        truth.advance(positions, targets, rec["det"][k])
         if on_step is not None:
             on_step(k, diags)
-        positions = np.array([step_drone(positions[i], results[i].velocity,
+        # The vehicle applies the float32 setpoint it received, clamped to u_max.
+        positions = np.array([step_drone(positions[i], velocity_over_link(results[i].velocity),
                                          config.control.u_max_m_s, dt) for i in range(n)])
 
     return RunRecord(

@@ -133,13 +133,12 @@ def test_missing_config_file_exits_2_with_one_line() -> None:
         "launch-swarm: config error: configs/nope.toml: no such file"]
 
 
-def test_without_inprocess_exits_2_with_a_clear_message() -> None:
-    result = run_cli(CASE1)
-    assert_usage_error(result)
-    lines = nonempty_lines(result.stderr)
-    assert len(lines) == 1, lines
-    assert "--inprocess" in lines[0]
-    assert "not available" in lines[0]
+def test_without_inprocess_the_process_swarm_runs() -> None:
+    """Issue 3 replaced the old "not available yet" error: the default is the process swarm."""
+    result = run_cli(CASE1, "--headless", "--duration", "1.5")
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "mission running" in result.stdout
+    assert "verdict: OK" in result.stdout
 
 
 def test_duration_before_control_start_is_a_config_error() -> None:

@@ -1,0 +1,75 @@
+"""``sim-world``: the world process (targets, cameras, emulated MAVLink vehicles, Zenoh router)."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Sequence
+
+from sim_world.world import World, WorldOptions
+from swarm.cli_common import (
+    EXIT_INTERRUPTED,
+    ConfigError,
+    OneLineParser,
+    fail,
+    load_scenario,
+    port,
+    positive_float,
+    run_id,
+    seed,
+    terminate_on_sigterm,
+)
+
+PROG = "sim-world"
+
+
+def build_parser() -> OneLineParser:
+    parser = OneLineParser(prog=PROG, description=(
+        "Simulate targets, cameras and one PX4/ArduPilot-style MAVLink vehicle per drone; "
+        "host the swarm's Zenoh router."))
+    parser.add_argument("config", help="scenario file, e.g. configs/case1.toml")
+    parser.add_argument("--run-id", type=run_id, default="vigil",
+                        help="Zenoh key prefix vigil/<run-id>/ (default: vigil)")
+    parser.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep")
+    parser.add_argument("--seed", type=seed, default=None, help="default: scenario.seed")
+    parser.add_argument("--duration", type=positive_float, default=None, metavar="S")
+    parser.add_argument("--listen", action="append", default=None, metavar="ENDPOINT",
+                        help="Zenoh endpoint to listen on (default tcp/127.0.0.1:7447)")
+    parser.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
+                        help="Zenoh endpoint to connect to (another router), repeatable")
+    parser.add_argument("--mavlink-host", default="127.0.0.1",
+                        help="where the agents listen for their vehicle (default 127.0.0.1)")
+    parser.add_argument("--mavlink-base", type=port, default=14540,
+                        help="vehicle i sends to UDP port base+i (default 14540, as PX4 SITL)")
+    parser.add_argument("--vehicles", choices=("sim", "external"), default="sim",
+                        help="external: serve no vehicles, take positions from beacons")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        config = load_scenario(args.config, args.duration)
+    except ConfigError as err:
+        return fail(PROG, f"config error: {err}")
+    terminate_on_sigterm()
+    options = WorldOptions(
+        config=config, seed=config.scenario.seed if args.seed is None else args.seed,
+        run_id=args.run_id, mode=args.mode,
+        listen=tuple(args.listen or ["tcp/127.0.0.1:7447"]), connect=tuple(args.connect),
+        mavlink_host=args.mavlink_host, mavlink_base=args.mavlink_base, vehicles=args.vehicles,
+        log=lambda line: print(line, flush=True))
+    world = None
+    try:
+        world = World(options)
+        return world.run()
+    except KeyboardInterrupt:
+        return EXIT_INTERRUPTED
+    except OSError as err:
+        return fail(PROG, f"cannot open the world's sockets: {err}", 1)
+    finally:
+        if world is not None:
+            world.close()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

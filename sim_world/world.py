@@ -1,0 +1,312 @@
+"""The world process: targets, cameras and one emulated MAVLink vehicle per drone (SPEC §12).
+
+It hosts the swarm's Zenoh router (agents and the launcher connect to it), serves each
+vehicle over UDP the way PX4 SITL does, and publishes camera frames, ground truth and the
+clock. Two time modes:
+
+- ``lockstep``: step k is published (LOCAL_POSITION_NED stamped t_k, camera frames, truth),
+  then the world waits until every vehicle has received a setpoint stamped t_k and integrates
+  with exactly those; deterministic, reproduces the in-process reference.
+- ``realtime``: a 50 Hz wall-clock loop integrates each vehicle with its latest setpoint under
+  the flavour's failsafe rules; nothing waits.
+
+With ``vehicles = "external"`` it serves no vehicles: each drone's position is taken from its
+beacon, so the agents can fly real autopilots against virtual targets.
+"""
+
+from __future__ import annotations
+
+import selectors
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from sim_world.camera import detect
+from sim_world.mavlink_endpoint import VehicleEndpoint
+from sim_world.vehicle import EmulatedVehicle
+from swarm.config import ScenarioConfig
+from swarm.rate import RateLimiter
+from swarm.reference import STREAM_CAMERA, initial_drone_positions, stream
+from swarm.transport import (
+    Keys,
+    LatestValues,
+    RejectionCounter,
+    declare_publisher,
+    open_session,
+    subscribe,
+    zenoh_config,
+)
+from swarm.wire import (
+    BeaconWire,
+    CameraFrameWire,
+    ClockWire,
+    TruthWire,
+    WireCodec,
+)
+
+Mode = Literal["lockstep", "realtime"]
+VehicleSource = Literal["sim", "external"]
+HEARTBEAT_PERIOD_S = 1.0
+PRE_MISSION_PERIOD_S = 0.02  # telemetry and command handling before the mission starts
+MISSION_TIME_OFFSET_MS = 1000  # mission stamps start this far past every pre-mission stamp
+DONE_LINGER_S = 10.0  # the world stays up this long after the mission unless stopped
+
+
+class WorldAbortError(RuntimeError):
+    """The mission cannot go on (a vehicle never armed, an agent went silent in lockstep)."""
+
+
+@dataclass(frozen=True)
+class WorldOptions:
+    config: ScenarioConfig
+    seed: int
+    run_id: str
+    mode: Mode = "lockstep"
+    listen: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
+    connect: tuple[str, ...] = ()
+    mavlink_host: str = "127.0.0.1"
+    mavlink_base: int = 14540
+    vehicles: VehicleSource = "sim"
+    log: Callable[[str], None] = field(default=print)
+
+
+class World:
+    """State of the simulated world; ``run()`` drives it to the end of the mission."""
+
+    def __init__(self, options: WorldOptions) -> None:
+        self.options = options
+        cfg = options.config
+        self.n, self.m = cfg.swarm.n_drones, len(cfg.targets)
+        self.dt_s = cfg.scenario.dt_s
+        self.dt_ms = round(cfg.scenario.dt_s * 1000)
+        self.trajectories = [t.build() for t in cfg.targets]
+        self.cameras = [stream(options.seed, STREAM_CAMERA, i) for i in range(self.n)]
+        self.keys = Keys(options.run_id)
+        n_state = 6 if cfg.estimation.model == "double_integrator" else 3
+        self.codec = WireCodec(self.n, self.m, n_state)
+        self.rejections = RejectionCounter()
+        self.started = time.monotonic()
+        self.positions = initial_drone_positions(cfg, options.seed)
+        self.vehicles: list[EmulatedVehicle] = []
+        self.endpoints: list[VehicleEndpoint] = []
+        self.selector = selectors.DefaultSelector()
+        self.beacons: LatestValues[BeaconWire] = LatestValues()
+        self._last_heartbeat = -np.inf
+        self._sim_now: float | None = None
+        self.session = open_session(zenoh_config(mode="router", listen=options.listen,
+                                                 connect=options.connect))
+        self._subscribers = []
+        if options.vehicles == "sim":
+            for i in range(self.n):
+                vehicle = EmulatedVehicle(
+                    i, cfg.vehicles.flavour, self.positions[i], cfg.vehicles.origin_w(i),
+                    u_max_m_s=cfg.control.u_max_m_s,
+                    setpoint_timeout_s=cfg.vehicles.failsafe_timeout_s)
+                endpoint = VehicleEndpoint((options.mavlink_host, options.mavlink_base + i))
+                self.vehicles.append(vehicle)
+                self.endpoints.append(endpoint)
+                self.selector.register(endpoint.fileno(), selectors.EVENT_READ, i)
+        else:
+            self._subscribers.append(subscribe(
+                self.session, self.keys.all_beacons, self.codec.decode_beacon,
+                lambda _key, beacon: self.beacons.put(beacon.sender, beacon), self.rejections,
+                "beacon"))
+        # Lockstep cannot lose a message (peers would wait for it); realtime drops rather than
+        # queue behind a slow consumer.
+        block = options.mode == "lockstep"
+        self._pub_camera = [declare_publisher(self.session, self.keys.camera(i), block=block)
+                            for i in range(self.n)]
+        self._pub_truth = declare_publisher(self.session, self.keys.truth, block=block)
+        self._pub_clock = declare_publisher(self.session, self.keys.clock, block=True)
+
+    # -- plumbing ---------------------------------------------------------------------------
+
+    def now_s(self) -> float:
+        """Wall time since start; in a lockstep mission, the mission's sim time instead, so
+        that the vehicles' failsafe timers count simulated seconds, not waiting time."""
+        if self._sim_now is not None:
+            return self._sim_now
+        return time.monotonic() - self.started
+
+    def boot_ms(self) -> int:
+        return int(self.now_s() * 1000)
+
+    def service_vehicles(self, timeout_s: float) -> None:
+        """Handle every MAVLink datagram that arrives within ``timeout_s``; heartbeats at 1 Hz."""
+        now = self.now_s()
+        if now - self._last_heartbeat >= HEARTBEAT_PERIOD_S:
+            self._last_heartbeat = now
+            for vehicle, endpoint in zip(self.vehicles, self.endpoints, strict=True):
+                endpoint.send([vehicle.heartbeat()])
+        for key, _ in self.selector.select(timeout=max(timeout_s, 0.0)):
+            i = key.data
+            for chunk in self.endpoints[i].poll():
+                replies = self.vehicles[i].receive(chunk, self.now_s())
+                if replies:
+                    self.endpoints[i].send(replies)
+
+    def publish_clock(self, step: int, state: str, detail: str = "") -> None:
+        self._pub_clock.put(self.codec.encode(ClockWire(
+            step=step, time_s=step * self.dt_s, state=state, mode=self.options.mode,
+            detail=detail)))
+
+    def publish_step(self, step: int, vehicle_time_ms: int) -> None:
+        """Camera frames for every drone and the ground truth of step k."""
+        t = step * self.dt_s
+        targets = np.array([traj.position(t) for traj in self.trajectories])
+        target_vel = np.array([traj.velocity(t) for traj in self.trajectories])
+        communicated = (target_vel if self.options.config.estimation.model == "single_integrator"
+                        else None)
+        camera = self.options.config.camera
+        for i in range(self.n):
+            detections = detect(self.positions[i], targets, camera, self.cameras[i])
+            self._pub_camera[i].put(self.codec.encode(CameraFrameWire.build(
+                drone=i, step=step, time_s=t, vehicle_time_ms=vehicle_time_ms,
+                detections=detections, target_velocities=communicated)))
+        self._pub_truth.put(self.codec.encode(TruthWire.build(
+            step=step, time_s=t, drone_positions=self.positions, target_positions=targets,
+            target_velocities=target_vel)))
+
+    def _not_ready(self) -> list[int]:
+        if self.options.vehicles == "external":
+            return [i for i in range(self.n) if self.beacons.get(i) is None]
+        now = self.now_s()
+        return [i for i, v in enumerate(self.vehicles)
+                if not (v.accepting_setpoints and v.setpoints_streaming(now))]
+
+    # -- phases -----------------------------------------------------------------------------
+
+    def wait_for_mission_start(self) -> None:
+        """Serve the vehicles until every drone is armed and streaming setpoints."""
+        deadline = self.now_s() + self.options.config.runtime.start_timeout_s
+        last_report = -np.inf
+        last_move = self.now_s()
+        while True:
+            pending = self._not_ready()
+            if not pending:
+                return
+            now = self.now_s()
+            if now > deadline:
+                raise WorldAbortError(f"drones {pending} not armed and streaming setpoints within "
+                                 f"{self.options.config.runtime.start_timeout_s} s")
+            if now - last_report >= 0.5:
+                last_report = now
+                self.publish_clock(0, "waiting", f"waiting for drones {pending}")
+            # Drain what arrived first: after a stall (a loaded machine) the queued setpoints
+            # must count before any failsafe timer is evaluated.
+            self.service_vehicles(0.0)
+            stamp, now = self.boot_ms(), self.now_s()
+            # Armed vehicles fly what they are told even before the mission (any MAVLink
+            # client can fly one); the agents' idle setpoints are exactly zero.
+            for i, vehicle in enumerate(self.vehicles):
+                vehicle.integrate(now - last_move, vehicle.commanded_velocity_w(now))
+                self.positions[i] = vehicle.position_w
+            last_move = now
+            for vehicle, endpoint in zip(self.vehicles, self.endpoints, strict=True):
+                endpoint.send(vehicle.telemetry(stamp, now))
+            self.service_vehicles(PRE_MISSION_PERIOD_S)
+
+    def run_lockstep(self) -> None:
+        start_ms = self.boot_ms() + MISSION_TIME_OFFSET_MS
+        start_s = self.now_s()  # the failsafe clock continues from wall time, without a jump
+        timeout = self.options.config.runtime.lockstep_timeout_s
+        for k in range(self.options.config.n_steps):
+            stamp = start_ms + k * self.dt_ms
+            self._sim_now = now = start_s + k * self.dt_s
+            for vehicle, endpoint in zip(self.vehicles, self.endpoints, strict=True):
+                vehicle.begin_step(stamp)
+                endpoint.send(vehicle.telemetry(stamp, now))
+            self.publish_step(k, stamp)
+            self.publish_clock(k, "running")
+            deadline = time.monotonic() + timeout
+            velocities: list[np.ndarray | None] = [None] * self.n
+            while True:
+                for i, vehicle in enumerate(self.vehicles):
+                    if velocities[i] is None:
+                        velocities[i] = vehicle.setpoint_stamped(stamp)
+                missing = [i for i, v in enumerate(velocities) if v is None]
+                if not missing:
+                    break
+                if time.monotonic() > deadline:
+                    raise WorldAbortError(f"step {k}: no setpoint from drones {missing} within "
+                                     f"{timeout} s")
+                self.service_vehicles(0.05)
+            for i, vehicle in enumerate(self.vehicles):
+                vehicle.integrate(self.dt_s, velocities[i])
+                self.positions[i] = vehicle.position_w
+        self._sim_now = None
+
+    def run_realtime(self) -> None:
+        limiter = RateLimiter(self.dt_s)
+        for k in range(self.options.config.n_steps):
+            now = self.now_s()
+            stamp = self.boot_ms()
+            if self.options.vehicles == "external":
+                for i in range(self.n):
+                    latest = self.beacons.get(i)
+                    if latest is not None:
+                        self.positions[i] = np.asarray(latest[0].position_m, dtype=float)
+            else:
+                for vehicle, endpoint in zip(self.vehicles, self.endpoints, strict=True):
+                    endpoint.send(vehicle.telemetry(stamp, now))
+            self.publish_step(k, stamp)
+            self.publish_clock(k, "running")
+            # Until the next tick: answer MAVLink as it comes, then move every vehicle with
+            # what it applies at that moment (its latest setpoint, or a failsafe hold).
+            while (remaining := limiter.remaining()) > 0:
+                self.service_vehicles(remaining)
+            limiter.sleep()
+            now = self.now_s()
+            for i, vehicle in enumerate(self.vehicles):
+                vehicle.integrate(self.dt_s, vehicle.commanded_velocity_w(now))
+                self.positions[i] = vehicle.position_w
+
+    def run(self) -> int:
+        opts = self.options
+        log = opts.log
+        try:
+            log(f"world: run {opts.run_id}, {self.n} drones, {self.m} targets, mode {opts.mode}, "
+                f"vehicles {opts.vehicles} ({opts.config.vehicles.flavour}), zenoh "
+                f"{', '.join(opts.listen)}"
+                + (f", MAVLink to {opts.mavlink_host}:{opts.mavlink_base}.."
+                   f"{opts.mavlink_base + self.n - 1}" if opts.vehicles == "sim" else ""))
+            self.wait_for_mission_start()
+            log("world: every drone armed and streaming; mission starts")
+            if opts.mode == "lockstep" and opts.vehicles == "sim":
+                self.run_lockstep()
+            else:
+                self.run_realtime()
+            self.publish_clock(opts.config.n_steps, "done")
+            log(f"world: mission complete ({opts.config.n_steps} steps); rejected "
+                f"{self.rejected_total()} malformed inputs")
+            self.linger()
+            return 0
+        except WorldAbortError as err:
+            self.publish_clock(0, "aborted", str(err))
+            log(f"world: mission aborted: {err}")
+            return 1
+
+    def linger(self) -> None:
+        """Keep the router and the vehicles up for a while after the mission, so that the
+        agents and the launcher hear "done" before the world goes away (SIGTERM ends it)."""
+        deadline = self.now_s() + DONE_LINGER_S
+        while self.now_s() < deadline:
+            self.publish_clock(self.options.config.n_steps, "done")
+            if self.vehicles:
+                self.service_vehicles(0.1)
+            else:
+                time.sleep(0.1)
+
+    def rejected_total(self) -> int:
+        return self.rejections.total() + sum(v.rejected_frames for v in self.vehicles)
+
+    def close(self) -> None:
+        for endpoint in self.endpoints:
+            endpoint.close()
+        self.selector.close()
+        for sub in self._subscribers:
+            sub.undeclare()
+        self.session.close()

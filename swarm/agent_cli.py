@@ -1,0 +1,75 @@
+"""``swarm-agent``: one drone's process (the core's step between Zenoh and MAVLink)."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Sequence
+
+from swarm.agent_process import AgentOptions, AgentProcess
+from swarm.cli_common import (
+    EXIT_INTERRUPTED,
+    ConfigError,
+    OneLineParser,
+    fail,
+    load_scenario,
+    positive_float,
+    run_id,
+    seed,
+    terminate_on_sigterm,
+)
+from swarm.mavlink_link import LinkError
+
+PROG = "swarm-agent"
+
+
+def build_parser() -> OneLineParser:
+    parser = OneLineParser(prog=PROG, description=(
+        "Run drone I: estimate and keep every target localized, talking to graph neighbours "
+        "over Zenoh and commanding the autopilot over MAVLink."))
+    parser.add_argument("--id", type=int, required=True, metavar="I", help="drone id, 0..N-1")
+    parser.add_argument("--config", required=True, metavar="FILE", help="scenario file")
+    parser.add_argument("--mavlink", default=None, metavar="URL",
+                        help="pymavlink connection string (default udpin:127.0.0.1:<14540+I>)")
+    parser.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
+                        help="Zenoh endpoint of the world's router (default tcp/127.0.0.1:7447)")
+    parser.add_argument("--listen", action="append", default=[], metavar="ENDPOINT")
+    parser.add_argument("--run-id", type=run_id, default="vigil")
+    parser.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep")
+    parser.add_argument("--seed", type=seed, default=None, help="default: scenario.seed")
+    parser.add_argument("--duration", type=positive_float, default=None, metavar="S")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        config = load_scenario(args.config, args.duration)
+    except ConfigError as err:
+        return fail(PROG, f"config error: {err}")
+    if not 0 <= args.id < config.swarm.n_drones:
+        return fail(PROG, f"--id {args.id} is out of range 0..{config.swarm.n_drones - 1} "
+                          f"for {config.source}")
+    terminate_on_sigterm()
+    options = AgentOptions(
+        config=config, drone_id=args.id,
+        seed=config.scenario.seed if args.seed is None else args.seed,
+        run_id=args.run_id, mavlink_url=args.mavlink or f"udpin:127.0.0.1:{14540 + args.id}",
+        connect=tuple(args.connect or ["tcp/127.0.0.1:7447"]), listen=tuple(args.listen),
+        mode=args.mode, log=lambda line: print(line, flush=True))
+    process = None
+    try:
+        process = AgentProcess(options)
+        return process.run()
+    except KeyboardInterrupt:
+        return EXIT_INTERRUPTED
+    except LinkError as err:
+        return fail(PROG, str(err), 1)
+    except OSError as err:
+        return fail(PROG, f"drone {args.id}: {err}", 1)
+    finally:
+        if process is not None:
+            process.close()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,334 @@
+"""One drone as an OS process: the core's per-drone step between Zenoh and MAVLink (SPEC §12).
+
+Inputs: its own position from the autopilot (LOCAL_POSITION_NED, converted in
+``swarm.frames``), its camera frames (``world/camera/<i>``), its graph neighbours' consensus
+messages and every drone's beacon (collision rows). Outputs: velocity setpoints to the
+autopilot, its own consensus messages, beacon and telemetry. It never reads ``world/truth``.
+
+``lockstep``: step k waits for the camera frame of step k, the position sample stamped with
+that frame's ``vehicle_time_ms``, every neighbour's round messages and every beacon of step k
+— deterministic. ``realtime``: a 50 Hz loop with the latest of everything; neighbour data
+older than ``runtime.stale_timeout_s`` is left out of the consensus sums and counted.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from swarm.config import ScenarioConfig
+from swarm.core.agent import ConsensusMessage, DroneAgent
+from swarm.mavlink_link import AutopilotLink, LinkError
+from swarm.rate import RateLimiter
+from swarm.reference import build_agent
+from swarm.transport import (
+    Keys,
+    LatestValues,
+    RejectionCounter,
+    StepMailbox,
+    TransportError,
+    declare_publisher,
+    open_session,
+    subscribe,
+    zenoh_config,
+)
+from swarm.wire import (
+    BeaconWire,
+    CameraFrameWire,
+    ClockWire,
+    TelemetryWire,
+    WireCodec,
+    WireError,
+)
+
+Mode = Literal["lockstep", "realtime"]
+WAIT_SLICE_S = 0.25  # lockstep waits are cut into slices to notice the end of the mission
+
+
+class MissionEnded(Exception):
+    """The world said the mission is done (or aborted); leave the loop."""
+
+    def __init__(self, state: str, detail: str = "") -> None:
+        super().__init__(f"{state}: {detail}" if detail else state)
+        self.state = state
+
+
+@dataclass(frozen=True)
+class AgentOptions:
+    config: ScenarioConfig
+    drone_id: int
+    seed: int
+    run_id: str
+    mavlink_url: str
+    connect: tuple[str, ...]
+    listen: tuple[str, ...] = ()
+    mode: Mode = "lockstep"
+    log: Callable[[str], None] = field(default=print)
+
+
+class AgentProcess:
+    """Zenoh subscriptions, the MAVLink link and the loop around one ``DroneAgent``."""
+
+    def __init__(self, options: AgentOptions) -> None:
+        self.options = options
+        cfg = options.config
+        self.id = options.drone_id
+        self.n = cfg.swarm.n_drones
+        self.neighbours = set(cfg.swarm.graph.neighbours[self.id])
+        self.others = set(range(self.n)) - {self.id}
+        self.agent: DroneAgent = build_agent(cfg, options.seed, self.id)
+        n_state = self.agent.target_estimates.shape[1]
+        self.codec = WireCodec(self.n, len(cfg.targets), n_state)
+        self.keys = Keys(options.run_id)
+        self.rejections = RejectionCounter()
+        lockstep = options.mode == "lockstep"
+        # Lockstep keys everything by (step, round); realtime keeps only the latest value.
+        self.camera_steps: StepMailbox[CameraFrameWire] = StepMailbox()
+        self.camera_latest: LatestValues[CameraFrameWire] = LatestValues()
+        self.consensus_steps: StepMailbox[ConsensusMessage] = StepMailbox()
+        self.consensus_latest: LatestValues[ConsensusMessage] = LatestValues()
+        self.beacon_steps: StepMailbox[BeaconWire] = StepMailbox()
+        self.beacon_latest: LatestValues[BeaconWire] = LatestValues()
+        self.clock: LatestValues[ClockWire] = LatestValues()
+        self.late_steps = 0
+        self.stale_messages = 0
+        self.neighbour_age_ms = float("nan")
+
+        self.session = self._open_session()
+        subs = [
+            subscribe(self.session, self.keys.camera(self.id), self.codec.decode_camera,
+                      self._on_camera, self.rejections, "camera"),
+            subscribe(self.session, self.keys.all_beacons, self.codec.decode_beacon,
+                      self._on_beacon, self.rejections, "beacon"),
+            subscribe(self.session, self.keys.clock, self.codec.decode_clock,
+                      lambda _k, c: self.clock.put(0, c), self.rejections, "clock"),
+        ]
+        subs += [subscribe(self.session, self.keys.consensus(j), self.codec.decode_consensus,
+                           self._on_consensus, self.rejections, "consensus")
+                 for j in sorted(self.neighbours)]
+        self._subscribers = subs
+        self._lockstep = lockstep
+        block = lockstep  # lockstep peers wait for every message; realtime wants the newest
+        self._pub_consensus = declare_publisher(self.session, self.keys.consensus(self.id),
+                                                block=block)
+        self._pub_beacon = declare_publisher(self.session, self.keys.beacon(self.id), block=block)
+        self._pub_telemetry = declare_publisher(self.session, self.keys.telemetry(self.id),
+                                                block=block)
+        self.link = AutopilotLink(options.mavlink_url, self.id, cfg.vehicles.flavour,
+                                  cfg.vehicles.origin_w(self.id), log=options.log)
+
+    def _open_session(self):
+        """Join the world's router, waiting for it if the world is not up yet."""
+        opts = self.options
+        mode = "peer" if opts.listen else "client"
+        deadline = time.monotonic() + opts.config.runtime.start_timeout_s
+        announced = False
+        while True:
+            try:
+                return open_session(zenoh_config(mode=mode, listen=opts.listen,
+                                                 connect=opts.connect))
+            except TransportError as err:
+                if time.monotonic() > deadline:
+                    raise LinkError(
+                        f"drone {self.id}: cannot reach the world's Zenoh router at "
+                        f"{', '.join(opts.connect)} within "
+                        f"{opts.config.runtime.start_timeout_s} s: is sim-world running? "
+                        f"({err})") from None
+                if not announced:
+                    announced = True
+                    opts.log(f"drone {self.id}: waiting for the world's Zenoh router at "
+                             f"{', '.join(opts.connect)}")
+                time.sleep(0.2)
+
+    # -- subscriptions (zenoh threads) ------------------------------------------------------
+
+    def _on_camera(self, _key: str, frame: CameraFrameWire) -> None:
+        if frame.drone != self.id:
+            self.rejections.reject("camera", f"frame for drone {frame.drone} on drone {self.id}")
+            return
+        self.camera_steps.put(frame.step, 0, 0, frame)
+        self.camera_latest.put(0, frame)
+
+    def _on_consensus(self, _key: str, msg: ConsensusMessage) -> None:
+        if msg.sender not in self.neighbours:
+            self.rejections.reject("consensus", f"message from non-neighbour {msg.sender}")
+            return
+        self.consensus_steps.put(msg.step, msg.round, msg.sender, msg)
+        self.consensus_latest.put((msg.sender, msg.round), msg)
+
+    def _on_beacon(self, _key: str, beacon: BeaconWire) -> None:
+        if beacon.sender == self.id:
+            return
+        self.beacon_steps.put(beacon.step, 0, beacon.sender, beacon)
+        self.beacon_latest.put(beacon.sender, beacon)
+
+    # -- helpers ------------------------------------------------------------------------------
+
+    def _check_clock(self) -> None:
+        latest = self.clock.get(0)
+        if latest is not None and latest[0].state in ("done", "aborted"):
+            raise MissionEnded(latest[0].state, latest[0].detail)
+
+    def _wait_steps(self, mailbox: StepMailbox, step: int, rnd: int, senders: set[int],
+                    what: str) -> dict:
+        """Lockstep wait for (step, round) from every sender, watching for the mission end."""
+        deadline = time.monotonic() + self.options.config.runtime.lockstep_timeout_s
+        got: dict = {}
+        while True:
+            got = mailbox.wait_for(step, rnd, senders, WAIT_SLICE_S)
+            if len(got) == len(senders):
+                return got
+            self._check_clock()
+            if time.monotonic() > deadline:
+                missing = sorted(senders - set(got))
+                raise LinkError(f"drone {self.id}: step {step}: no {what} from {missing} within "
+                                f"{self.options.config.runtime.lockstep_timeout_s} s")
+
+    def _publish(self, publisher, message) -> None:
+        """Encode (validated: peers would reject what fails) and send; count failures."""
+        try:
+            payload = self.codec.encode(message)
+        except WireError as err:
+            self.rejections.reject("outgoing", err.reason)
+            return
+        publisher.put(payload)
+
+    def _publish_consensus(self, msg: ConsensusMessage | None) -> None:
+        if msg is not None:
+            self._publish(self._pub_consensus, self.codec.consensus_to_wire(msg))
+
+    def _fresh_inbox(self, rnd: int) -> dict[int, ConsensusMessage]:
+        """Realtime: each neighbour's newest message of this round, if fresh enough."""
+        stale_after = self.options.config.runtime.stale_timeout_s
+        inbox: dict[int, ConsensusMessage] = {}
+        ages = []
+        for j in self.neighbours:
+            latest = self.consensus_latest.get((j, rnd))
+            if latest is None:
+                continue
+            msg, age = latest
+            if age > stale_after:
+                self.stale_messages += 1
+                continue
+            inbox[j] = msg
+            ages.append(age)
+        self.neighbour_age_ms = 1000.0 * min(ages) if ages else float("nan")
+        return inbox
+
+    def _step(self, step: int, position: np.ndarray, frame: CameraFrameWire | None) -> np.ndarray:
+        """One step of the core, with the exchange done the way the mode wants."""
+        agent = self.agent
+        detections = frame.detection_list() if frame is not None else []
+        communicated = frame.target_velocity_array() if frame is not None else None
+        msg = agent.begin_step(step, position, detections, communicated)
+        self._publish(self._pub_beacon, BeaconWire.build(
+            sender=self.id, step=step, time_s=step * self.options.config.scenario.dt_s,
+            position_m=position))
+        self._publish_consensus(msg)
+        for rnd in range(agent.n_rounds):
+            if self._lockstep:
+                inbox = self._wait_steps(self.consensus_steps, step, rnd, self.neighbours,
+                                         f"round-{rnd} consensus")
+            else:
+                inbox = self._fresh_inbox(rnd)
+            msg = agent.consensus_round(inbox)
+            self._publish_consensus(msg)
+        if self._lockstep:
+            beacons = {j: np.asarray(b.position_m, dtype=float) for j, b in
+                       self._wait_steps(self.beacon_steps, step, 0, self.others,
+                                        "beacon").items()}
+        else:
+            stale_after = self.options.config.runtime.stale_timeout_s
+            beacons = {j: np.asarray(b.position_m, dtype=float)
+                       for j, b in self.beacon_latest.fresh(stale_after).items()}
+        result = agent.finish_step(beacons)
+        stamp = frame.vehicle_time_ms if frame is not None else 0
+        self.link.send_velocity(result.velocity, stamp)
+        self._publish(self._pub_telemetry, TelemetryWire.from_diagnostics(
+            result.diagnostics, position=position, qp_fallbacks=agent.qp_fallbacks,
+            rejected_messages=agent.rejected_inputs + self.rejections.total()
+            + self.link.rejected_frames,
+            missing_neighbour_messages=agent.missing_neighbour_messages,
+            stale_neighbour_messages=self.stale_messages, late_steps=self.late_steps,
+            neighbour_age_ms=self.neighbour_age_ms,
+            mavlink_state=f"{'armed' if self.link.armed else 'disarmed'} {self.link.mode}"))
+        return result.velocity
+
+    # -- phases ------------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """MAVLink handshake, then keep the setpoint stream alive until the mission starts."""
+        cfg = self.options.config
+        self.link.wait_heartbeat(timeout_s=cfg.runtime.start_timeout_s)
+        # Takeoff altitude None: the link climbs to where the vehicle already is (ArduPilot).
+        self.link.handshake(timeout_s=cfg.runtime.start_timeout_s)
+        self.options.log(f"drone {self.id}: armed and streaming; waiting for the mission")
+        deadline = time.monotonic() + cfg.runtime.start_timeout_s
+        while self.camera_latest.get(0) is None:
+            self._check_clock()
+            if time.monotonic() > deadline:
+                raise LinkError(f"drone {self.id}: the mission did not start within "
+                                f"{cfg.runtime.start_timeout_s} s")
+            self.link.keepalive(time.monotonic())
+            self.camera_steps.wait_for(0, 0, {0}, 0.05)
+
+    def run_lockstep(self) -> None:
+        step = 0
+        while True:
+            frame = self._wait_steps(self.camera_steps, step, 0, {0}, "camera frame")[0]
+            sample = self.link.wait_position(frame.vehicle_time_ms,
+                                             self.options.config.runtime.lockstep_timeout_s)
+            self._step(step, sample.position_w, frame)
+            step += 1
+
+    def run_realtime(self) -> None:
+        limiter = RateLimiter(self.options.config.scenario.dt_s)
+        last_frame_step = -1
+        position = None
+        step = 0
+        while True:
+            self._check_clock()
+            sample = self.link.latest_position()
+            if sample is not None:
+                position = sample.position_w
+            latest = self.camera_latest.get(0)
+            frame = None
+            if latest is not None and latest[0].step != last_frame_step:
+                frame = latest[0]
+                last_frame_step = frame.step
+            if position is not None:
+                self._step(step, position, frame)
+                step += 1
+            if limiter.sleep():
+                self.late_steps += 1
+
+    def run(self) -> int:
+        log = self.options.log
+        try:
+            self.start()
+            if self._lockstep:
+                self.run_lockstep()
+            else:
+                self.run_realtime()
+        except MissionEnded as over:
+            if over.state == "done":
+                log(f"drone {self.id}: mission complete; {self.agent.qp_fallbacks} QP "
+                    f"fallbacks, {self.late_steps} late steps, "
+                    f"{self.rejections.total() + self.link.rejected_frames} rejected inputs")
+                return 0
+            log(f"drone {self.id}: mission aborted by the world: {over}")
+            return 1
+        except LinkError as err:
+            log(str(err) if str(err).startswith("drone ") else f"drone {self.id}: {err}")
+            return 1
+        return 0
+
+    def close(self) -> None:
+        for sub in self._subscribers:
+            sub.undeclare()
+        self.link.close()
+        self.session.close()

@@ -1,0 +1,496 @@
+"""A thin Zenoh layer (SPEC §12): loopback-only session configs, key names, and thread-safe
+stores that turn callback deliveries into what an agent step needs.
+
+- ``zenoh_config`` builds a session config with explicit endpoints only: no multicast scouting
+  and no default listener (zenoh's own default listens on ``tcp/[::]:<port>`` on every
+  interface and scouts on UDP multicast 224.0.0.224:7446). A swarm started with loopback
+  endpoints therefore creates no traffic outside 127.0.0.0/8.
+- ``Keys`` names every key expression under ``vigil/<run_id>/``; different run ids never match.
+- ``subscribe`` declares a callback subscriber that decodes each payload with a ``WireCodec``
+  decoder; a ``WireError`` (or anything unexpected) is counted in a ``RejectionCounter`` and the
+  payload dropped — no exception ever reaches zenoh's thread.
+- ``LatestValues`` (realtime mode): the newest value per source with its age; never a queue.
+- ``StepMailbox`` (lockstep mode): values keyed (step, round, sender) and a blocking
+  ``wait_for`` on a condition variable, pruned so memory stays bounded.
+
+zenoh-python 1.x runs Python callbacks on a dedicated Python thread by default
+(``handlers.Callback(indirect=True)``), in arrival order per subscriber; the stores here are
+what make those deliveries safe to read from the agent's own thread.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import json
+import re
+import threading
+import time
+from collections.abc import Callable, Hashable, Iterable, Sequence
+from typing import Any, Final, Generic, Literal, TypeVar
+
+import zenoh
+
+from swarm.wire import WireError
+
+T = TypeVar("T")
+
+Mode = Literal["peer", "client", "router"]
+MODES: Final = ("peer", "client", "router")
+PROTOCOLS: Final = ("tcp", "udp")
+KEY_ROOT: Final = "vigil"
+
+_RUN_ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+_HOSTNAME = re.compile(r"^(?=.{1,253}$)[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?"
+                       r"(?:\.[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?)*$")
+_MAX_REASON_CHARS: Final = 300
+
+
+class TransportError(RuntimeError):
+    """A Zenoh session could not be opened (one line: what and why)."""
+
+
+# -- configuration -------------------------------------------------------------------------------
+
+
+def parse_endpoint(endpoint: str, *, role: Literal["listen", "connect"] = "connect"
+                   ) -> tuple[str, str, int]:
+    """Split ``"<tcp|udp>/<host>:<port>"`` into (protocol, host, port), or raise ``ValueError``.
+
+    Hosts are IPv4 addresses, bracketed IPv6 addresses (``tcp/[::1]:7447``) or host names. Port
+    0 (any free port) is allowed for ``listen`` only. Zenoh itself accepts malformed strings at
+    configuration time and fails later, so every endpoint goes through here first.
+    """
+    if not isinstance(endpoint, str):
+        raise ValueError(f"zenoh {role} endpoint must be a string like 'tcp/127.0.0.1:7447', "
+                         f"got {type(endpoint).__name__}")
+    shown = endpoint if len(endpoint) <= 80 else endpoint[:77] + "..."
+    expected = "expected '<tcp|udp>/<host>:<port>', e.g. 'tcp/127.0.0.1:7447'"
+    proto, slash, rest = endpoint.partition("/")
+    if not slash or proto not in PROTOCOLS:
+        raise ValueError(f"zenoh {role} endpoint {shown!r}: {expected}")
+    host, colon, port_text = rest.rpartition(":")
+    if not colon or not host or not port_text.isdigit() or len(port_text) > 5:
+        raise ValueError(f"zenoh {role} endpoint {shown!r}: {expected}")
+    port = int(port_text)
+    if not (0 if role == "listen" else 1) <= port <= 65535:
+        raise ValueError(f"zenoh {role} endpoint {shown!r}: port {port} out of range "
+                         f"({'0' if role == 'listen' else '1'}-65535)")
+    if host.startswith("[") and host.endswith("]"):
+        try:
+            ipaddress.IPv6Address(host[1:-1])
+        except ValueError:
+            raise ValueError(f"zenoh {role} endpoint {shown!r}: {host} is not an IPv6 "
+                             "address") from None
+    elif re.fullmatch(r"[0-9.]+", host):
+        try:
+            ipaddress.IPv4Address(host)
+        except ValueError:
+            raise ValueError(f"zenoh {role} endpoint {shown!r}: {host} is not an IPv4 "
+                             "address") from None
+    elif not _HOSTNAME.match(host):
+        raise ValueError(f"zenoh {role} endpoint {shown!r}: {host!r} is not a host name; "
+                         f"{expected}")
+    return proto, host, port
+
+
+def is_loopback_endpoint(endpoint: str) -> bool:
+    """True for endpoints on 127.0.0.0/8, ``[::1]`` or ``localhost``."""
+    _, host, _ = parse_endpoint(endpoint, role="listen")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+def zenoh_config(
+    *,
+    mode: Mode = "peer",
+    listen: Sequence[str] = (),
+    connect: Sequence[str] = (),
+    connect_timeout_s: float | None = None,
+    shared_memory: bool = False,
+) -> zenoh.Config:
+    """A Zenoh session config with explicit endpoints only.
+
+    - ``mode``: "router" (routes between everything connected to it), "peer" or "client".
+    - ``listen`` / ``connect``: exact endpoints such as ``"tcp/127.0.0.1:7447"``; empty ``listen``
+      means the session accepts no connections at all (zenoh's default would listen on every
+      interface).
+    - Multicast scouting is off. Gossip scouting stays on for peers and routers: it only tells
+      sessions already connected about each other's *listen* endpoints (so peers behind one
+      hub can link up directly), and those are exactly the explicit ones given here.
+    - ``connect_timeout_s``: keep retrying the connect endpoints this long at open, then fail
+      (default: zenoh's per-mode behaviour — a client fails at once if nothing answers, a peer
+      opens anyway and keeps retrying in the background).
+    - ``shared_memory`` is off by default: payloads here are small, and a SIGKILLed process
+      must not leave segments behind in /dev/shm.
+    """
+    if mode not in MODES:
+        raise ValueError(f"zenoh mode must be one of {MODES}, got {mode!r}")
+    if isinstance(listen, str) or isinstance(connect, str):
+        raise ValueError("zenoh listen/connect must be sequences of endpoint strings, "
+                         "not one string")
+    listen, connect = list(listen), list(connect)
+    for endpoint in listen:
+        parse_endpoint(endpoint, role="listen")
+    for endpoint in connect:
+        parse_endpoint(endpoint, role="connect")
+    if connect_timeout_s is not None and not (isinstance(connect_timeout_s, int | float)
+                                              and 0 < connect_timeout_s <= 3600):
+        raise ValueError(f"connect_timeout_s must be in (0, 3600] s, got {connect_timeout_s!r}")
+    config = zenoh.Config()
+    settings: dict[str, Any] = {
+        "mode": mode,
+        "listen/endpoints": listen,
+        "listen/exit_on_failure": True,  # a busy port is an error at open, not a silent gap
+        "connect/endpoints": connect,
+        # Reconnect quickly after a hub restarts. ``connect/retry`` is null by default, so its
+        # fields cannot be inserted one by one ("unknown key"): the object goes in whole.
+        "connect/retry": {"period_init_ms": 100, "period_max_ms": 1000,
+                          "period_increase_factor": 2},
+        "scouting/multicast/enabled": False,
+        "scouting/gossip/enabled": mode != "client",
+        "scouting/gossip/multihop": False,
+        "transport/shared_memory/enabled": bool(shared_memory),
+    }
+    if connect_timeout_s is not None:
+        settings["connect/timeout_ms"] = max(1, round(connect_timeout_s * 1000))
+        settings["connect/exit_on_failure"] = True
+    for key, value in settings.items():
+        config.insert_json5(key, json.dumps(value))
+    return config
+
+
+def open_session(config: zenoh.Config) -> zenoh.Session:
+    """``zenoh.open`` with a one-line ``TransportError`` (busy port, nothing to connect to)."""
+    try:
+        return zenoh.open(config)
+    except Exception as exc:  # zenoh.ZError carries a multi-line Rust trace
+        message = " ".join(str(exc).split())
+        message = re.sub(r" at /\S+\.rs:\d+\.?", "", message)
+        raise TransportError(f"cannot open zenoh session: {message[:_MAX_REASON_CHARS]}"
+                             ) from None
+
+
+def declare_publisher(session: zenoh.Session, key: str, *, block: bool = True,
+                      express: bool = True) -> zenoh.Publisher:
+    """A publisher for one key.
+
+    ``block=True`` (lockstep): a full transmission queue waits instead of dropping — a lost
+    consensus message would stall the neighbours until their timeout. ``block=False``
+    (realtime): drop rather than delay; only the newest value matters. ``express`` sends each
+    message at once instead of batching (latency over throughput).
+    """
+    return session.declare_publisher(
+        key,
+        congestion_control=zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP,
+        express=express,
+    )
+
+
+# -- key expressions -----------------------------------------------------------------------------
+
+
+def _index(name: str, i: Any) -> int:
+    if isinstance(i, bool) or not isinstance(i, int) or i < 0:
+        raise ValueError(f"{name} must be an integer >= 0, got {i!r}")
+    return i
+
+
+class Keys:
+    """Key expressions of one run, all under ``vigil/<run_id>/``."""
+
+    def __init__(self, run_id: str) -> None:
+        if not isinstance(run_id, str) or not _RUN_ID.match(run_id):
+            raise ValueError("run_id must be 1-64 characters of [A-Za-z0-9_-], got "
+                             f"{run_id!r:.80}")
+        self.run_id = run_id
+        self.prefix = f"{KEY_ROOT}/{run_id}"
+        self.truth = f"{self.prefix}/world/truth"
+        self.clock = f"{self.prefix}/world/clock"
+        self.all_consensus = f"{self.prefix}/agent/*/consensus"
+        self.all_beacons = f"{self.prefix}/agent/*/beacon"
+        self.all_telemetry = f"{self.prefix}/agent/*/telemetry"
+        self.all_cameras = f"{self.prefix}/world/camera/*"
+        self.everything = f"{self.prefix}/**"
+        self._source = re.compile(
+            rf"^{re.escape(self.prefix)}/(?:agent/(\d{{1,9}})/(?:consensus|beacon|telemetry)"
+            rf"|world/camera/(\d{{1,9}}))$")
+
+    def consensus(self, i: int) -> str:
+        return f"{self.prefix}/agent/{_index('drone id', i)}/consensus"
+
+    def beacon(self, i: int) -> str:
+        return f"{self.prefix}/agent/{_index('drone id', i)}/beacon"
+
+    def telemetry(self, i: int) -> str:
+        return f"{self.prefix}/agent/{_index('drone id', i)}/telemetry"
+
+    def camera(self, i: int) -> str:
+        return f"{self.prefix}/world/camera/{_index('drone id', i)}"
+
+    def source_id(self, key: str) -> int | None:
+        """The drone id in an agent or camera key of this run (None for other keys).
+
+        A subscriber on a wildcard can check it against the id inside the payload.
+        """
+        match = self._source.match(str(key))
+        if match is None:
+            return None
+        return int(match.group(1) or match.group(2))
+
+    def __repr__(self) -> str:
+        return f"Keys({self.run_id!r})"
+
+
+# -- rejection counting --------------------------------------------------------------------------
+
+
+class RejectionCounter:
+    """Thread-safe counts of dropped payloads per key kind, with the last reason of each.
+
+    ``rejected``: the payload was not a valid wire message (``WireError``). ``unexpected``: the
+    decoder or the value handler raised anything else — a bug, counted instead of crashing.
+    """
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._counts: dict[str, dict[str, Any]] = {}
+        self._total = 0
+
+    def _add(self, kind: str, field: str, reason: str) -> None:
+        reason = " ".join(str(reason).split())[:_MAX_REASON_CHARS]
+        with self._cond:
+            entry = self._counts.setdefault(
+                kind, {"rejected": 0, "unexpected": 0, "last_reason": ""})
+            entry[field] += 1
+            entry["last_reason"] = reason
+            self._total += 1
+            self._cond.notify_all()
+
+    def reject(self, kind: str, reason: str) -> None:
+        self._add(kind, "rejected", reason)
+
+    def unexpected(self, kind: str, reason: str) -> None:
+        self._add(kind, "unexpected", reason)
+
+    def total(self) -> int:
+        """All payloads dropped so far, every kind and both causes."""
+        with self._cond:
+            return self._total
+
+    def snapshot(self) -> dict[str, dict[str, Any]]:
+        """``{kind: {"rejected": n, "unexpected": m, "last_reason": str}}`` (a copy)."""
+        with self._cond:
+            return {kind: dict(entry) for kind, entry in self._counts.items()}
+
+    def wait_for_total(self, count: int, timeout_s: float) -> bool:
+        """Block until at least ``count`` payloads were dropped in all; False at the deadline."""
+        with self._cond:
+            return self._cond.wait_for(lambda: self._total >= count, timeout=timeout_s)
+
+
+# -- stores --------------------------------------------------------------------------------------
+
+
+class LatestValues(Generic[T]):
+    """Thread-safe latest value per source, with its receipt time (realtime mode).
+
+    A source is any hashable: a drone id, or e.g. ``(drone, round)`` for consensus rounds.
+
+    ``put(source, value, seq=step)`` ignores a value older (lower ``seq``) than the stored one,
+    so a late out-of-order delivery never replaces newer data. Memory: one entry per source,
+    at most ``max_sources`` sources.
+    """
+
+    def __init__(self, *, clock: Callable[[], float] = time.monotonic,
+                 max_sources: int = 4096) -> None:
+        self._clock = clock
+        self._max_sources = max_sources
+        self._cond = threading.Condition()
+        self._values: dict[Hashable, tuple[T, float, int | None]] = {}
+
+    def put(self, source: Hashable, value: T, *, seq: int | None = None) -> bool:
+        """Store ``value`` as the newest from ``source``; False if refused (older, or full)."""
+        now = self._clock()
+        with self._cond:
+            old = self._values.get(source)
+            if old is None and len(self._values) >= self._max_sources:
+                return False
+            if old is not None and seq is not None and old[2] is not None and seq < old[2]:
+                return False
+            self._values[source] = (value, now, seq)
+            self._cond.notify_all()
+            return True
+
+    def get(self, source: Hashable) -> tuple[T, float] | None:
+        """(value, age in seconds) or None if ``source`` never sent anything."""
+        now = self._clock()
+        with self._cond:
+            entry = self._values.get(source)
+        return None if entry is None else (entry[0], now - entry[1])
+
+    def fresh(self, max_age_s: float) -> dict[Hashable, T]:
+        """The values no older than ``max_age_s`` seconds, by source."""
+        now = self._clock()
+        with self._cond:
+            return {s: v for s, (v, t, _) in self._values.items() if now - t <= max_age_s}
+
+    def ages(self) -> dict[Hashable, float]:
+        now = self._clock()
+        with self._cond:
+            return {s: now - t for s, (_, t, _) in self._values.items()}
+
+    def wait_for(self, sources: Iterable[Hashable], timeout_s: float, *,
+                 min_seq: int | None = None) -> bool:
+        """Block until every source in ``sources`` has a value (with ``seq >= min_seq`` if
+        given); False at the deadline."""
+        wanted = set(sources)
+
+        def ready() -> bool:
+            for s in wanted:
+                entry = self._values.get(s)
+                if entry is None or (min_seq is not None
+                                     and (entry[2] is None or entry[2] < min_seq)):
+                    return False
+            return True
+
+        with self._cond:
+            return self._cond.wait_for(ready, timeout=timeout_s)
+
+    def __len__(self) -> int:
+        with self._cond:
+            return len(self._values)
+
+
+class StepMailbox(Generic[T]):
+    """Thread-safe values keyed (step, round, sender) for lockstep consensus.
+
+    - ``put`` keeps the FIRST value for a key; later duplicates are counted and ignored, so
+      what ``wait_for`` returned can never change under the caller.
+    - ``wait_for(step, round, senders, timeout_s)`` blocks on a condition variable until every
+      requested sender has a value for (step, round) or the deadline passes, then returns
+      exactly the requested senders that have one.
+    - Bounded memory: ``wait_for`` for step k drops every entry with a step below
+      ``k - horizon_steps`` or above ``k + max_ahead_steps``, and ``put`` refuses such steps
+      (and anything beyond ``max_entries``). Refusals are counted in ``refused``.
+    """
+
+    def __init__(self, *, horizon_steps: int = 2, max_ahead_steps: int = 4,
+                 max_entries: int = 65536) -> None:
+        for name, value in (("horizon_steps", horizon_steps),
+                            ("max_ahead_steps", max_ahead_steps), ("max_entries", max_entries)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ValueError(f"StepMailbox: {name} must be an integer >= 0, got {value!r}")
+        self.horizon_steps = horizon_steps
+        self.max_ahead_steps = max_ahead_steps
+        self.max_entries = max_entries
+        self._cond = threading.Condition()
+        self._boxes: dict[tuple[int, int], dict[int, T]] = {}
+        self._entries = 0
+        self._current: int | None = None  # the newest step anyone waited for
+        self.refused = 0
+        self.duplicates = 0
+
+    def _in_window(self, step: int) -> bool:
+        if self._current is None:
+            return True
+        return self._current - self.horizon_steps <= step <= self._current + self.max_ahead_steps
+
+    def put(self, step: int, round: int, sender: int, value: T) -> bool:
+        """Store ``value``; False if it was a duplicate or refused (outside the window, full)."""
+        with self._cond:
+            if not self._in_window(step) or self._entries >= self.max_entries:
+                self.refused += 1
+                return False
+            box = self._boxes.setdefault((step, round), {})
+            if sender in box:
+                self.duplicates += 1
+                return False
+            box[sender] = value
+            self._entries += 1
+            self._cond.notify_all()
+            return True
+
+    def wait_for(self, step: int, round: int, senders: Iterable[int],
+                 timeout_s: float) -> dict[int, T]:
+        wanted = set(senders)
+        deadline = time.monotonic() + max(0.0, timeout_s)
+        with self._cond:
+            if self._current is None or step > self._current:
+                self._current = step
+                self._prune()
+            while True:
+                box = self._boxes.get((step, round), {})
+                found = {s: box[s] for s in wanted if s in box}
+                remaining = deadline - time.monotonic()
+                if len(found) == len(wanted) or remaining <= 0:
+                    return found
+                self._cond.wait(remaining)
+
+    def get(self, step: int, round: int) -> dict[int, T]:
+        """What has arrived for (step, round) so far, without waiting (a copy)."""
+        with self._cond:
+            return dict(self._boxes.get((step, round), {}))
+
+    def prune(self, current_step: int) -> None:
+        """Advance the window to ``current_step`` without waiting."""
+        with self._cond:
+            if self._current is None or current_step > self._current:
+                self._current = current_step
+                self._prune()
+
+    def _prune(self) -> None:
+        for key in [k for k in self._boxes if not self._in_window(k[0])]:
+            self._entries -= len(self._boxes.pop(key))
+
+    def __len__(self) -> int:
+        with self._cond:
+            return self._entries
+
+
+# -- subscriptions -------------------------------------------------------------------------------
+
+
+def subscribe(
+    session: zenoh.Session,
+    key: str,
+    decode: Callable[[bytes], T],
+    on_value: Callable[[str, T], None],
+    rejections: RejectionCounter,
+    kind: str,
+    *,
+    max_payload_bytes: int = 1 << 20,
+) -> zenoh.Subscriber:
+    """Declare a callback subscriber on ``key`` (wildcards allowed).
+
+    Each sample's payload goes through ``decode`` (e.g. ``codec.decode_beacon``); a valid value
+    is passed to ``on_value(key_of_the_sample, value)``. A ``WireError`` is counted as rejected
+    under ``kind``; any other exception from the decoder or from ``on_value`` is counted as
+    unexpected with its type and message. Nothing propagates into zenoh's thread. The
+    subscriber lives until ``undeclare()`` or the session closes; ``on_value`` runs on zenoh's
+    callback thread, so it should only store the value (e.g. in a ``StepMailbox``).
+    """
+
+    def callback(sample: zenoh.Sample) -> None:
+        try:
+            payload = sample.payload
+            if len(payload) > max_payload_bytes:
+                rejections.reject(kind, f"payload of {len(payload)} bytes exceeds the "
+                                        f"{max_payload_bytes}-byte limit")
+                return
+            value = decode(payload.to_bytes())
+        except WireError as exc:
+            rejections.reject(kind, exc.reason)
+            return
+        except BaseException as exc:  # never into zenoh's thread
+            rejections.unexpected(kind, f"decoder raised {type(exc).__name__}: {exc}")
+            return
+        try:
+            on_value(str(sample.key_expr), value)
+        except BaseException as exc:
+            rejections.unexpected(kind, f"handler raised {type(exc).__name__}: {exc}")
+
+    return session.declare_subscriber(key, callback)

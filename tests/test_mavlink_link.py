@@ -1,0 +1,451 @@
+"""swarm.mavlink_link.AutopilotLink against EmulatedVehicle over real UDP on 127.0.0.1.
+
+Both ends are real pymavlink; ports come from the OS. A served vehicle is a small loop in a
+background thread stepping the vehicle at 50 Hz wall clock (integrate + telemetry) and
+answering every datagram at once. Waits are on conditions with deadlines, never sleeps.
+"""
+
+from __future__ import annotations
+
+import select
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+from pymavlink.dialects.v20 import ardupilotmega as mav
+
+from sim_world.mavlink_endpoint import VehicleEndpoint
+from sim_world.vehicle import EmulatedVehicle
+from swarm import frames
+from swarm.mavlink_link import IDLE_STAMP_MS, AutopilotLink, LinkError, PositionSample
+
+DT = 0.02
+DRONE = 2
+SYS = DRONE + 1
+ORIGIN = np.array([100.0, -50.0, 0.0])
+START = np.array([103.0, -46.0, 4.0])
+
+
+class ServedVehicle:
+    """EmulatedVehicle behind a VehicleEndpoint, stepped at 50 Hz by a background thread.
+
+    ``intercept(message, now_s)`` may answer a parsed incoming message itself (returning the
+    reply packets) instead of passing its datagram to the vehicle; it returns None to pass.
+    """
+
+    def __init__(self, vehicle: EmulatedVehicle, agent_port: int,
+                 intercept: Callable[[Any, float], list[bytes] | None] | None = None) -> None:
+        self.vehicle = vehicle
+        self.endpoint = VehicleEndpoint(("127.0.0.1", agent_port))
+        self.intercept = intercept
+        self.lock = threading.Lock()
+        self.applied: list[np.ndarray] = []  # velocity integrated at each step
+        self.errors: list[BaseException] = []
+        self._stop = threading.Event()
+        self._parser = mav.MAVLink(None)
+        self._parser.robust_parsing = True
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._t0 = time.monotonic()
+        self._thread.start()
+
+    def forge(self) -> Any:
+        """A MAVLink encoder speaking as this vehicle (for intercept replies)."""
+        return mav.MAVLink(None, srcSystem=self.vehicle.system_id, srcComponent=1)
+
+    def _run(self) -> None:
+        try:
+            next_step = self._t0
+            next_heartbeat = self._t0
+            while not self._stop.is_set():
+                now = time.monotonic()
+                with self.lock:
+                    if now >= next_heartbeat:  # 1 Hz, as sim-world does
+                        self.endpoint.send([self.vehicle.heartbeat()])
+                        next_heartbeat += 1.0
+                    for data in self.endpoint.poll():
+                        self._deliver(data, now - self._t0)
+                    if now >= next_step:
+                        t = now - self._t0
+                        velocity = self.vehicle.commanded_velocity_w(t)
+                        self.vehicle.integrate(DT, velocity)
+                        self.applied.append(velocity)
+                        self.endpoint.send(self.vehicle.telemetry(round(t * 1000), t))
+                        next_step += DT
+                        if next_step < now:
+                            next_step = now + DT
+                select.select([self.endpoint], [], [], max(0.0, next_step - time.monotonic()))
+        except BaseException as exc:  # surfaced by stop()
+            self.errors.append(exc)
+
+    def _deliver(self, data: bytes, t: float) -> None:
+        if self.intercept is not None:
+            msgs = self._parser.parse_buffer(data) or []
+            if len(msgs) == 1:
+                replies = self.intercept(msgs[0], t)
+                if replies is not None:
+                    self.endpoint.send(replies)
+                    return
+        self.endpoint.send(self.vehicle.receive(data, t))
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+        self.endpoint.close()
+        assert not self._thread.is_alive()
+        assert not self.errors, self.errors
+
+
+@pytest.fixture
+def logs() -> list[str]:
+    return []
+
+
+def make_link(flavour: str, logs: list[str], **kw: Any) -> AutopilotLink:
+    return AutopilotLink("udpin:127.0.0.1:0", DRONE, flavour, ORIGIN,  # type: ignore[arg-type]
+                         log=logs.append, **kw)
+
+
+@pytest.fixture
+def served() -> Iterator[Callable[..., tuple[AutopilotLink, ServedVehicle]]]:
+    made: list[tuple[AutopilotLink, ServedVehicle]] = []
+
+    def factory(flavour: str, logs: list[str], *, link_flavour: str | None = None,
+                intercept: Any = None) -> tuple[AutopilotLink, ServedVehicle]:
+        link = make_link(link_flavour or flavour, logs)
+        vehicle = EmulatedVehicle(DRONE, flavour, START, ORIGIN)  # type: ignore[arg-type]
+        assert link.local_address is not None
+        server = ServedVehicle(vehicle, link.local_address[1], intercept)
+        made.append((link, server))
+        return link, server
+
+    yield factory
+    for link, server in made:
+        server.stop()
+        link.close()
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def pump_until(link: AutopilotLink, condition: Callable[[], bool], timeout: float = 3.0,
+               *, velocity: np.ndarray | None = None) -> bool:
+    """Drain the link (sending ``velocity`` every 20 ms if given) until condition()."""
+    deadline = time.monotonic() + timeout
+    last_send = 0.0
+    while time.monotonic() < deadline:
+        link.poll()
+        if condition():
+            return True
+        if velocity is not None and time.monotonic() - last_send >= DT:
+            link.send_velocity(velocity, 7)
+            last_send = time.monotonic()
+        link._wait_readable(0.01)
+    return False
+
+
+# ---------------------------------------------------------------- full handshake and flight
+@pytest.mark.parametrize("flavour", ["px4", "ardupilot"])
+def test_handshake_then_fly_a_velocity_setpoint(flavour: str, served: Any,
+                                                logs: list[str]) -> None:
+    link, server = served(flavour, logs)
+    link.handshake(timeout_s=10.0)  # ardupilot: takeoff to the current altitude (4 m)
+    with server.lock:
+        vehicle = server.vehicle
+        assert vehicle.armed and vehicle.in_setpoint_mode and not vehicle.failsafe_active
+        assert vehicle.accepting_setpoints
+        assert vehicle.mode == link.mode == ("OFFBOARD" if flavour == "px4" else "GUIDED")
+        assert vehicle.airborne and vehicle.rejected_frames == 0
+        start = vehicle.position_w
+        n_before = len(server.applied)
+    assert link.armed
+    expected_lines = (["OFFBOARD accepted", "ARM accepted", "ready (OFFBOARD, armed)"]
+                      if flavour == "px4" else
+                      ["LOCAL_POSITION_NED stream accepted", "GUIDED accepted", "ARM accepted",
+                       "TAKEOFF to 4.00 m accepted", "ready (GUIDED, armed, airborne)"])
+    for line in expected_lines:
+        assert f"drone {DRONE}: {line}" in logs
+
+    # fly 1.0 m/s east, -0.5 m/s north, +0.25 m/s up for ~0.5 s, then stop
+    u = np.array([1.0, -0.5, 0.25])
+    u_link = frames.velocity_over_link(u)
+    t_end = time.monotonic() + 0.5
+    assert pump_until(link, lambda: time.monotonic() >= t_end, 1.0, velocity=u)
+    link.send_velocity(np.zeros(3), 8)
+    assert pump_until(link, lambda: np.array_equal(server.applied[-1], np.zeros(3)))
+    with server.lock:
+        steps = server.applied[n_before:]
+        end = server.vehicle.position_w
+    moving = [s for s in steps if np.any(s != 0)]
+    assert all(np.array_equal(s, u_link) for s in moving)  # bit-exact, never clamped here
+    assert 0.35 <= len(moving) * DT <= 0.8
+    displacement = end - start
+    np.testing.assert_allclose(displacement, len(moving) * DT * u_link, rtol=0, atol=1e-10)
+    assert displacement[0] > 0.3 and displacement[1] < -0.15 and displacement[2] > 0.08
+
+    # the agent sees the same position (float32 over the link), newest sample first
+    assert pump_until(link, lambda: (s := link.latest_position()) is not None
+                      and np.array_equal(s.velocity_w, np.zeros(3)))
+    sample = link.latest_position()
+    assert sample is not None
+    with server.lock:
+        truth = server.vehicle.position_w
+    assert np.max(np.abs(sample.position_w - truth)) < 1e-4 + 1e-9
+    assert link.rejected_frames == 0
+
+
+def test_arm_denied_once_is_retried_and_logged(served: Any, logs: list[str]) -> None:
+    denied: list[int] = []
+
+    def deny_first_arm(msg: Any, t: float) -> list[bytes] | None:
+        if msg.get_type() == "COMMAND_LONG" and msg.command == 400 and not denied:
+            denied.append(msg.confirmation)
+            forge = server.forge()
+            ack = forge.command_ack_encode(400, mav.MAV_RESULT_FAILED, 0, 0, SYS,
+                                           mav.MAV_COMP_ID_ONBOARD_COMPUTER)
+            return [ack.pack(forge)]
+        return None
+
+    link, server = served("px4", logs, intercept=deny_first_arm)
+    link.handshake(timeout_s=10.0, retries=3)
+    assert denied == [0]
+    assert f"drone {DRONE}: ARM denied (result 4 MAV_RESULT_FAILED), retry 2/3" in logs
+    assert f"drone {DRONE}: ARM accepted" in logs
+    assert link.armed and link.mode == "OFFBOARD"
+
+
+def test_handshake_gives_up_with_one_line_error(served: Any, logs: list[str]) -> None:
+    def swallow_mode_changes(msg: Any, t: float) -> list[bytes] | None:
+        if msg.get_type() == "COMMAND_LONG" and msg.command == 176:
+            return []  # no ACK at all
+        return None
+
+    link, _ = served("px4", logs, intercept=swallow_mode_changes)
+    with pytest.raises(LinkError) as err:
+        link.handshake(timeout_s=10.0, retries=2, ack_timeout_s=0.2)
+    text = str(err.value)
+    assert "\n" not in text
+    assert text == (f"drone {DRONE}: OFFBOARD failed after 2 attempts on {link.url}: "
+                    f"got no ACK within 0.2 s")
+    assert f"drone {DRONE}: OFFBOARD got no ACK within 0.2 s, retry 2/2" in logs
+
+
+def test_handshake_overall_timeout(served: Any, logs: list[str]) -> None:
+    def swallow(msg: Any, t: float) -> list[bytes] | None:
+        return [] if msg.get_type() == "COMMAND_LONG" else None
+
+    link, _ = served("ardupilot", logs, intercept=swallow)
+    with pytest.raises(LinkError, match=r"handshake did not complete within 0\.5 s") as err:
+        link.handshake(timeout_s=0.5, retries=5, ack_timeout_s=1.0)
+    assert "\n" not in str(err.value)
+
+
+def test_flavour_mismatch_is_reported(served: Any, logs: list[str]) -> None:
+    link, _ = served("ardupilot", logs, link_flavour="px4")
+    with pytest.raises(LinkError) as err:
+        link.wait_heartbeat(3.0)
+    assert str(err.value) == (f"drone {DRONE}: system {SYS} on {link.url} reports autopilot "
+                              f"ArduPilot but flavour 'px4' is configured")
+
+
+def test_no_heartbeat_error_names_the_port_base() -> None:
+    port = free_port()
+    link = AutopilotLink(f"udpin:127.0.0.1:{port}", DRONE, "px4", ORIGIN, log=lambda _: None)
+    try:
+        t0 = time.monotonic()
+        with pytest.raises(LinkError) as err:
+            link.wait_heartbeat(0.3)
+        assert 0.25 <= time.monotonic() - t0 < 2.0
+        assert str(err.value) == (f"no HEARTBEAT from system {SYS} on udpin:127.0.0.1:{port} "
+                                  f"within 0.3 s: is sim-world running with --mavlink-base "
+                                  f"{port - DRONE}?")
+        # a vehicle with the wrong system id talking to this port is named in the error
+        other = EmulatedVehicle(DRONE + 1, "px4", START, ORIGIN)
+        with VehicleEndpoint(("127.0.0.1", port)) as ep:
+            ep.send([other.heartbeat()])
+            with pytest.raises(LinkError, match=r"heard system\(s\) 4 instead: check --id"):
+                link.wait_heartbeat(0.3)
+        assert link.foreign_frames >= 1
+    finally:
+        link.close()
+
+
+def test_port_already_in_use_is_a_link_error() -> None:
+    first = make_link("px4", [])
+    try:
+        assert first.local_address is not None
+        url = f"udpin:127.0.0.1:{first.local_address[1]}"
+        with pytest.raises(LinkError, match="already using that port") as err:
+            AutopilotLink(url, DRONE, "px4", ORIGIN, log=lambda _: None)
+        assert "\n" not in str(err.value)
+    finally:
+        first.close()
+
+
+# ---------------------------------------------------------------- reading samples
+@pytest.fixture
+def pair() -> Iterator[tuple[AutopilotLink, EmulatedVehicle, VehicleEndpoint]]:
+    """A link and a vehicle endpoint with no serving thread: the test drives the vehicle."""
+    link = make_link("px4", [])
+    assert link.local_address is not None
+    vehicle = EmulatedVehicle(DRONE, "px4", START, ORIGIN)
+    endpoint = VehicleEndpoint(("127.0.0.1", link.local_address[1]))
+    yield link, vehicle, endpoint
+    endpoint.close()
+    link.close()
+
+
+def _emit(vehicle: EmulatedVehicle, endpoint: VehicleEndpoint, stamps: range,
+          *, coalesce: bool = False) -> list[np.ndarray]:
+    truths = []
+    packets: list[bytes] = []
+    for stamp in stamps:
+        vehicle.integrate(DT, [0.5, 0.25, -0.125])
+        packets.extend(vehicle.telemetry(stamp, stamp / 1000.0))
+        truths.append(vehicle.position_w)
+        if not coalesce:
+            endpoint.send(packets)
+            packets = []
+    if coalesce:
+        endpoint.send(packets, coalesce=True)
+    return truths
+
+
+def test_latest_position_returns_the_newest_of_many_queued(pair: Any) -> None:
+    link, vehicle, endpoint = pair
+    assert link.latest_position() is None
+    truths = _emit(vehicle, endpoint, range(0, 4000, 20))  # 200 queued samples
+    assert pump_until(link, lambda: link._latest is not None
+                      and link._latest.time_boot_ms == 3980)
+    sample = link.latest_position()
+    assert isinstance(sample, PositionSample) and sample.time_boot_ms == 3980
+    np.testing.assert_array_equal(sample.position_w,
+                                  frames.position_over_link(truths[-1], ORIGIN))  # bit-exact
+    np.testing.assert_array_equal(sample.velocity_w,
+                                  frames.velocity_over_link([0.5, 0.25, -0.125]))
+    assert link.latest_position() is sample  # nothing new: the same newest sample
+    # several packets in one datagram, with junk in between datagrams
+    junk = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    with junk:
+        assert link.local_address is not None
+        junk.sendto(b"\xfd\x09garbage-garbage", link.local_address)
+        bad = bytearray(vehicle.telemetry(9999, 99.0)[0])
+        bad[-2] ^= 0x55  # bad CRC
+        junk.sendto(bytes(bad), link.local_address)
+        truths = _emit(vehicle, endpoint, range(4000, 4100, 20), coalesce=True)
+        assert pump_until(link, lambda: link._latest is not None
+                          and link._latest.time_boot_ms == 4080)
+    sample = link.latest_position()
+    assert sample is not None and sample.time_boot_ms == 4080
+    np.testing.assert_array_equal(sample.position_w,
+                                  frames.position_over_link(truths[-1], ORIGIN))
+    assert link.rejected_frames >= 1
+    assert not any(k.startswith(("handler_error", "receive_error")) for k in link.rejections)
+
+
+def test_wait_position_picks_the_exact_stamp(pair: Any) -> None:
+    link, vehicle, endpoint = pair
+    truths = _emit(vehicle, endpoint, range(100, 111))
+    sample = link.wait_position(105, timeout_s=2.0)
+    assert sample.time_boot_ms == 105
+    np.testing.assert_array_equal(sample.position_w,
+                                  frames.position_over_link(truths[5], ORIGIN))
+    assert link.wait_position(110, 2.0).time_boot_ms == 110
+    assert link.wait_position(101, 0.0).time_boot_ms == 101  # already seen: no waiting
+    t0 = time.monotonic()
+    with pytest.raises(LinkError) as err:
+        link.wait_position(999, timeout_s=0.2)
+    assert time.monotonic() - t0 < 1.5
+    assert str(err.value) == (f"drone {DRONE}: no LOCAL_POSITION_NED stamped 999 ms from system "
+                              f"{SYS} on {link.url} within 0.2 s (newest seen: 110 ms)")
+
+
+def test_samples_from_another_system_are_ignored(pair: Any) -> None:
+    link, _, endpoint = pair
+    stranger = EmulatedVehicle(DRONE + 3, "px4", START, ORIGIN)
+    endpoint.send(stranger.telemetry(40, 0.04))
+    with pytest.raises(LinkError):
+        link.wait_position(40, 0.2)
+    assert link.foreign_frames >= 1 and link.rejected_frames == 0
+
+
+# ---------------------------------------------------------------- sending
+def _received(endpoint: VehicleEndpoint, count: int, timeout: float = 2.0) -> list[Any]:
+    parser = mav.MAVLink(None)
+    msgs: list[Any] = []
+    deadline = time.monotonic() + timeout
+    while len(msgs) < count and time.monotonic() < deadline:
+        select.select([endpoint], [], [], 0.05)
+        for data in endpoint.poll():
+            msgs.extend(parser.parse_buffer(data) or [])
+    return msgs
+
+
+def _introduce(link: AutopilotLink, vehicle: EmulatedVehicle,
+               endpoint: VehicleEndpoint) -> None:
+    """udpin learns where to send from the first datagram it receives."""
+    endpoint.send([vehicle.heartbeat()])
+    link.wait_heartbeat(2.0)
+
+
+def test_send_velocity_packet_contents(pair: Any) -> None:
+    link, vehicle, endpoint = pair
+    _introduce(link, vehicle, endpoint)
+    u = np.array([0.1, -2.7, 1.3])
+    link.send_velocity(u, 123_460)
+    msgs = [m for m in _received(endpoint, 2) if m.get_type() == "SET_POSITION_TARGET_LOCAL_NED"]
+    (sp,) = msgs
+    assert sp.get_msgbuf()[0] == 0xFD  # MAVLink 2
+    assert (sp.get_srcSystem(), sp.get_srcComponent()) == (SYS, mav.MAV_COMP_ID_ONBOARD_COMPUTER)
+    assert (sp.target_system, sp.target_component) == (SYS, 1)
+    assert sp.coordinate_frame == mav.MAV_FRAME_LOCAL_NED and sp.type_mask == 0x0DC7
+    assert sp.time_boot_ms == 123_460
+    decoded = frames.ned_to_enu([sp.vx, sp.vy, sp.vz])
+    np.testing.assert_array_equal(decoded, frames.velocity_over_link(u))
+    assert sp.vx == pytest.approx(-2.7, abs=1e-6) and sp.vy == pytest.approx(0.1, abs=1e-7)
+    assert sp.vz == pytest.approx(-1.3, abs=1e-6)
+    with pytest.raises(ValueError, match="uint32"):
+        link.send_velocity(u, 2**32)
+    with pytest.raises(ValueError, match="3-vector"):
+        link.send_velocity([1.0, 2.0], 0)
+    link.send_velocity([1e39, 0.0, 0.0], 0)  # beyond float32: sent as inf, the vehicle holds
+
+
+def test_keepalive_sends_idle_setpoints_at_most_every_100_ms(pair: Any) -> None:
+    link, vehicle, endpoint = pair
+    _introduce(link, vehicle, endpoint)
+    now = time.monotonic()
+    link.keepalive(now)
+    link.keepalive(now + 0.05)  # too soon: nothing
+    link.keepalive(now + 0.2)
+    msgs = _received(endpoint, 3)
+    setpoints = [m for m in msgs if m.get_type() == "SET_POSITION_TARGET_LOCAL_NED"]
+    assert len(setpoints) == 2
+    assert all(m.time_boot_ms == IDLE_STAMP_MS and (m.vx, m.vy, m.vz) == (0, 0, 0)
+               for m in setpoints)
+    heartbeats = [m for m in msgs if m.get_type() == "HEARTBEAT"]
+    assert heartbeats and heartbeats[0].type == mav.MAV_TYPE_ONBOARD_CONTROLLER
+
+
+def test_garbage_at_the_agent_port_is_counted_never_raised(pair: Any) -> None:
+    link, vehicle, endpoint = pair
+    rng = np.random.default_rng(11)
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as junk:
+        assert link.local_address is not None
+        for size in (1, 7, 64, 300, 2000):
+            junk.sendto(rng.integers(0, 256, size, dtype=np.uint8).tobytes(),
+                        link.local_address)
+        junk.sendto(vehicle.heartbeat()[:11], link.local_address)  # truncated
+    endpoint.send(vehicle.telemetry(0, 0.0))  # right after the truncated frame
+    endpoint.send(vehicle.telemetry(20, 0.02))
+    assert link.wait_position(0, 2.0).time_boot_ms == 0  # not swallowed by the truncated one
+    sample = link.wait_position(20, 2.0)
+    assert sample.time_boot_ms == 20
+    assert link.rejections["truncated"] >= 1 and link.rejections["bad_data"] >= 1
+    assert not any(k.startswith(("handler_error", "receive_error")) for k in link.rejections)

@@ -1,0 +1,225 @@
+"""The process swarm: real world and agent processes, real Zenoh sessions, real MAVLink/UDP.
+
+- lockstep runs reproduce the in-process reference bit for bit (issue 3, point 5);
+- two swarms at once never see each other (point 7);
+- SIGTERM / SIGINT stop every child within 5 s and free every port; a dying child is
+  reported with its exit code and last log lines (point 4).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from swarm.checks import check_invariants
+from swarm.config import load_config
+from swarm.launcher import LaunchOptions, SwarmLauncher, choose_mavlink_base
+from swarm.reference import run_reference
+
+ROOT = Path(__file__).resolve().parent.parent
+CONFIGS = ROOT / "configs"
+LAUNCH = [sys.executable, "-m", "swarm.cli"]
+COMPARED = ("drone_positions_m", "velocities_m_s", "estimates", "lambda_bar", "weights",
+            "target_positions_m")
+
+
+def lockstep_record(case: str, duration_s: float, seed: int, **options):
+    config = load_config(CONFIGS / f"{case}.toml").with_duration(duration_s)
+    launcher = SwarmLauncher(LaunchOptions(
+        config=config, config_path=str(CONFIGS / f"{case}.toml"), seed=seed, **options),
+        log=lambda _line: None)
+    return config, launcher.run()
+
+
+def assert_matches_reference(config, record, seed: int) -> None:
+    reference = run_reference(config, seed=seed)
+    for name in COMPARED:
+        ours, theirs = getattr(record, name), getattr(reference, name)
+        assert ours.shape == theirs.shape, name
+        assert np.max(np.abs(ours - theirs)) <= 1e-9, name
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("case", "duration_s"), [("case1", 20.0), ("case2", 10.0)])
+def test_lockstep_process_swarm_reproduces_the_in_process_reference(case: str,
+                                                                    duration_s: float) -> None:
+    """Case 1 for 20 s (the barrier QP is active from ~14 s) and Case 2 for 10 s."""
+    config, record = lockstep_record(case, duration_s, seed=0)
+    assert record.n_steps == config.n_steps
+    assert_matches_reference(config, record, seed=0)
+    assert check_invariants(record) == []
+
+
+@pytest.mark.slow
+def test_two_swarms_at_once_never_see_each_other() -> None:
+    """Different run ids, ports and seeds, started together: each still reproduces its own
+    reference exactly, which any crossed message (consensus, beacon, camera) would break."""
+    results: dict[int, tuple] = {}
+    errors: list[BaseException] = []
+    first_base = choose_mavlink_base(0, 6)
+
+    def run(seed: int, base: int) -> None:
+        try:
+            results[seed] = lockstep_record("case2", 3.0, seed=seed, mavlink_base=base,
+                                            run_id=f"iso{seed}")
+        except BaseException as err:  # reported below
+            errors.append(err)
+
+    threads = [threading.Thread(target=run, args=(1, first_base)),
+               threading.Thread(target=run, args=(2, first_base + 50))]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=240)
+    assert not errors, errors
+    for seed, (config, record) in results.items():
+        assert_matches_reference(config, record, seed)
+    assert not np.array_equal(results[1][1].drone_positions_m, results[2][1].drone_positions_m)
+
+
+# -- stopping and supervision ---------------------------------------------------------------
+
+
+def processes_of(run_id: str) -> list[int]:
+    """Pids whose command line carries this run id (our children pass --run-id)."""
+    pids = []
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            argv = (entry / "cmdline").read_bytes().split(b"\0")
+        except OSError:
+            continue
+        if run_id.encode() in argv and int(entry.name) != os.getpid():
+            pids.append(int(entry.name))
+    return pids
+
+
+def start_launcher(run_id: str, *extra: str) -> tuple[subprocess.Popen, list[str]]:
+    """launch-swarm in the background; returns it once every drone is armed and streaming."""
+    process = subprocess.Popen(
+        [*LAUNCH, str(CONFIGS / "case1.toml"), "--headless", "--run-id", run_id, *extra],
+        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, start_new_session=True,
+        cwd=ROOT)
+    lines: list[str] = []
+    deadline = time.monotonic() + 90
+    assert process.stdout is not None
+    while time.monotonic() < deadline:
+        line = process.stdout.readline()
+        if not line:
+            break
+        lines.append(line)
+        if "mission running" in line:
+            return process, lines
+    process.kill()
+    pytest.fail(f"the swarm never started: {''.join(lines)}")
+
+
+def ports_from(lines: list[str]) -> tuple[int, list[int]]:
+    header = next(line for line in lines if "zenoh tcp/" in line)
+    zenoh_port = int(re.search(r"zenoh tcp/127\.0\.0\.1:(\d+)", header).group(1))
+    first, last = map(int, re.search(r"MAVLink (\d+)\.\.(\d+)", header).groups())
+    return zenoh_port, list(range(first, last + 1))
+
+
+def assert_ports_free(zenoh_port: int, udp_ports: list[int]) -> None:
+    """Nobody listens on the router port and nobody holds the MAVLink ports. (SO_REUSEADDR
+    lets the bind ignore connections in TIME_WAIT, which the kernel keeps after any close,
+    but it still fails while a socket listens on the port.)"""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as tcp:
+        tcp.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        tcp.bind(("127.0.0.1", zenoh_port))
+        tcp.listen()
+    for port in udp_ports:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
+            udp.bind(("127.0.0.1", port))
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
+def test_a_signal_stops_every_child_within_5_s_and_frees_every_port(signum: int) -> None:
+    run_id = f"stop{signum}x{os.getpid()}"
+    process, lines = start_launcher(run_id, "--mode", "realtime")
+    try:
+        children = [pid for pid in processes_of(run_id) if pid != process.pid]
+        assert len(children) == 7, children  # world + 6 agents
+        sent = time.monotonic()
+        process.send_signal(signum)
+        out, _ = process.communicate(timeout=10)
+        elapsed = time.monotonic() - sent
+        assert elapsed < 5.0, f"stopping took {elapsed:.2f} s"
+        assert process.returncode == 130
+        assert "interrupted" in out
+        assert processes_of(run_id) == []
+        assert_ports_free(*ports_from(lines))
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+        for pid in processes_of(run_id):
+            os.kill(pid, signal.SIGKILL)
+
+
+def test_a_dying_agent_is_reported_with_exit_code_and_log_lines() -> None:
+    run_id = f"death{os.getpid()}"
+    process, _ = start_launcher(run_id)
+    try:
+        victim = next(pid for pid in processes_of(run_id) if pid != process.pid
+                      and b"--id\x002\x00" in Path(f"/proc/{pid}/cmdline").read_bytes())
+        os.kill(victim, signal.SIGKILL)
+        out, _ = process.communicate(timeout=30)
+        assert process.returncode == 1
+        assert "agent2" in out and "signal 9" in out and "last lines" in out
+        assert "drone 2: armed and streaming" in out  # the tail of its log is shown
+        assert processes_of(run_id) == []
+    finally:
+        if process.poll() is None:
+            os.killpg(process.pid, signal.SIGKILL)
+        for pid in processes_of(run_id):
+            os.kill(pid, signal.SIGKILL)
+
+
+# -- command lines ---------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("argv", [
+    ["sim_world.cli", str(CONFIGS / "case1.toml"), "--mavlink-base", "70000"],
+    ["sim_world.cli", str(CONFIGS / "case1.toml"), "--run-id", "bad/id"],
+    ["sim_world.cli", str(ROOT / "tests" / "configs_invalid" / "nan_forgetting.toml")],
+    ["swarm.agent_cli", "--id", "9", "--config", str(CONFIGS / "case1.toml")],
+    ["swarm.agent_cli", "--id", "0"],
+    ["swarm.agent_cli", "--id", "0", "--config", str(ROOT / "missing.toml")],
+])
+def test_process_command_lines_fail_in_one_line(argv: list[str]) -> None:
+    result = subprocess.run([sys.executable, "-m", *argv], capture_output=True, text=True,
+                            timeout=60, cwd=ROOT)
+    assert result.returncode == 2, result.stderr
+    lines = [line for line in result.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, result.stderr
+    assert "Traceback" not in result.stderr + result.stdout
+
+
+def test_an_agent_without_a_world_says_what_is_missing(tmp_path: Path) -> None:
+    config = tmp_path / "impatient.toml"
+    config.write_text((CONFIGS / "case1.toml").read_text().replace(
+        "start_timeout_s = 60.0", "start_timeout_s = 2.0"))
+    port = choose_mavlink_base(0, 1) + 7
+    started = time.monotonic()
+    result = subprocess.run(
+        [sys.executable, "-m", "swarm.agent_cli", "--id", "0", "--config", str(config),
+         "--mavlink", f"udpin:127.0.0.1:{port}", "--connect", "tcp/127.0.0.1:9",
+         "--run-id", "lonely"],
+        capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert result.returncode == 1
+    output = result.stdout + result.stderr
+    assert "cannot reach the world's Zenoh router at tcp/127.0.0.1:9" in output
+    assert "Traceback" not in output
+    assert time.monotonic() - started < 30

@@ -1,0 +1,532 @@
+"""Wire messages: bit-exact round trips, strict validation, decoders that only raise WireError."""
+
+from __future__ import annotations
+
+import resource
+import struct
+import time
+from collections.abc import Callable
+
+import msgspec
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from swarm.core.agent import AgentSetup, ConsensusMessage, Detection, DroneAgent
+from swarm.core.params import ControlParams, EstimationParams, GramianParams, PerceptionParams
+from swarm.wire import (
+    WIRE_VERSION,
+    BeaconWire,
+    CameraFrameWire,
+    ClockWire,
+    ConsensusWire,
+    DetectionWire,
+    F64Array,
+    TelemetryCounters,
+    TelemetryWire,
+    TruthWire,
+    WireCodec,
+    WireError,
+    consensus_to_wire,
+    telemetry_from_diagnostics,
+)
+
+N, M, NS = 6, 2, 6  # drones, targets, ICF state dimension
+CODEC = WireCodec(N, M, NS, n_rounds=3)
+
+# Values that a lossy path would change: signed zero, subnormals, extremes, an inexact sum.
+SPECIAL = np.array([-0.0, 0.0, 5e-324, -2.5e-310, 2.2250738585072014e-308, 1.7976931348623157e308,
+                    -1.7976931348623157e308, 0.1 + 0.2, 1.0 / 3.0, -1e-300, np.nextafter(1.0, 2)])
+RNG = np.random.default_rng(1)
+
+
+def tricky(*shape: int) -> np.ndarray:
+    """Random normals with the SPECIAL values spread through them."""
+    a = RNG.normal(size=shape).ravel()
+    a[::2][: min(len(SPECIAL), len(a[::2]))] = SPECIAL[: len(a[::2])]
+    return a.reshape(shape)
+
+
+def consensus_message(round_: int = 0, sender: int = 3, step: int = 17) -> ConsensusMessage:
+    extras = {}
+    if round_ == 0:
+        extras = dict(projector_mean=tricky(M, 3, 3), projector_integral=tricky(M, 3, 3),
+                      weight_mean=tricky(M), weight_integral=tricky(M), gramian=tricky(M, 3, 3))
+    return ConsensusMessage(sender, step, round_, tricky(M, NS, NS), tricky(M, NS), **extras)
+
+
+def real_agent_outputs():
+    """A real round-0 message and real diagnostics from the core's per-drone step."""
+    setup = AgentSetup(
+        drone_id=0, n_drones=N, n_targets=M, dt_s=0.02, neighbour_weights={1: 0.2, 5: 0.2},
+        perception=PerceptionParams(), estimation=EstimationParams(), gramian=GramianParams(),
+        control=ControlParams(start_s=0.0))
+    agent = DroneAgent(setup, np.array([[0.1, 0.0, 0.0], [-0.1, 0.0, 0.0]]))
+    message = agent.begin_step(0, np.array([0.5, -0.25, 3.0]),
+                               [Detection(1, np.array([0.01, -0.02]))])
+    agent.consensus_round({})
+    result = agent.finish_step({1: np.array([2.0, 0.0, 3.0])})
+    return message, result.diagnostics
+
+
+def telemetry_message() -> TelemetryWire:
+    _, diag = real_agent_outputs()
+    counters = TelemetryCounters(qp_fallbacks=2, rejected_messages=3,
+                                 missing_neighbour_messages=4, stale_neighbour_messages=5,
+                                 late_steps=6, neighbour_age_ms=12.5, mavlink_state="offboard")
+    return telemetry_from_diagnostics(diag, np.array([0.5, -0.0, 3.0]), counters)
+
+
+def valid_messages() -> dict[str, object]:
+    return {
+        "consensus": consensus_to_wire(consensus_message()),
+        "consensus_round": consensus_to_wire(consensus_message(round_=2)),
+        "beacon": BeaconWire.build(5, 3, 0.06, [-0.0, 5e-324, 1.7976931348623157e308]),
+        "camera": CameraFrameWire.build(2, 9, 0.18, 123456,
+                              [Detection(1, np.array([-0.0, 0.1 + 0.2])),
+                               Detection(0, np.array([5e-324, -1e-300]))],
+                              target_velocities=tricky(M, 3)),
+        "camera_plain": CameraFrameWire.build(0, 0, 0.0, 0, []),
+        "truth": TruthWire.build(4, 0.08, tricky(N, 3), tricky(M, 3), tricky(M, 3)),
+        "clock": ClockWire(step=7, time_s=0.14, state="running", mode="lockstep", detail="ok"),
+        "telemetry": telemetry_message(),
+    }
+
+
+MESSAGES = valid_messages()
+PAYLOADS = {name: CODEC.encode(msg) for name, msg in MESSAGES.items()}
+DECODERS: dict[str, Callable[[bytes], object]] = {
+    "consensus": CODEC.decode_consensus,
+    "beacon": CODEC.decode_beacon,
+    "camera": CODEC.decode_camera,
+    "truth": CODEC.decode_truth,
+    "clock": CODEC.decode_clock,
+    "telemetry": CODEC.decode_telemetry,
+}
+KIND_OF = {name: name.split("_")[0] for name in MESSAGES}
+
+
+def raw(message) -> bytes:
+    """Encode without the codec's checks (what a buggy or hostile sender could put on the wire)."""
+    return msgspec.msgpack.encode(message)
+
+
+def decode_only_wire_error(decode: Callable[[bytes], object], payload: bytes) -> None:
+    try:
+        decode(payload)
+    except WireError as err:
+        assert "\n" not in str(err)
+        assert not err.reason.startswith("internal"), err.reason
+
+
+def reason_of(decode: Callable[[bytes], object], payload: bytes) -> str:
+    with pytest.raises(WireError) as info:
+        decode(payload)
+    return info.value.reason
+
+
+# -- round trips ---------------------------------------------------------------------------------
+
+
+def same_bits(a: np.ndarray, b: np.ndarray) -> bool:
+    return a.dtype == b.dtype == np.float64 and a.shape == b.shape and a.tobytes() == b.tobytes()
+
+
+@pytest.mark.parametrize("round_", [0, 2])
+def test_consensus_round_trip_is_bit_exact(round_: int) -> None:
+    original = consensus_message(round_=round_)
+    decoded = CODEC.decode_consensus(CODEC.encode(original))
+    assert (decoded.sender, decoded.step, decoded.round) == (3, 17, round_)
+    for name in ("information", "information_vector", "projector_mean", "projector_integral",
+                 "weight_mean", "weight_integral", "gramian"):
+        a, b = getattr(original, name), getattr(decoded, name)
+        if a is None:
+            assert b is None
+            continue
+        assert np.array_equal(a, b) and same_bits(a, b), name
+        assert b.flags.writeable and b.flags.c_contiguous
+    # The special values really are in there, sign of zero included.
+    bits = decoded.information.tobytes()
+    for value in (-0.0, 5e-324, -2.5e-310):
+        assert struct.pack("<d", value) in bits
+
+
+def test_real_agent_message_and_diagnostics_round_trip() -> None:
+    message, diag = real_agent_outputs()
+    decoded = CODEC.decode_consensus(CODEC.encode(message))
+    assert decoded.is_finite()
+    for name in ("information", "information_vector", "gramian", "weight_mean"):
+        assert same_bits(getattr(message, name), getattr(decoded, name))
+    wire = telemetry_from_diagnostics(diag, [0.5, -0.25, 3.0])
+    back = CODEC.decode_telemetry(CODEC.encode(wire)).to_diagnostics()
+    for field in diag.__dataclass_fields__:
+        a, b = getattr(diag, field), getattr(back, field)
+        if isinstance(a, np.ndarray):
+            assert a.shape == b.shape and a.tobytes() == np.asarray(b, a.dtype).tobytes(), field
+        else:
+            assert a == b and type(a) is type(b), field
+
+
+@pytest.mark.parametrize("name", list(MESSAGES))
+def test_every_message_round_trips_bit_exact(name: str) -> None:
+    payload = PAYLOADS[name]
+    decoded = DECODERS[KIND_OF[name]](payload)
+    if isinstance(decoded, ConsensusMessage):
+        decoded = consensus_to_wire(decoded)
+    assert decoded == MESSAGES[name]
+    assert CODEC.encode(decoded) == payload  # re-encoding gives the same bytes: every bit kept
+    assert decoded.version == WIRE_VERSION
+    for field, array in decoded.arrays().items():
+        assert same_bits(array, getattr(MESSAGES[name], field).to_array())
+
+
+def test_helpers_give_numpy_back() -> None:
+    cam = CODEC.decode_camera(PAYLOADS["camera"])
+    dets = cam.detection_list()
+    assert [d.target for d in dets] == [1, 0]
+    assert same_bits(dets[0].image_point, np.array([-0.0, 0.1 + 0.2]))
+    assert same_bits(cam.target_velocity_array(), MESSAGES["camera"].target_velocities.to_array())
+    assert CODEC.decode_camera(PAYLOADS["camera_plain"]).target_velocity_array() is None
+    beacon = CODEC.decode_beacon(PAYLOADS["beacon"])
+    assert same_bits(beacon.position(), np.array([-0.0, 5e-324, 1.7976931348623157e308]))
+    truth = CODEC.decode_truth(PAYLOADS["truth"]).arrays()
+    assert set(truth) == {"drone_positions", "target_positions", "target_velocities"}
+    tel = CODEC.decode_telemetry(PAYLOADS["telemetry"])
+    assert tel.counters.mavlink_state == "offboard" and tel.counters.late_steps == 6
+    assert same_bits(tel.position(), np.array([0.5, -0.0, 3.0]))
+
+
+# -- validation ----------------------------------------------------------------------------------
+
+
+def with_nan(array: F64Array, value: float = np.nan) -> F64Array:
+    a = array.to_array()
+    a.flat[-1] = value
+    return F64Array.from_array(a)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_non_finite_values_are_rejected(bad: float) -> None:
+    cons = MESSAGES["consensus"]
+    cases = [
+        ("consensus", msgspec.structs.replace(cons, gramian=with_nan(cons.gramian, bad))),
+        ("consensus", msgspec.structs.replace(cons, information=with_nan(cons.information, bad))),
+        ("beacon", msgspec.structs.replace(MESSAGES["beacon"], position_m=(0.0, bad, 1.0))),
+        ("beacon", msgspec.structs.replace(MESSAGES["beacon"], time_s=bad)),
+        ("camera", msgspec.structs.replace(MESSAGES["camera"],
+                                           detections=(DetectionWire(0, bad, 0.0),))),
+        ("truth", msgspec.structs.replace(MESSAGES["truth"], target_velocities=with_nan(
+            MESSAGES["truth"].target_velocities, bad))),
+        ("clock", msgspec.structs.replace(MESSAGES["clock"], time_s=bad)),
+        ("telemetry", msgspec.structs.replace(MESSAGES["telemetry"], psi1=with_nan(
+            MESSAGES["telemetry"].psi1, bad))),
+        ("telemetry", msgspec.structs.replace(MESSAGES["telemetry"], bearing_error=bad)),
+        ("telemetry", msgspec.structs.replace(MESSAGES["telemetry"], counters=TelemetryCounters(
+            neighbour_age_ms=bad))),
+    ]
+    for kind, message in cases:
+        reason = reason_of(DECODERS[kind], raw(message))
+        assert "finite" in reason, reason
+        with pytest.raises(WireError, match="finite"):  # and nobody can send it either
+            CODEC.encode(message)
+
+
+@pytest.mark.parametrize("name", list(MESSAGES))
+def test_wrong_version_is_rejected_naming_both_versions(name: str) -> None:
+    kind = KIND_OF[name]
+    message = msgspec.structs.replace(MESSAGES[name], version=WIRE_VERSION + 1)
+    reason = reason_of(DECODERS[kind], raw(message))
+    assert f"version {WIRE_VERSION + 1}" in reason and f"version {WIRE_VERSION}" in reason
+    # A future version with a different layout is still explained by its version.
+    future = raw([kind, 7, "a", "different", "layout"])
+    reason = reason_of(DECODERS[kind], future)
+    assert "version 7" in reason and f"version {WIRE_VERSION}" in reason
+    with pytest.raises(WireError, match="version"):
+        CODEC.encode(message)
+
+
+def test_wrong_message_kind_is_rejected() -> None:
+    assert reason_of(CODEC.decode_consensus, PAYLOADS["beacon"]) == (
+        "expected a consensus message, got beacon")
+    assert "expected a clock message" in reason_of(CODEC.decode_clock, raw(["x" * 10_000, 1]))
+    for kind, decode in DECODERS.items():
+        for name, payload in PAYLOADS.items():
+            if KIND_OF[name] != kind:
+                assert "expected a" in reason_of(decode, payload)
+
+
+def test_wrong_shapes_and_lengths_are_rejected() -> None:
+    cons = MESSAGES["consensus"]
+    bad_shape = F64Array((M, NS, NS + 1), bytes(8 * M * NS * (NS + 1)))
+    assert "shape" in reason_of(CODEC.decode_consensus,
+                                raw(msgspec.structs.replace(cons, information=bad_shape)))
+    short = F64Array((M, NS), bytes(8 * M * NS - 1))
+    assert "bytes" in reason_of(CODEC.decode_consensus,
+                                raw(msgspec.structs.replace(cons, information_vector=short)))
+    huge = F64Array((1 << 20, 1 << 20, 1 << 20), b"")
+    assert "shape" in reason_of(CODEC.decode_consensus,
+                                raw(msgspec.structs.replace(cons, information=huge)))
+    # The same bytes are wrong for a swarm of another size.
+    other = WireCodec(N, M + 1, NS)
+    assert "shape" in reason_of(other.decode_consensus, PAYLOADS["consensus"])
+    assert "shape" in reason_of(WireCodec(N + 1, M, NS).decode_truth, PAYLOADS["truth"])
+    assert "estimates has shape" in reason_of(other.decode_telemetry, PAYLOADS["telemetry"])
+    tel = msgspec.structs.replace(MESSAGES["telemetry"], velocity=F64Array.from_array(np.zeros(4)))
+    assert "velocity" in reason_of(CODEC.decode_telemetry, raw(tel))
+
+
+def test_ids_steps_and_rounds_are_range_checked() -> None:
+    cons, cam = MESSAGES["consensus"], MESSAGES["camera"]
+    cases = [
+        (CODEC.decode_consensus, msgspec.structs.replace(cons, sender=N), "sender 6 out of range"),
+        (CODEC.decode_consensus, msgspec.structs.replace(cons, step=-1), ">= 0"),
+        (CODEC.decode_consensus, msgspec.structs.replace(MESSAGES["consensus_round"], round=3),
+         "round 3 out of range"),
+        (CODEC.decode_consensus, msgspec.structs.replace(cons, gramian=None), "gramian missing"),
+        (CODEC.decode_consensus, msgspec.structs.replace(
+            MESSAGES["consensus_round"], weight_mean=cons.weight_mean), "must not carry"),
+        (CODEC.decode_beacon, msgspec.structs.replace(MESSAGES["beacon"], sender=99), "sender"),
+        (CODEC.decode_camera, msgspec.structs.replace(cam, drone=N), "drone"),
+        (CODEC.decode_camera, msgspec.structs.replace(
+            cam, detections=(DetectionWire(M, 0.0, 0.0),)), "target 2 out of range"),
+        (CODEC.decode_camera, msgspec.structs.replace(
+            cam, detections=(DetectionWire(1, 0.0, 0.0), DetectionWire(1, 0.1, 0.0))), "twice"),
+        (CODEC.decode_camera, msgspec.structs.replace(cam, vehicle_time_ms=-5), ">= 0"),
+        (CODEC.decode_telemetry, msgspec.structs.replace(MESSAGES["telemetry"], drone=N), "drone"),
+        (CODEC.decode_telemetry, msgspec.structs.replace(
+            MESSAGES["telemetry"], counters=TelemetryCounters(late_steps=-1)), ">= 0"),
+        (CODEC.decode_clock, msgspec.structs.replace(MESSAGES["clock"], state="flying"),
+         "flying"),
+        (CODEC.decode_clock, msgspec.structs.replace(MESSAGES["clock"], mode="fast"), "fast"),
+        (CODEC.decode_beacon, msgspec.structs.replace(MESSAGES["beacon"], sender=True), "int"),
+    ]
+    for decode, message, needle in cases:
+        assert needle in reason_of(decode, raw(message)), needle
+
+
+def test_strings_and_lists_are_bounded() -> None:
+    clock = msgspec.structs.replace(MESSAGES["clock"], detail="x" * 513)
+    assert "length" in reason_of(CODEC.decode_clock, raw(clock))
+    with pytest.raises(WireError, match="longer than 512"):
+        CODEC.encode(clock)
+    assert CODEC.decode_clock(raw(msgspec.structs.replace(clock, detail="y" * 512)))
+    tel = msgspec.structs.replace(MESSAGES["telemetry"],
+                                  counters=TelemetryCounters(mavlink_state="z" * 65))
+    assert "length" in reason_of(CODEC.decode_telemetry, raw(tel))
+    many = tuple(DetectionWire(0, 0.0, 0.0) for _ in range(2000))
+    cam = msgspec.structs.replace(MESSAGES["camera"], detections=many)
+    assert "length" in reason_of(CODEC.decode_camera, raw(cam))
+
+
+def test_encode_refuses_what_peers_would_reject() -> None:
+    with pytest.raises(WireError, match="sender"):
+        CODEC.encode(consensus_message(sender=N))
+    with pytest.raises(WireError, match="not a wire message"):
+        CODEC.encode({"sender": 1})  # type: ignore[arg-type]
+    with pytest.raises(WireError):
+        CODEC.encode(BeaconWire(sender=1, step=0, time_s=0.0, position_m=("a", 0.0, 0.0)))
+    with pytest.raises(WireError):
+        CODEC.encode(msgspec.structs.replace(MESSAGES["beacon"], step=np.int64(3)))
+
+
+def test_codec_sizes_are_validated() -> None:
+    for args in [(0, 1, 6), (6, 0, 6), (6, 1, 0), (6, 1, 10_000), (True, 1, 6), (6.0, 1, 6)]:
+        with pytest.raises(ValueError, match="WireCodec"):
+            WireCodec(*args)
+    with pytest.raises(ValueError, match="n_rounds"):
+        WireCodec(6, 1, 6, n_rounds=0)
+
+
+# -- hostile bytes -------------------------------------------------------------------------------
+
+
+def test_huge_length_prefixes_and_deep_nesting_fail_fast_without_allocating() -> None:
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    hostile = [
+        b"\xc6\xff\xff\xff\xff",  # bin32, 4 GiB announced
+        b"\xdd\xff\xff\xff\xff" + b"\xc0" * 10,  # array32 of 4G elements
+        b"\xdf\xff\xff\xff\xff",  # map32
+        b"\xdb\xff\xff\xff\xff" + b"a" * 100,  # str32
+        b"\x96\xa9consensus\x01\x01\x01\x00\x92\x93\xce\x00\x10\x00\x00" * 3,
+        raw(["consensus", 1, 1, 1, 0, [[1 << 20, 1 << 20, 1 << 20], b""], [[2, 6], b""]]),
+        b"\x91" * 200_000,  # 200k nested arrays
+        b"\xdd\x00\x00\x00\x02" * 100_000,  # nested array32s
+        b"\x81\xa1k" * 100_000,  # nested maps
+        bytes(CODEC.max_payload_bytes + 1),  # over the size limit
+        b"",
+    ]
+    started = time.perf_counter()
+    for payload in hostile:
+        for decode in DECODERS.values():
+            with pytest.raises(WireError):
+                decode(payload)
+    assert time.perf_counter() - started < 2.0
+    grown_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before
+    assert grown_kib < 64 * 1024, f"decoding hostile payloads grew RSS by {grown_kib} KiB"
+    with pytest.raises(WireError, match="bytes"):
+        CODEC.decode_beacon("not bytes")  # type: ignore[arg-type]
+
+
+@pytest.mark.parametrize("name", list(PAYLOADS))
+def test_every_truncation_and_every_bit_flip(name: str) -> None:
+    payload = PAYLOADS[name]
+    for decode in DECODERS.values():
+        for cut in range(len(payload)):
+            with pytest.raises(WireError):
+                decode(payload[:cut])
+    decode = DECODERS[KIND_OF[name]]
+    buf = bytearray(payload)
+    for i in range(len(buf)):
+        for bit in range(8):
+            buf[i] ^= 1 << bit
+            decode_only_wire_error(decode, bytes(buf))
+            buf[i] ^= 1 << bit
+
+
+FUZZ = settings(max_examples=2000, deadline=None,
+                suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
+KIND_PREFIXES = [raw([kind, WIRE_VERSION])[1:] for kind in DECODERS]  # tag and version bytes
+
+
+@FUZZ
+@given(data=st.one_of(
+    st.binary(max_size=512),
+    st.tuples(st.integers(0x90, 0x9F), st.sampled_from(KIND_PREFIXES), st.binary(max_size=256))
+    .map(lambda t: bytes([t[0]]) + t[1] + t[2]),
+))
+def test_fuzz_random_bytes_only_raise_wire_error(data: bytes) -> None:
+    """2000 examples, each fed to every decoder (so ≥ 2000 per decoder)."""
+    for decode in DECODERS.values():
+        decode_only_wire_error(decode, data)
+
+
+MUTATIONS = st.lists(
+    st.tuples(st.sampled_from(["flip", "set", "truncate", "insert", "delete", "dup"]),
+              st.integers(0, 1 << 16), st.integers(0, 255), st.binary(min_size=1, max_size=16)),
+    min_size=1, max_size=6)
+
+
+def mutate(payload: bytes, mutations) -> bytes:
+    buf = bytearray(payload)
+    for op, position, byte, blob in mutations:
+        at = position % max(len(buf), 1)
+        if op == "flip" and buf:
+            buf[at] ^= 1 << (byte % 8)
+        elif op == "set" and buf:
+            buf[at] = byte
+        elif op == "truncate":
+            del buf[at:]
+        elif op == "insert":
+            buf[at:at] = blob
+        elif op == "delete":
+            del buf[at:at + 1 + byte % 16]
+        elif op == "dup":
+            buf[at:at] = buf[at:at + 1 + byte % 64]
+    return bytes(buf)
+
+
+ALL_PAYLOADS = list(PAYLOADS.values())
+
+
+@FUZZ
+@given(base=st.integers(0, len(ALL_PAYLOADS) - 1), mutations=MUTATIONS)
+def test_fuzz_mutated_valid_payloads_only_raise_wire_error(base: int, mutations) -> None:
+    """2000 mutated payloads of every kind, each fed to every decoder."""
+    payload = mutate(ALL_PAYLOADS[base], mutations)
+    for decode in DECODERS.values():
+        decode_only_wire_error(decode, payload)
+
+
+@pytest.mark.parametrize("kind", list(DECODERS))
+def test_bulk_seeded_mutations_only_raise_wire_error(kind: str) -> None:
+    """A cheaper, larger sweep: 10 000 seeded random mutations of this kind's payloads."""
+    rng = np.random.default_rng(list(DECODERS).index(kind))
+    own = [p for name, p in PAYLOADS.items() if KIND_OF[name] == kind]
+    ops = ["flip", "set", "truncate", "insert", "delete", "dup"]
+    accepted = 0
+    for _ in range(10_000):
+        mutations = [(ops[rng.integers(6)], int(rng.integers(1 << 16)), int(rng.integers(256)),
+                      rng.bytes(int(rng.integers(1, 17)))) for _ in range(rng.integers(1, 4))]
+        payload = mutate(own[rng.integers(len(own))], mutations)
+        try:
+            DECODERS[kind](payload)
+            accepted += 1
+        except WireError as err:
+            assert not err.reason.startswith("internal"), err.reason
+    assert accepted < 10_000  # mutations that only touch float bits legitimately decode
+
+
+# -- speed (printed, not asserted) ---------------------------------------------------------------
+
+
+def test_encode_decode_speed_is_printed(capsys) -> None:
+    rounds = 2000
+    lines = []
+    for name in ("consensus", "beacon", "telemetry"):
+        message, decode = MESSAGES[name], DECODERS[KIND_OF[name]]
+        started = time.perf_counter()
+        for _ in range(rounds):
+            payload = CODEC.encode(message)
+        encode_us = (time.perf_counter() - started) / rounds * 1e6
+        started = time.perf_counter()
+        for _ in range(rounds):
+            decode(payload)
+        decode_us = (time.perf_counter() - started) / rounds * 1e6
+        lines.append(f"{name}: {len(payload)} B, encode {encode_us:.1f} µs, "
+                     f"decode {decode_us:.1f} µs")
+    message = consensus_message()
+    started = time.perf_counter()
+    for _ in range(rounds):
+        CODEC.encode(message)
+    lines.append(f"ConsensusMessage→bytes incl. conversion: "
+                 f"{(time.perf_counter() - started) / rounds * 1e6:.1f} µs")
+    with capsys.disabled():
+        print("\n[wire speed] " + "; ".join(lines))
+
+
+def test_clock_and_camera_types() -> None:
+    assert isinstance(CODEC.decode_clock(PAYLOADS["clock"]), ClockWire)
+    assert isinstance(CODEC.decode_camera(PAYLOADS["camera"]), CameraFrameWire)
+    assert isinstance(CODEC.decode_truth(PAYLOADS["truth"]), TruthWire)
+    assert isinstance(CODEC.decode_consensus_wire(PAYLOADS["consensus"]), ConsensusWire)
+
+
+def test_telemetry_counters_as_keywords() -> None:
+    _, diag = real_agent_outputs()
+    wire = TelemetryWire.from_diagnostics(diag, [0.0, 0.0, 3.0], qp_fallbacks=1, late_steps=2,
+                                          neighbour_age_ms=float("nan"), mavlink_state="armed")
+    decoded = CODEC.decode_telemetry(CODEC.encode(wire))
+    assert decoded.counters == TelemetryCounters(qp_fallbacks=1, late_steps=2,
+                                                 neighbour_age_ms=None, mavlink_state="armed")
+    assert telemetry_from_diagnostics(diag, [0, 0, 3], neighbour_age_ms=4).counters == (
+        TelemetryCounters(neighbour_age_ms=4.0))
+    with pytest.raises(TypeError, match="not both"):
+        telemetry_from_diagnostics(diag, [0, 0, 3], TelemetryCounters(), late_steps=1)
+    with pytest.raises(TypeError, match="unknown"):
+        telemetry_from_diagnostics(diag, [0, 0, 3], late_stepz=1)
+    message = consensus_message()
+    back = CODEC.consensus_from_wire(CODEC.consensus_to_wire(message))
+    assert same_bits(back.gramian, message.gramian)
+
+
+def test_one_codec_shared_by_threads() -> None:
+    import threading
+
+    errors: list[BaseException] = []
+
+    def work(name: str) -> None:
+        try:
+            for _ in range(300):
+                payload = CODEC.encode(MESSAGES[name])
+                assert payload == PAYLOADS[name]
+                DECODERS[KIND_OF[name]](payload)
+        except BaseException as exc:
+            errors.append(exc)
+
+    threads = [threading.Thread(target=work, args=(n,)) for n in MESSAGES]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert errors == []
