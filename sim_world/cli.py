@@ -51,6 +51,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         config = load_scenario(args.config, args.duration)
     except ConfigError as err:
         return fail(PROG, f"config error: {err}")
+    if args.vehicles == "external" and args.mode == "lockstep":
+        return fail(PROG, "--vehicles external needs --mode realtime: real autopilots cannot "
+                          "wait for the simulation")
     terminate_on_sigterm()
     options = WorldOptions(
         config=config, seed=config.scenario.seed if args.seed is None else args.seed,

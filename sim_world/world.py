@@ -16,7 +16,6 @@ beacon, so the agents can fly real autopilots against virtual targets.
 
 from __future__ import annotations
 
-import selectors
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -25,8 +24,7 @@ from typing import Literal
 import numpy as np
 
 from sim_world.camera import detect
-from sim_world.mavlink_endpoint import VehicleEndpoint
-from sim_world.vehicle import EmulatedVehicle
+from sim_world.fleet import VehicleFleet
 from swarm.config import ScenarioConfig
 from swarm.rate import RateLimiter
 from swarm.reference import STREAM_CAMERA, initial_drone_positions, stream
@@ -49,7 +47,6 @@ from swarm.wire import (
 
 Mode = Literal["lockstep", "realtime"]
 VehicleSource = Literal["sim", "external"]
-HEARTBEAT_PERIOD_S = 1.0
 PRE_MISSION_PERIOD_S = 0.02  # telemetry and command handling before the mission starts
 MISSION_TIME_OFFSET_MS = 1000  # mission stamps start this far past every pre-mission stamp
 DONE_LINGER_S = 10.0  # the world stays up this long after the mission unless stopped
@@ -79,6 +76,9 @@ class World:
     def __init__(self, options: WorldOptions) -> None:
         self.options = options
         cfg = options.config
+        if options.vehicles == "external" and options.mode == "lockstep":
+            raise ValueError("--vehicles external needs --mode realtime: real autopilots "
+                             "cannot wait for the simulation")
         self.n, self.m = cfg.swarm.n_drones, len(cfg.targets)
         self.dt_s = cfg.scenario.dt_s
         self.dt_ms = round(cfg.scenario.dt_s * 1000)
@@ -89,31 +89,28 @@ class World:
         self.codec = WireCodec(self.n, self.m, n_state)
         self.rejections = RejectionCounter()
         self.started = time.monotonic()
-        self.positions = initial_drone_positions(cfg, options.seed)
-        self.vehicles: list[EmulatedVehicle] = []
-        self.endpoints: list[VehicleEndpoint] = []
-        self.selector = selectors.DefaultSelector()
-        self.beacons: LatestValues[BeaconWire] = LatestValues()
-        self._last_heartbeat = -np.inf
         self._sim_now: float | None = None
+        self.positions = initial_drone_positions(cfg, options.seed)
+        self.beacons: LatestValues[BeaconWire] = LatestValues()
+        self.fleet: VehicleFleet | None = None
+        self._subscribers = []
         self.session = open_session(zenoh_config(mode="router", listen=options.listen,
                                                  connect=options.connect))
-        self._subscribers = []
-        if options.vehicles == "sim":
-            for i in range(self.n):
-                vehicle = EmulatedVehicle(
-                    i, cfg.vehicles.flavour, self.positions[i], cfg.vehicles.origin_w(i),
-                    u_max_m_s=cfg.control.u_max_m_s,
-                    setpoint_timeout_s=cfg.vehicles.failsafe_timeout_s)
-                endpoint = VehicleEndpoint((options.mavlink_host, options.mavlink_base + i))
-                self.vehicles.append(vehicle)
-                self.endpoints.append(endpoint)
-                self.selector.register(endpoint.fileno(), selectors.EVENT_READ, i)
-        else:
-            self._subscribers.append(subscribe(
-                self.session, self.keys.all_beacons, self.codec.decode_beacon,
-                lambda _key, beacon: self.beacons.put(beacon.sender, beacon), self.rejections,
-                "beacon"))
+        try:
+            if options.vehicles == "sim":
+                self.fleet = VehicleFleet(
+                    self.positions, [cfg.vehicles.origin_w(i) for i in range(self.n)],
+                    cfg.vehicles.flavour, host=options.mavlink_host,
+                    base_port=options.mavlink_base, u_max_m_s=cfg.control.u_max_m_s,
+                    setpoint_timeout_s=cfg.vehicles.failsafe_timeout_s, clock=self.now_s)
+            else:
+                self._subscribers.append(subscribe(
+                    self.session, self.keys.all_beacons, self.codec.decode_beacon,
+                    lambda _key, beacon: self.beacons.put(beacon.sender, beacon),
+                    self.rejections, "beacon"))
+        except Exception:
+            self.session.close()
+            raise
         # Lockstep cannot lose a message (peers would wait for it); realtime drops rather than
         # queue behind a slow consumer.
         block = options.mode == "lockstep"
@@ -134,19 +131,11 @@ class World:
     def boot_ms(self) -> int:
         return int(self.now_s() * 1000)
 
-    def service_vehicles(self, timeout_s: float) -> None:
-        """Handle every MAVLink datagram that arrives within ``timeout_s``; heartbeats at 1 Hz."""
-        now = self.now_s()
-        if now - self._last_heartbeat >= HEARTBEAT_PERIOD_S:
-            self._last_heartbeat = now
-            for vehicle, endpoint in zip(self.vehicles, self.endpoints, strict=True):
-                endpoint.send([vehicle.heartbeat()])
-        for key, _ in self.selector.select(timeout=max(timeout_s, 0.0)):
-            i = key.data
-            for chunk in self.endpoints[i].poll():
-                replies = self.vehicles[i].receive(chunk, self.now_s())
-                if replies:
-                    self.endpoints[i].send(replies)
+    def _wait(self, timeout_s: float) -> None:
+        if self.fleet is not None:
+            self.fleet.service(timeout_s)
+        elif timeout_s > 0:
+            time.sleep(timeout_s)
 
     def publish_clock(self, step: int, state: str, detail: str = "") -> None:
         self._pub_clock.put(self.codec.encode(ClockWire(
@@ -171,60 +160,69 @@ class World:
             target_velocities=target_vel)))
 
     def _not_ready(self) -> list[int]:
-        if self.options.vehicles == "external":
+        if self.fleet is None:
             return [i for i in range(self.n) if self.beacons.get(i) is None]
         now = self.now_s()
-        return [i for i, v in enumerate(self.vehicles)
+        return [i for i, v in enumerate(self.fleet.vehicles)
                 if not (v.accepting_setpoints and v.setpoints_streaming(now))]
+
+    def _external_positions(self) -> None:
+        for i in range(self.n):
+            latest = self.beacons.get(i)
+            if latest is not None:
+                self.positions[i] = latest[0].position()
 
     # -- phases -----------------------------------------------------------------------------
 
     def wait_for_mission_start(self) -> None:
-        """Serve the vehicles until every drone is armed and streaming setpoints."""
+        """Serve the vehicles until every drone is armed and streaming setpoints (external
+        vehicles: until every drone's beacon has been heard)."""
         deadline = self.now_s() + self.options.config.runtime.start_timeout_s
         last_report = -np.inf
         last_move = self.now_s()
         while True:
+            # Drain what arrived first: after a stall (a loaded machine) the queued setpoints
+            # must count before any failsafe timer is evaluated.
+            self._wait(0.0)
             pending = self._not_ready()
             if not pending:
                 return
             now = self.now_s()
             if now > deadline:
-                raise WorldAbortError(f"drones {pending} not armed and streaming setpoints within "
-                                 f"{self.options.config.runtime.start_timeout_s} s")
+                what = ("armed and streaming setpoints" if self.fleet is not None
+                        else "heard (no beacon)")
+                raise WorldAbortError(f"drones {pending} not {what} within "
+                                      f"{self.options.config.runtime.start_timeout_s} s")
             if now - last_report >= 0.5:
                 last_report = now
                 self.publish_clock(0, "waiting", f"waiting for drones {pending}")
-            # Drain what arrived first: after a stall (a loaded machine) the queued setpoints
-            # must count before any failsafe timer is evaluated.
-            self.service_vehicles(0.0)
-            stamp, now = self.boot_ms(), self.now_s()
-            # Armed vehicles fly what they are told even before the mission (any MAVLink
-            # client can fly one); the agents' idle setpoints are exactly zero.
-            for i, vehicle in enumerate(self.vehicles):
-                vehicle.integrate(now - last_move, vehicle.commanded_velocity_w(now))
-                self.positions[i] = vehicle.position_w
+            if self.fleet is not None:
+                # Armed vehicles fly what they are told even before the mission (any MAVLink
+                # client can fly one); the agents' idle setpoints are exactly zero.
+                self.fleet.fly(now - last_move)
+                self.positions[:] = self.fleet.positions_w
+                self.fleet.send_telemetry(self.boot_ms())
             last_move = now
-            for vehicle, endpoint in zip(self.vehicles, self.endpoints, strict=True):
-                endpoint.send(vehicle.telemetry(stamp, now))
-            self.service_vehicles(PRE_MISSION_PERIOD_S)
+            self._wait(PRE_MISSION_PERIOD_S)
 
     def run_lockstep(self) -> None:
+        fleet = self.fleet
+        assert fleet is not None
         start_ms = self.boot_ms() + MISSION_TIME_OFFSET_MS
         start_s = self.now_s()  # the failsafe clock continues from wall time, without a jump
         timeout = self.options.config.runtime.lockstep_timeout_s
         for k in range(self.options.config.n_steps):
             stamp = start_ms + k * self.dt_ms
-            self._sim_now = now = start_s + k * self.dt_s
-            for vehicle, endpoint in zip(self.vehicles, self.endpoints, strict=True):
+            self._sim_now = start_s + k * self.dt_s
+            for vehicle in fleet.vehicles:
                 vehicle.begin_step(stamp)
-                endpoint.send(vehicle.telemetry(stamp, now))
+            fleet.send_telemetry(stamp)
             self.publish_step(k, stamp)
             self.publish_clock(k, "running")
             deadline = time.monotonic() + timeout
             velocities: list[np.ndarray | None] = [None] * self.n
             while True:
-                for i, vehicle in enumerate(self.vehicles):
+                for i, vehicle in enumerate(fleet.vehicles):
                     if velocities[i] is None:
                         velocities[i] = vehicle.setpoint_stamped(stamp)
                 missing = [i for i, v in enumerate(velocities) if v is None]
@@ -232,37 +230,30 @@ class World:
                     break
                 if time.monotonic() > deadline:
                     raise WorldAbortError(f"step {k}: no setpoint from drones {missing} within "
-                                     f"{timeout} s")
-                self.service_vehicles(0.05)
-            for i, vehicle in enumerate(self.vehicles):
-                vehicle.integrate(self.dt_s, velocities[i])
-                self.positions[i] = vehicle.position_w
+                                          f"{timeout} s")
+                fleet.service(0.05)
+            for vehicle, velocity in zip(fleet.vehicles, velocities, strict=True):
+                vehicle.integrate(self.dt_s, velocity)
+            self.positions[:] = fleet.positions_w
         self._sim_now = None
 
     def run_realtime(self) -> None:
         limiter = RateLimiter(self.dt_s)
         for k in range(self.options.config.n_steps):
-            now = self.now_s()
-            stamp = self.boot_ms()
-            if self.options.vehicles == "external":
-                for i in range(self.n):
-                    latest = self.beacons.get(i)
-                    if latest is not None:
-                        self.positions[i] = np.asarray(latest[0].position_m, dtype=float)
+            if self.fleet is None:
+                self._external_positions()
             else:
-                for vehicle, endpoint in zip(self.vehicles, self.endpoints, strict=True):
-                    endpoint.send(vehicle.telemetry(stamp, now))
-            self.publish_step(k, stamp)
+                self.fleet.send_telemetry(self.boot_ms())
+            self.publish_step(k, self.boot_ms())
             self.publish_clock(k, "running")
             # Until the next tick: answer MAVLink as it comes, then move every vehicle with
             # what it applies at that moment (its latest setpoint, or a failsafe hold).
             while (remaining := limiter.remaining()) > 0:
-                self.service_vehicles(remaining)
+                self._wait(remaining)
             limiter.sleep()
-            now = self.now_s()
-            for i, vehicle in enumerate(self.vehicles):
-                vehicle.integrate(self.dt_s, vehicle.commanded_velocity_w(now))
-                self.positions[i] = vehicle.position_w
+            if self.fleet is not None:
+                self.fleet.fly(self.dt_s)
+                self.positions[:] = self.fleet.positions_w
 
     def run(self) -> int:
         opts = self.options
@@ -274,8 +265,8 @@ class World:
                 + (f", MAVLink to {opts.mavlink_host}:{opts.mavlink_base}.."
                    f"{opts.mavlink_base + self.n - 1}" if opts.vehicles == "sim" else ""))
             self.wait_for_mission_start()
-            log("world: every drone armed and streaming; mission starts")
-            if opts.mode == "lockstep" and opts.vehicles == "sim":
+            log("world: every drone ready; mission starts")
+            if opts.mode == "lockstep":
                 self.run_lockstep()
             else:
                 self.run_realtime()
@@ -295,18 +286,15 @@ class World:
         deadline = self.now_s() + DONE_LINGER_S
         while self.now_s() < deadline:
             self.publish_clock(self.options.config.n_steps, "done")
-            if self.vehicles:
-                self.service_vehicles(0.1)
-            else:
-                time.sleep(0.1)
+            self._wait(0.1)
 
     def rejected_total(self) -> int:
-        return self.rejections.total() + sum(v.rejected_frames for v in self.vehicles)
+        fleet_rejections = self.fleet.rejected_frames() if self.fleet is not None else 0
+        return self.rejections.total() + fleet_rejections
 
     def close(self) -> None:
-        for endpoint in self.endpoints:
-            endpoint.close()
-        self.selector.close()
+        if self.fleet is not None:
+            self.fleet.close()
         for sub in self._subscribers:
             sub.undeclare()
         self.session.close()

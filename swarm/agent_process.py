@@ -274,6 +274,12 @@ class AgentProcess:
                 raise LinkError(f"drone {self.id}: the mission did not start within "
                                 f"{cfg.runtime.start_timeout_s} s")
             self.link.keepalive(time.monotonic())
+            if not self._lockstep:
+                # A world without simulated vehicles starts when it has heard every drone.
+                sample = self.link.latest_position()
+                if sample is not None:
+                    self._publish(self._pub_beacon, BeaconWire.build(
+                        sender=self.id, step=0, time_s=0.0, position_m=sample.position_w))
             self.camera_steps.wait_for(0, 0, {0}, 0.05)
 
     def run_lockstep(self) -> None:

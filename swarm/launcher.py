@@ -65,6 +65,9 @@ class LaunchOptions:
     log_dir: Path | None = None
     extra_agent_args: dict[int, list[str]] = field(default_factory=dict)
     mavlink_urls: dict[int, str] = field(default_factory=dict)  # e.g. through MAVProxy
+    # The world serves no vehicles (--vehicles external) and a separate ``sim-vehicles``
+    # process plays the autopilots, as real ones would be flown; realtime only.
+    external_vehicles: bool = False
 
 
 def _die_with_parent() -> None:
@@ -285,7 +288,14 @@ class SwarmLauncher:
     def start_world(self) -> Child:
         argv = [sys.executable, "-m", "sim_world.cli", *self._common_args(),
                 "--listen", self.endpoint, "--mavlink-base", str(self.mavlink_base)]
+        if self.options.external_vehicles:
+            argv += ["--vehicles", "external"]
         return self._spawn("world", argv)
+
+    def start_vehicles(self) -> Child:
+        argv = [sys.executable, "-m", "sim_world.vehicles_cli", self.options.config_path,
+                "--seed", str(self.options.seed), "--mavlink-base", str(self.mavlink_base)]
+        return self._spawn("vehicles", argv)
 
     def start_agent(self, drone_id: int) -> Child:
         opts = self.options
@@ -338,9 +348,9 @@ class SwarmLauncher:
         """Join the world's router as a client, retrying while the world starts up."""
         deadline = time.monotonic() + timeout_s
         while True:
-            world = self.children[0]
-            if world.process.poll() is not None:
-                raise self._failure(world)
+            for child in self.children:
+                if child.process.poll() is not None:
+                    raise self._failure(child)
             try:
                 self.session = open_session(zenoh_config(mode="client", connect=[self.endpoint]))
                 break
@@ -374,6 +384,10 @@ class SwarmLauncher:
             self.log(f"launch-swarm: run {self.run_id}: world + {self.n} agents "
                      f"({self.options.mode}), zenoh {self.endpoint}, MAVLink "
                      f"{self.mavlink_base}..{self.mavlink_base + self.n - 1}, logs {self.log_dir}")
+            if self.options.external_vehicles:
+                if self.options.mode != "realtime":
+                    raise MissionError("external vehicles need --mode realtime")
+                self.start_vehicles()
             self.start_world()
             self._connect(timeout_s=30.0)
             for i in range(self.n):
@@ -414,7 +428,7 @@ class SwarmLauncher:
 
     def _wait_agents_done(self) -> None:
         deadline = time.monotonic() + 5.0
-        for child in self.children[1:]:
+        for child in (c for c in self.children if c.name.startswith("agent")):
             try:
                 child.process.wait(timeout=max(deadline - time.monotonic(), 0.01))
             except subprocess.TimeoutExpired:

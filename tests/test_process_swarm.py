@@ -223,3 +223,28 @@ def test_an_agent_without_a_world_says_what_is_missing(tmp_path: Path) -> None:
     assert "cannot reach the world's Zenoh router at tcp/127.0.0.1:9" in output
     assert "Traceback" not in output
     assert time.monotonic() - started < 30
+
+
+@pytest.mark.slow
+def test_external_vehicles_fly_against_virtual_targets() -> None:
+    """sim-world --vehicles external takes positions from beacons; a separate sim-vehicles
+    process plays N real autopilots (realtime). The swarm still localizes the target."""
+    config = load_config(CONFIGS / "case1.toml").with_duration(6.0)
+    launcher = SwarmLauncher(LaunchOptions(
+        config=config, config_path=str(CONFIGS / "case1.toml"), seed=0, mode="realtime",
+        external_vehicles=True), log=lambda _line: None)
+    record = launcher.run()
+    assert {child.name for child in launcher.children} >= {"world", "vehicles", "agent0"}
+    assert record.n_steps == config.n_steps
+    assert check_invariants(record) == []
+    assert record.position_errors()[-1].max() < 0.1
+    counts = launcher.collector.counters()
+    assert counts["agent_steps"] >= 0.9 * config.n_steps * config.swarm.n_drones
+
+
+def test_external_vehicles_need_realtime() -> None:
+    result = subprocess.run(
+        [sys.executable, "-m", "sim_world.cli", str(CONFIGS / "case1.toml"), "--vehicles",
+         "external"], capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert result.returncode == 2
+    assert "--mode realtime" in result.stderr and "Traceback" not in result.stderr

@@ -67,7 +67,7 @@ class ConsensusMessage:
         parts = [self.information, self.information_vector]
         parts += [a for a in (self.projector_mean, self.projector_integral, self.weight_mean,
                               self.weight_integral, self.gramian) if a is not None]
-        return all(bool(np.all(np.isfinite(a))) for a in parts)
+        return all(bool(np.isfinite(a).all()) for a in parts)
 
 
 @dataclass(frozen=True)
@@ -189,7 +189,7 @@ class DroneAgent:
         self._busy_s = 0.0
         setup = self.setup
         position = np.asarray(position, dtype=float)
-        if position.shape != (3,) or not np.all(np.isfinite(position)):
+        if position.shape != (3,) or not np.isfinite(position).all():
             raise ValueError(f"drone {setup.drone_id}: own position must be 3 finite numbers, "
                              f"got {position!r}")
         self._step, self._round, self._position = step, 0, position
@@ -198,7 +198,7 @@ class DroneAgent:
         for det in detections:
             point = np.asarray(det.image_point, dtype=float)
             if (not 0 <= det.target < setup.n_targets or point.shape != (2,)
-                    or not np.all(np.isfinite(point))):
+                    or not np.isfinite(point).all()):
                 self._rejected += 1
                 continue
             measured[det.target] = projector(bearing_from_image_point(point))
@@ -265,7 +265,7 @@ class DroneAgent:
         clean_beacons: dict[int, Array] = {}
         for j, p_j in beacons.items():
             p_j = np.asarray(p_j, dtype=float)
-            if j == setup.drone_id or p_j.shape != (3,) or not np.all(np.isfinite(p_j)):
+            if j == setup.drone_id or p_j.shape != (3,) or not np.isfinite(p_j).all():
                 self._rejected += j != setup.drone_id
                 continue
             clean_beacons[j] = p_j

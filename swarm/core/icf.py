@@ -67,9 +67,24 @@ def consensus_iteration(own: Array, neighbours: Iterable[tuple[float, Array]]) -
     return total
 
 
+def pseudo_inverse_psd(matrix: Array) -> Array:
+    """pinv of a symmetric positive semi-definite matrix (2.8, 2.10).
+
+    The information matrices here are positive definite in practice (W⁻ is an inverse of a
+    covariance with Q > 0 added), so the plain inverse, much cheaper than an SVD, is the
+    pseudo-inverse; the Cholesky factorization is the test, and the SVD path remains for the
+    singular case.
+    """
+    try:
+        np.linalg.cholesky(matrix)
+    except np.linalg.LinAlgError:
+        return np.linalg.pinv(matrix, hermitian=True)
+    return np.linalg.inv(matrix)
+
+
 def posterior(information: Array, vector: Array, n_agents: int) -> tuple[Array, Array]:
     """x̂⁺ = pinv(V)v, W⁺ = N V (2.8-2.9)."""
-    return np.linalg.pinv(information, hermitian=True) @ vector, n_agents * information
+    return pseudo_inverse_psd(information) @ vector, n_agents * information
 
 
 def predict(
@@ -85,7 +100,7 @@ def predict(
     For the single-integrator model A = I and the communicated target velocity is added:
     x̂⁻ = x̂⁺ + ΔT u_r (2.21-2.22).
     """
-    covariance = transition @ np.linalg.pinv(posterior_information, hermitian=True) @ transition.T
+    covariance = transition @ pseudo_inverse_psd(posterior_information) @ transition.T
     covariance[np.diag_indices_from(covariance)] += process_noise
     prior_information = np.linalg.inv(covariance)
     prior_information = 0.5 * (prior_information + prior_information.T)

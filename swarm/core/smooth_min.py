@@ -11,6 +11,7 @@ coefficients θ_kl = (g_k − g_l)/(λ_k − λ_l) are evaluated, for nearly rep
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -44,10 +45,12 @@ class SmoothMin:
         """D²λ̄[H, H] for a symmetric direction H (SPEC §7)."""
         v = self.eigenvectors
         rotated = v.T @ direction @ v
-        diag = np.diag(rotated)
-        off = rotated * rotated
-        np.fill_diagonal(off, 0.0)
-        return float(diag @ self.eigen_hessian @ diag + np.sum(self.divided_differences * off))
+        diag = rotated.diagonal()
+        theta = self.divided_differences
+        # Σ_{k≠l} θ_kl H̃_kl² over the three symmetric pairs, each counted twice.
+        off = 2.0 * (theta[0, 1] * rotated[0, 1] ** 2 + theta[0, 2] * rotated[0, 2] ** 2
+                     + theta[1, 2] * rotated[1, 2] ** 2)
+        return float(diag @ self.eigen_hessian @ diag + off)
 
 
 def smooth_min_eigenvalue(gramian: Mat3, exponent: float) -> SmoothMin:
@@ -60,16 +63,27 @@ def smooth_min_eigenvalue(gramian: Mat3, exponent: float) -> SmoothMin:
     g = (lam / value) ** (p - 1.0)
     hessian = (1.0 - p) * np.outer(g, g) / value
     hessian[np.diag_indices(3)] += (p - 1.0) * g / lam
-    log_ratio = np.log(lam[:, None] / lam[None, :])
-    near = np.abs(log_ratio) < NEAR_REPEATED_LOG_GAP
-    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-        # Well-separated pairs: the plain quotient of bounded g's is exact enough and cannot
-        # overflow; near-repeated pairs: the expm1 form, whose arguments stay small there.
-        direct = (g[:, None] - g[None, :]) / (lam[:, None] - lam[None, :])
-        ratio = np.expm1((p - 1.0) * log_ratio) / np.expm1(log_ratio)
-        ratio = np.where(log_ratio == 0.0, p - 1.0, ratio)
-        theta = np.where(near, (g / lam)[None, :] * ratio, direct)
+    theta = np.empty((3, 3))
+    for k in range(3):
+        theta[k, k] = (p - 1.0) * g[k] / lam[k]  # the k = l limit
+    for k, l in ((0, 1), (0, 2), (1, 2)):
+        theta[k, l] = theta[l, k] = _divided_difference(lam, g, k, l, p)
     return SmoothMin(value, lam, vectors, g, hessian, theta)
+
+
+def _divided_difference(lam: Vec3, g: Vec3, k: int, l: int, p: float) -> float:
+    """θ_kl = (g_k − g_l)/(λ_k − λ_l), symmetric in k, l.
+
+    Well-separated pairs: the plain quotient of bounded g's is accurate and cannot overflow.
+    Near-repeated pairs: g_l/λ_l · expm1((p−1)t)/expm1(t), t = log(λ_k/λ_l), whose arguments
+    stay small there and whose limit t → 0 is exactly p − 1.
+    """
+    lam_k, lam_l = float(lam[k]), float(lam[l])
+    t = math.log(lam_k / lam_l)
+    if abs(t) >= NEAR_REPEATED_LOG_GAP:
+        return (float(g[k]) - float(g[l])) / (lam_k - lam_l)
+    ratio = p - 1.0 if t == 0.0 else math.expm1((p - 1.0) * t) / math.expm1(t)
+    return float(g[l]) / lam_l * ratio
 
 
 def inner(a: NDArray[np.float64], b: NDArray[np.float64]) -> float:

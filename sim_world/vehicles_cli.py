@@ -1,0 +1,74 @@
+"""``sim-vehicles``: N emulated PX4/ArduPilot autopilots and nothing else, at 50 Hz.
+
+A stand-in for N SITL instances: run ``sim-world --vehicles external --mode realtime`` for
+the targets and cameras, this for the autopilots, and one ``swarm-agent`` per drone. Vehicle
+i starts at the position the world would give drone i for the same config and seed.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Sequence
+
+from sim_world.fleet import VehicleFleet, serve_forever
+from swarm.cli_common import (
+    EXIT_INTERRUPTED,
+    ConfigError,
+    OneLineParser,
+    fail,
+    load_scenario,
+    port,
+    seed,
+    terminate_on_sigterm,
+)
+from swarm.reference import initial_drone_positions
+
+PROG = "sim-vehicles"
+
+
+def build_parser() -> OneLineParser:
+    parser = OneLineParser(prog=PROG, description=(
+        "Serve one emulated PX4/ArduPilot-style MAVLink vehicle per drone (no targets, no "
+        "cameras): a stand-in for SITL autopilots."))
+    parser.add_argument("config", help="scenario file (drones, flavour, origins, u_max)")
+    parser.add_argument("--seed", type=seed, default=None, help="default: scenario.seed")
+    parser.add_argument("--mavlink-host", default="127.0.0.1")
+    parser.add_argument("--mavlink-base", type=port, default=14540,
+                        help="vehicle i sends to UDP port base+i (default 14540)")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        config = load_scenario(args.config, None)
+    except ConfigError as err:
+        return fail(PROG, f"config error: {err}")
+    terminate_on_sigterm()
+    seed_value = config.scenario.seed if args.seed is None else args.seed
+    started = time.monotonic()
+    try:
+        fleet = VehicleFleet(
+            initial_drone_positions(config, seed_value),
+            [config.vehicles.origin_w(i) for i in range(config.swarm.n_drones)],
+            config.vehicles.flavour, host=args.mavlink_host, base_port=args.mavlink_base,
+            u_max_m_s=config.control.u_max_m_s,
+            setpoint_timeout_s=config.vehicles.failsafe_timeout_s,
+            clock=lambda: time.monotonic() - started)
+    except OSError as err:
+        return fail(PROG, f"cannot open the vehicles' sockets: {err}", 1)
+    print(f"sim-vehicles: {len(fleet)} {config.vehicles.flavour} vehicles sending to "
+          f"{args.mavlink_host}:{args.mavlink_base}..{args.mavlink_base + len(fleet) - 1}",
+          flush=True)
+    try:
+        serve_forever(fleet, config.scenario.dt_s, started)
+    except KeyboardInterrupt:
+        return EXIT_INTERRUPTED
+    finally:
+        fleet.close()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
