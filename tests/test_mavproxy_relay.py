@@ -25,9 +25,9 @@ from __future__ import annotations
 
 import contextlib
 import os
+import random
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -35,7 +35,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import pytest
 from pymavlink import mavutil
 
 from swarm.checks import check_invariants
@@ -43,8 +42,6 @@ from swarm.config import load_config
 from swarm.launcher import LaunchOptions, SwarmLauncher, udp_ports_free
 from swarm.mavlink_link import IDLE_STAMP_MS
 from swarm.reference import run_reference
-
-pytest.importorskip("MAVProxy")
 
 ROOT = Path(__file__).resolve().parent.parent
 CASE1 = ROOT / "configs" / "case1.toml"
@@ -64,13 +61,13 @@ def mavproxy_command() -> list[str]:
 
 
 def free_udp_block(count: int) -> int:
-    """A base port p with UDP p..p+count-1 free on 127.0.0.1 (started from an OS-chosen port,
-    so concurrent test runs are unlikely to pick the same block)."""
-    for _ in range(200):
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-            sock.bind(("127.0.0.1", 0))
-            base = int(sock.getsockname()[1])
-        if base + count <= 65535 and udp_ports_free(base, count):
+    """A base port p with UDP p..p+count-1 free on 127.0.0.1. Drawn at random below Linux's
+    ephemeral range (32768+), so that no socket bound to port 0 later (the world's vehicle
+    sockets, Zenoh, MAVSDK) can land in the block, and concurrent runs rarely pick the same."""
+    rng = random.SystemRandom()
+    for _ in range(500):
+        base = rng.randrange(20000, 32768 - count)
+        if udp_ports_free(base, count):
             return base
     raise RuntimeError("no free block of UDP ports on 127.0.0.1")
 
