@@ -156,6 +156,7 @@ class TelemetryCollector:
         self.latest: dict[int, TelemetryWire] = {}
         self.agent_steps = np.zeros(n, dtype=int)
         self.last_truth_step = -1
+        self.missing_samples = 0  # truth or telemetry steps that never arrived (realtime)
 
     def on_telemetry(self, _key: str, tel: TelemetryWire) -> None:
         with self.lock:
@@ -189,18 +190,29 @@ class TelemetryCollector:
             self.last_truth_step = max(self.last_truth_step, k)
 
     def record(self, seed: int, wall_time_s: float) -> RunRecord:
-        """The run as a RunRecord; gaps (realtime steps an agent skipped) are forward-filled."""
+        """The run as a RunRecord.
+
+        In realtime, publishers drop rather than queue, so a step can be missing: gaps are
+        filled with the previous value (the first step with the next one); ``missing_samples``
+        says how many were filled.
+        """
         with self.lock:
             arrays = {name: getattr(self, name).copy() for name in (
                 "positions", "targets", "target_vel", "velocities", "estimates", "lambda_bar",
                 "psi0", "psi1", "weights", "slacks", "weight_slacks", "bearing", "step_us")}
             detected, fallback = self.detected.copy(), self.fallback.copy()
         steps = max(self.last_truth_step + 1, 0)
+        self.missing_samples = 0
         for name, values in arrays.items():
             values = values[:steps]
+            self.missing_samples += int(np.isnan(values).any(axis=tuple(range(1, values.ndim)))
+                                        .sum()) if name in ("positions", "velocities") else 0
             for k in range(1, steps):
                 gap = np.isnan(values[k])
                 values[k][gap] = values[k - 1][gap]
+            for k in range(steps - 2, -1, -1):
+                gap = np.isnan(values[k])
+                values[k][gap] = values[k + 1][gap]
             arrays[name] = values
         cfg = self.config
         dt = cfg.scenario.dt_s

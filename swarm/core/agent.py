@@ -16,6 +16,7 @@ an inbox (lost or stale) is left out of the consensus sums and counted.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -23,15 +24,13 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
-from swarm.core import icf
-from swarm.core.barrier import collision_row, localization_barrier, weight_sum_row
-from swarm.core.dynamic_consensus import pi_consensus_step
-from swarm.core.formation import bearing_error, bearing_formation_velocity
-from swarm.core.gramian import gramian_step, initial_gramian
+from swarm.core import _lapack, icf
+from swarm.core.barrier import localization_barrier_scalars
+from swarm.core.formation import bearing_formation_scalars
+from swarm.core.gramian import initial_gramian
 from swarm.core.params import ControlParams, EstimationParams, GramianParams, PerceptionParams
-from swarm.core.perception import perception_terms
-from swarm.core.projector import bearing_from_image_point, projector
-from swarm.core.qp import INACTIVE_ROW_LOWER, QpSolution, QpSolver, build_local_qp
+from swarm.core.perception import perception_constants, perception_scalars, perception_terms
+from swarm.core.qp import INACTIVE_ROW_LOWER, LocalQpWorkspace, QpSolution
 
 Array = NDArray[np.float64]
 
@@ -129,41 +128,75 @@ class AgentStateError(RuntimeError):
     """The step API was called out of order (a bug in the caller, not bad data)."""
 
 
+# Sections of the step timed in ``DroneAgent.section_us`` (benchmarks/bench_step.py).
+SECTIONS = ("estimation", "consensus", "barrier", "qp", "other")
+
+
 class DroneAgent:
-    """State and step of one drone (SPEC §3-§10)."""
+    """State and step of one drone (SPEC §3-§10).
+
+    The step runs on stacks over the M targets and on plain floats for 3-vectors, because on
+    arrays this small each numpy call costs far more than its arithmetic: one LAPACK call
+    per routine for all targets (``icf.StackedFilter``, one ``eigh``), the neighbours' data of
+    a round gathered in one array with the own state as its first row, the consensus states
+    (SPEC §6) kept as one list of floats, the barrier terms on floats
+    (``localization_barrier_scalars``), the QP in preallocated matrices
+    (``LocalQpWorkspace``). The array functions of ``swarm.core`` compute the same quantities
+    up to round-off; sums over neighbours run in the same order, so the consensus updates
+    are bit-identical to ``consensus_iteration``, ``pi_consensus_step`` and ``gramian_step``.
+    """
 
     def __init__(self, setup: AgentSetup, initial_target_guesses: Array) -> None:
         self.setup = setup
         m = setup.n_targets
-        est = setup.estimation
-        self._n_state = icf.state_dimension(est.model)
-        self._transition = icf.transition_matrix(est.model, setup.dt_s)
+        est, gram, ctrl = setup.estimation, setup.gramian, setup.control
+        n = self._n_state = icf.state_dimension(est.model)
+        self._filter = icf.StackedFilter(icf.transition_matrix(est.model, setup.dt_s),
+                                         est.process_noise, setup.n_drones, setup.dt_s)
         guesses = np.asarray(initial_target_guesses, dtype=float).reshape(m, 3)
-        self._prior_state = np.zeros((m, self._n_state))
+        self._prior_state = np.zeros((m, n))
         self._prior_state[:, :3] = guesses
-        self._prior_information = np.broadcast_to(np.eye(self._n_state),
-                                                  (m, self._n_state, self._n_state)).copy()
+        self._prior_information = np.broadcast_to(np.eye(n), (m, n, n)).copy()
         self._posterior_state = self._prior_state.copy()
-        self._gramian = np.broadcast_to(initial_gramian(setup.gramian.epsilon), (m, 3, 3)).copy()
-        self._projector_mean: Array | None = None  # set on the first step from u_i(0)
-        self._projector_integral = np.zeros((m, 3, 3))
-        self._weight_mean: Array | None = None
-        self._weight_integral = np.zeros(m)
-        self._solver_relaxed = QpSolver()
-        self._solver_hard = QpSolver()
+        # ICF pair (V, v) packed as one vector: V (M·n·n) then v (M·n).
+        self._n_info = m * n * n
+        self._icf = np.zeros(self._n_info + m * n)
+        # Positions of the [[Π, 0], [0, 0]] blocks of V and the [Πp_i; 0] parts of v in it.
+        blocks = [r * n * n + a * n + b for r in range(m) for a in range(3) for b in range(3)]
+        parts = [self._n_info + r * n + a for r in range(m) for a in range(3)]
+        self._measurement_index = np.array(blocks + parts)
+        # Consensus states packed as one list of floats (SPEC §6): the estimates s (wΠ̂: 9M,
+        # w: M), their integrals η (9M, M), then the Gramian copies G (9M).
+        self._cons = [0.0] * (20 * m) + initial_gramian(gram.epsilon).ravel().tolist() * m
+        self._cons_array = np.array(self._cons)
+        self._consensus_started = False  # s_i(0) = u_i(0) is set on the first step
+        self._disagreement = np.zeros(29 * m)  # Σ_j (x_i − x_j) of the round-0 states
+        self._operator = _consensus_operator(m, setup.dt_s, gram, est.info_gain * setup.n_drones)
+        self._neighbours = setup.neighbours
+        self._weight_columns: dict[tuple[int, ...], Array] = {}
+        self._perception = perception_constants(setup.perception)
+        self._barrier_constants = dict(
+            n_agents=setup.n_drones, forgetting=gram.forgetting, epsilon=gram.epsilon,
+            exponent=gram.smooth_min_exponent, info_gain=est.info_gain)
+        self._single_integrator = est.model == "single_integrator"
+        self._qp_relaxed = LocalQpWorkspace(
+            m, setup.n_drones - 1, relaxed=True, slack_weight=ctrl.slack_weight,
+            weight_floor=ctrl.weight_floor, u_max=ctrl.u_max_m_s)
+        self._qp_hard = (LocalQpWorkspace(
+            m, setup.n_drones - 1, relaxed=False, slack_weight=ctrl.slack_weight,
+            weight_floor=ctrl.weight_floor, u_max=ctrl.u_max_m_s) if ctrl.qp == "hard" else None)
         # Per-step working state.
         self._phase = "idle"
         self._step = -1
         self._round = 0
         self._position = np.zeros(3)
-        self._information = np.zeros((m, self._n_state, self._n_state))
-        self._information_vector = np.zeros((m, self._n_state))
-        self._round0: dict[int, ConsensusMessage] = {}
+        self._own = [0.0, 0.0, 0.0]
         self._detected = np.zeros(m, dtype=bool)
         self._communicated_velocity: Array | None = None
         self._missing = 0
         self._rejected = 0
         self._busy_s = 0.0  # own compute time in this step, excluding waits for neighbours
+        self._sections = [0.0] * len(SECTIONS)
         # Running totals.
         self.qp_fallbacks = 0
         self.missing_neighbour_messages = 0
@@ -186,67 +219,94 @@ class DroneAgent:
         if self._phase != "idle":
             raise AgentStateError(f"begin_step({step}) called while in phase {self._phase!r}")
         entered = time.perf_counter()
-        self._busy_s = 0.0
         setup = self.setup
+        m, n = setup.n_targets, self._n_state
         position = np.asarray(position, dtype=float)
-        if position.shape != (3,) or not np.isfinite(position).all():
+        if position.shape != (3,) or not _all_finite(own := position.tolist()):
             raise ValueError(f"drone {setup.drone_id}: own position must be 3 finite numbers, "
                              f"got {position!r}")
-        self._step, self._round, self._position = step, 0, position
+        self._step, self._round, self._position, self._own = step, 0, position, own
         self._missing = self._rejected = 0
-        measured: list[Array | None] = [None] * setup.n_targets
+        measured: list[tuple[float, ...] | None] = [None] * m
         for det in detections:
             point = np.asarray(det.image_point, dtype=float)
-            if (not 0 <= det.target < setup.n_targets or point.shape != (2,)
-                    or not np.isfinite(point).all()):
+            if (not 0 <= det.target < m or point.shape != (2,)
+                    or not _all_finite(xy := point.tolist())):
                 self._rejected += 1
                 continue
-            measured[det.target] = projector(bearing_from_image_point(point))
-        self._detected = np.array([p is not None for p in measured])
+            measured[det.target] = _measured_projector(xy)
+        detected = [p is not None for p in measured]
+        self._detected = np.array(detected)
         if communicated_velocities is not None:
             self._communicated_velocity = np.asarray(communicated_velocities, dtype=float)
-        if self._projector_mean is None:
+        if not self._consensus_started:
             self._initialise_consensus_states()
-        for r in range(setup.n_targets):
-            self._information[r], self._information_vector[r] = icf.initial_information(
-                self._prior_state[r], self._prior_information[r], measured[r], position,
-                setup.n_drones, setup.estimation.info_gain)
+        estimation_started = time.perf_counter()
+        # V⁰ = W⁻/N + bμ[[Π,0],[0,0]], v⁰ = W⁻x̂⁻/N + bμ[Πp_i; 0] (2.4-2.5, 2.15), stacked.
+        packed = np.empty_like(self._icf)
+        info = packed[:self._n_info].reshape(m, n, n)
+        np.divide(self._prior_information, setup.n_drones, out=info)
+        np.matmul(info, self._prior_state[..., None],
+                  out=packed[self._n_info:].reshape(m, n, 1))
+        if any(detected):
+            gain = setup.estimation.info_gain
+            p0, p1, p2 = own
+            blocks: list[float] = []
+            parts: list[float] = []
+            for proj in measured:
+                if proj is None:  # adds zeros: x + 0 = x
+                    blocks += _ZERO9
+                    parts += _ZERO3
+                    continue
+                blocks += [gain * x for x in proj]
+                parts += (gain * (proj[0] * p0 + proj[1] * p1 + proj[2] * p2),
+                          gain * (proj[3] * p0 + proj[4] * p1 + proj[5] * p2),
+                          gain * (proj[6] * p0 + proj[7] * p1 + proj[8] * p2))
+            packed[self._measurement_index] += np.array(blocks + parts)
+        self._icf = packed
         self._phase = "consensus"
-        assert self._projector_mean is not None and self._weight_mean is not None
-        self._busy_s += time.perf_counter() - entered
-        return ConsensusMessage(
-            sender=setup.drone_id, step=step, round=0,
-            information=self._information.copy(),
-            information_vector=self._information_vector.copy(),
-            projector_mean=self._projector_mean.copy(),
-            projector_integral=self._projector_integral.copy(),
-            weight_mean=self._weight_mean.copy(),
-            weight_integral=self._weight_integral.copy(),
-            gramian=self._gramian.copy(),
-        )
+        done = time.perf_counter()
+        message = self._message(0, with_states=True)
+        finished = time.perf_counter()
+        self._busy_s = finished - entered
+        self._sections[:] = (done - estimation_started, 0.0, 0.0, 0.0,
+                             (finished - entered) - (done - estimation_started))
+        return message
 
     def consensus_round(self, inbox: Mapping[int, ConsensusMessage]) -> ConsensusMessage | None:
-        """Apply one ICF consensus iteration (2.6-2.7) with the neighbours' current-round data."""
+        """Apply one ICF consensus iteration (2.6-2.7) with the neighbours' current-round data.
+
+        In round 0 it also takes the neighbours' consensus states (SPEC §6) that
+        ``finish_step`` advances.
+        """
         if self._phase != "consensus":
             raise AgentStateError(f"consensus_round called in phase {self._phase!r}")
         entered = time.perf_counter()
-        usable = self._usable(inbox)
-        if self._round == 0:
-            self._round0 = usable
-        weights = self.setup.neighbour_weights
-        for r in range(self.setup.n_targets):
-            self._information[r] = icf.consensus_iteration(
-                self._information[r], ((weights[j], m.information[r]) for j, m in usable.items()))
-            self._information_vector[r] = icf.consensus_iteration(
-                self._information_vector[r],
-                ((weights[j], m.information_vector[r]) for j, m in usable.items()))
+        first = self._round == 0
+        usable, data = self._gather(inbox, first)
+        if usable:
+            n_icf = self._icf.shape[0]
+            # Row 0 is the own state a; rows j become a_j − a, then a_ij (a_j − a) for the ICF
+            # pair, and the sum down the rows is a + Σ_j a_ij (a_j − a) in neighbour order,
+            # as ``consensus_iteration`` adds them (2.6-2.7).
+            np.subtract(data[1:], data[0], out=data[1:])
+            data[1:, :n_icf] *= self._weight_column(usable)
+            self._icf = np.add.reduce(data[:, :n_icf], axis=0)
+            if first:
+                # Σ_j (x_i − x_j) = −Σ_j (x_j − x_i) of the round-0 consensus states (3.29-3.30).
+                self._disagreement = np.negative(np.add.reduce(data[1:, n_icf:], axis=0))
+        elif first:
+            self._disagreement = np.zeros(len(self._cons))
         self._round += 1
-        self._busy_s += time.perf_counter() - entered
         if self._round >= self.n_rounds:
             self._phase = "finish"
-            return None
-        return ConsensusMessage(self.setup.drone_id, self._step, self._round,
-                                self._information.copy(), self._information_vector.copy())
+            message = None
+        else:
+            message = self._message(self._round, with_states=False)
+        elapsed = time.perf_counter() - entered
+        self._busy_s += elapsed
+        self._sections[1] += elapsed
+        return message
 
     def finish_step(self, beacons: Mapping[int, Array]) -> StepResult:
         """Posterior and prediction, barrier rows, QP, then advance consensus and Gramian.
@@ -257,196 +317,366 @@ class DroneAgent:
         if self._phase != "finish":
             raise AgentStateError(f"finish_step called in phase {self._phase!r}")
         entered = time.perf_counter()
-        setup, ctrl, gram = self.setup, self.setup.control, self.setup.gramian
-        m, n_drones, dt = setup.n_targets, setup.n_drones, setup.dt_s
-        position = self._position
-        time_s = self._step * dt
+        setup, ctrl = self.setup, self.setup.control
+        m, n, n_drones = setup.n_targets, self._n_state, setup.n_drones
+        time_s = self._step * setup.dt_s
+        own_id = setup.drone_id
+        own = self._own
 
-        clean_beacons: dict[int, Array] = {}
+        clean_beacons: dict[int, list[float]] = {}
         for j, p_j in beacons.items():
-            p_j = np.asarray(p_j, dtype=float)
-            if j == setup.drone_id or p_j.shape != (3,) or not np.isfinite(p_j).all():
-                self._rejected += j != setup.drone_id
+            if j == own_id:
                 continue
-            clean_beacons[j] = p_j
+            p_j = np.asarray(p_j, dtype=float)
+            if p_j.shape != (3,) or not _all_finite(xyz := p_j.tolist()):
+                self._rejected += 1
+                continue
+            clean_beacons[j] = xyz
 
-        # ICF posterior and prediction (2.8-2.11).
-        for r in range(m):
-            state, info = icf.posterior(self._information[r], self._information_vector[r],
-                                        n_drones)
-            self._posterior_state[r] = state
-            velocity_in = (self._communicated_velocity[r]
-                           if setup.estimation.model == "single_integrator"
-                           and self._communicated_velocity is not None else None)
-            self._prior_state[r], self._prior_information[r] = icf.predict(
-                state, info, self._transition, setup.estimation.process_noise,
-                communicated_velocity=velocity_in, dt_s=dt)
-        target_positions = self._posterior_state[:, :3]
-        target_velocities = self._target_velocity_estimates()
+        # ICF posterior and prediction (2.8-2.11), all targets at once.
+        t0 = time.perf_counter()
+        packed = self._icf
+        posterior_state, self._prior_state, self._prior_information = self._filter(
+            packed[:self._n_info].reshape(m, n, n), packed[self._n_info:].reshape(m, n),
+            self._communicated_velocity if self._single_integrator else None)
+        self._posterior_state = posterior_state
+        estimates = posterior_state.tolist()
+        if not self._single_integrator:
+            target_velocities = [e[3:6] for e in estimates]
+        elif self._communicated_velocity is not None:
+            target_velocities = self._communicated_velocity.tolist()
+        else:
+            target_velocities = [[0.0, 0.0, 0.0]] * m
+        t1 = time.perf_counter()
 
         # Perception weights and barrier terms from the estimates (SPEC §3, §8).
-        assert self._projector_mean is not None and self._weight_mean is not None
-        terms = [perception_terms(position, target_positions[r], setup.perception)
-                 for r in range(m)]
+        constants = self._perception
+        terms = [perception_scalars(own, estimates[r], constants) for r in range(m)]
+        cons = self._cons
+        eigenvalues, eigenvectors = _lapack.eigh(self._cons_array[20 * m:].reshape(m, 3, 3))
+        eigenvalues, eigenvectors = eigenvalues.tolist(), eigenvectors.tolist()
         barriers = [
-            localization_barrier(
-                self._gramian[r], self._projector_mean[r], terms[r], target_velocities[r],
-                n_agents=n_drones, forgetting=gram.forgetting, epsilon=gram.epsilon,
-                exponent=gram.smooth_min_exponent, info_gain=setup.estimation.info_gain)
+            localization_barrier_scalars(
+                eigenvalues[r], eigenvectors[r], cons[9 * r:9 * r + 9], terms[r],
+                target_velocities[r],
+                **self._barrier_constants)
             for r in range(m)
         ]
-        weight_sums = n_drones * self._weight_mean
+        weights = [t[0] for t in terms]
+        weight_sums = [n_drones * w for w in cons[9 * m:10 * m]]  # S_w = N · s_w
+        t2 = time.perf_counter()
 
-        nominal, formation_error = self._nominal_velocity(position, clean_beacons)
+        nominal, formation_error = self._nominal_velocity(own, clean_beacons)
         control_active = time_s >= ctrl.start_s
-        slacks = np.zeros(m)
-        weight_slacks = np.zeros(m)
         qp_status, qp_iterations, qp_us, fallback = "inactive", 0, 0.0, False
+        t3 = t4 = t2
+        slacks = weight_slacks = None
         if control_active:
-            qp_rows = self._qp_rows(barriers, terms, target_velocities, weight_sums, position,
-                                    clean_beacons)
-            solution, fallback = self._solve(nominal, qp_rows, np.array([t.weight for t in terms]))
-            velocity = solution.velocity.copy() if solution.found else np.zeros(3)
+            u_rows, lower = self._qp_rows(barriers, terms, target_velocities, weight_sums, own,
+                                          clean_beacons)
+            t3 = time.perf_counter()
+            solution, fallback = self._solve(nominal, u_rows, lower, weights)
+            t4 = time.perf_counter()
+            velocity = solution.z[:3].copy() if solution.found else np.zeros(3)
             if solution.found and solution.z.shape[0] > 3:
                 slacks, weight_slacks = solution.z[3:3 + m].copy(), solution.z[3 + m:].copy()
             qp_status, qp_iterations = solution.status, solution.iterations
             qp_us = solution.solve_time_s * 1e6
         else:
-            velocity = np.clip(nominal, -ctrl.u_max_m_s, ctrl.u_max_m_s)
+            u_max = ctrl.u_max_m_s
+            velocity = np.array([min(max(u, -u_max), u_max) for u in nominal])
 
         # Advance the dynamic consensus (3.30) and the Gramian copies (3.29) to step k + 1,
         # with the neighbours' states at step k from round 0.
-        weighted_projectors = np.array([t.weight * t.projector for t in terms])
-        weights = np.array([t.weight for t in terms])
-        nbrs = list(self._round0.values())
-        old_projector_mean = self._projector_mean
-        self._projector_mean, self._projector_integral = pi_consensus_step(
-            self._projector_mean, self._projector_integral, weighted_projectors,
-            [msg.projector_mean for msg in nbrs], [msg.projector_integral for msg in nbrs],
-            gram.projector_consensus, dt)
-        self._weight_mean, self._weight_integral = pi_consensus_step(
-            self._weight_mean, self._weight_integral, weights,
-            [msg.weight_mean for msg in nbrs], [msg.weight_integral for msg in nbrs],
-            gram.weight_consensus, dt)
-        self._gramian = gramian_step(
-            self._gramian, old_projector_mean, [msg.gramian for msg in nbrs],
-            n_agents=n_drones, forgetting=gram.forgetting, info_gain=setup.estimation.info_gain,
-            consensus_gain=gram.consensus_gain, dt_s=dt)
+        t5 = time.perf_counter()
+        self._advance_consensus(terms, weights)
+        t6 = time.perf_counter()
 
         self.qp_fallbacks += int(fallback)
         self.missing_neighbour_messages += self._missing
         self.rejected_inputs += self._rejected
         self._phase = "idle"
-        diagnostics = StepDiagnostics(
-            drone_id=setup.drone_id, step=self._step, time_s=time_s,
-            velocity=velocity, nominal_velocity=nominal,
-            estimates=self._posterior_state.copy(),
-            lambda_bar=np.array([b.lambda_bar for b in barriers]),
-            psi0=np.array([b.psi0 for b in barriers]),
-            psi1=np.array([b.psi1 for b in barriers]),
-            weights=weights, weight_sum_estimate=weight_sums.copy(),
-            slacks=slacks, weight_slacks=weight_slacks, detected=self._detected.copy(),
+        series = np.array([b[0] for b in barriers] + [b[1] for b in barriers]
+                          + [b[2] for b in barriers] + weights + weight_sums)
+        if slacks is None:
+            slacks, weight_slacks = np.zeros(m), np.zeros(m)
+        diagnostics = _build(
+            StepDiagnostics,
+            drone_id=own_id, step=self._step, time_s=time_s,
+            velocity=velocity, nominal_velocity=np.array(nominal),
+            estimates=posterior_state.copy(),
+            lambda_bar=series[0:m], psi0=series[m:2 * m], psi1=series[2 * m:3 * m],
+            weights=series[3 * m:4 * m], weight_sum_estimate=series[4 * m:],
+            slacks=slacks, weight_slacks=weight_slacks, detected=self._detected,
             control_active=control_active, qp_status=qp_status, qp_iterations=qp_iterations,
             qp_fallback=fallback, qp_solve_us=qp_us,
             step_us=(self._busy_s + time.perf_counter() - entered) * 1e6,
             bearing_error=formation_error, missing_neighbour_messages=self._missing,
             rejected_inputs=self._rejected,
         )
-        return StepResult(velocity, diagnostics)
+        finished = time.perf_counter()
+        sections = self._sections
+        sections[0] += t1 - t0
+        sections[1] += t6 - t5
+        sections[2] += t3 - t1
+        sections[3] += t4 - t3
+        sections[4] += (finished - entered) - (t4 - t0) - (t6 - t5)
+        return _build(StepResult, velocity=velocity, diagnostics=diagnostics)
 
     # -- helpers ------------------------------------------------------------------------
 
     @property
     def gramian_copies(self) -> Array:
-        return self._gramian.copy()
+        m = self.setup.n_targets
+        return self._cons_array[20 * m:].reshape(m, 3, 3).copy()
 
     @property
     def target_estimates(self) -> Array:
         return self._posterior_state.copy()
 
-    def _usable(self, inbox: Mapping[int, ConsensusMessage]) -> dict[int, ConsensusMessage]:
-        usable: dict[int, ConsensusMessage] = {}
-        for j in self.setup.neighbours:
+    @property
+    def section_us(self) -> dict[str, float]:
+        """Compute time of the last step by section [µs] (estimation: ICF local steps;
+        consensus: rounds and the consensus/Gramian update; barrier: perception, barrier and
+        constraint rows; qp: solver update and solve; other: the rest)."""
+        return {name: 1e6 * t for name, t in zip(SECTIONS, self._sections, strict=True)}
+
+    def _message(self, rnd: int, *, with_states: bool) -> ConsensusMessage:
+        m, n = self.setup.n_targets, self._n_state
+        icf_copy = self._icf.copy()
+        information = icf_copy[:self._n_info].reshape(m, n, n)
+        vector = icf_copy[self._n_info:]
+        vector.shape = (m, n)
+        if not with_states:
+            return _build(ConsensusMessage, sender=self.setup.drone_id, step=self._step,
+                          round=rnd, information=information, information_vector=vector,
+                          projector_mean=None, projector_integral=None, weight_mean=None,
+                          weight_integral=None, gramian=None)
+        cons = self._cons_array.copy()
+        return _build(
+            ConsensusMessage, sender=self.setup.drone_id, step=self._step, round=rnd,
+            information=information, information_vector=vector,
+            projector_mean=cons[:9 * m].reshape(m, 3, 3),
+            projector_integral=cons[10 * m:19 * m].reshape(m, 3, 3),
+            weight_mean=cons[9 * m:10 * m],
+            weight_integral=cons[19 * m:20 * m],
+            gramian=cons[20 * m:].reshape(m, 3, 3),
+        )
+
+    def _gather(self, inbox: Mapping[int, ConsensusMessage],
+                first: bool) -> tuple[tuple[int, ...], Array]:
+        """The neighbours usable this round and one row per party: the own state first, then
+        each usable neighbour's data packed the same way (ICF pair, then in round 0 the
+        consensus states).
+
+        A neighbour missing from the inbox is counted missing; a message from the wrong
+        sender, of the wrong shape or round, or with a non-finite number is counted rejected.
+        """
+        m, n = self.setup.n_targets, self._n_state
+        info_shape, vector_shape = (m, n, n), (m, n)
+        mat_shape, vec_shape = (m, 3, 3), (m,)
+        usable: list[int] = []
+        parts: list[Array] = [self._icf, self._cons_array] if first else [self._icf]
+        for j in self._neighbours:
             msg = inbox.get(j)
             if msg is None:
                 self._missing += 1
                 continue
-            if msg.sender != j or not self._well_formed(msg):
+            if (msg.sender != j or msg.round != self._round
+                    or msg.information.shape != info_shape
+                    or msg.information_vector.shape != vector_shape):
                 self._rejected += 1
                 continue
-            usable[j] = msg
-        return usable
+            if first:
+                s_proj, s_w, eta_proj, eta_w, g = (msg.projector_mean, msg.weight_mean,
+                                                   msg.projector_integral, msg.weight_integral,
+                                                   msg.gramian)
+                if (s_proj is None or s_w is None or eta_proj is None or eta_w is None
+                        or g is None or s_proj.shape != mat_shape or s_w.shape != vec_shape
+                        or eta_proj.shape != mat_shape or eta_w.shape != vec_shape
+                        or g.shape != mat_shape):
+                    self._rejected += 1
+                    continue
+                parts += (msg.information.ravel(), msg.information_vector.ravel(),
+                          s_proj.ravel(), s_w, eta_proj.ravel(), eta_w, g.ravel())
+            else:
+                if _has_states(msg) and not msg.is_finite():
+                    self._rejected += 1
+                    continue
+                parts += (msg.information.ravel(), msg.information_vector.ravel())
+            usable.append(j)
+        if not usable:
+            return (), self._icf[:0]
+        data = np.concatenate(parts).reshape(len(usable) + 1, -1)
+        # A sum is finite only if every term is (a finite sum may overflow: then look closer).
+        if not math.isfinite(np.add.reduce(data, axis=None)):
+            finite = np.isfinite(data[1:]).all(axis=1)
+            self._rejected += int(np.count_nonzero(~finite))
+            usable = [j for j, ok in zip(usable, finite.tolist(), strict=True) if ok]
+            if not usable:
+                return (), self._icf[:0]
+            data = data[np.concatenate(([True], finite))]
+        return tuple(usable), data
 
-    def _well_formed(self, msg: ConsensusMessage) -> bool:
-        m, n = self.setup.n_targets, self._n_state
-        if msg.information.shape != (m, n, n) or msg.information_vector.shape != (m, n):
-            return False
-        if msg.round == 0:
-            shapes = ((msg.projector_mean, (m, 3, 3)), (msg.projector_integral, (m, 3, 3)),
-                      (msg.weight_mean, (m,)), (msg.weight_integral, (m,)),
-                      (msg.gramian, (m, 3, 3)))
-            if any(a is None or a.shape != s for a, s in shapes):
-                return False
-        return msg.round == self._round and msg.is_finite()
+    def _weight_column(self, usable: tuple[int, ...]) -> Array:
+        column = self._weight_columns.get(usable)
+        if column is None:
+            weights = self.setup.neighbour_weights
+            column = np.array([[weights[j]] for j in usable], dtype=float)
+            self._weight_columns[usable] = column
+        return column
+
+    def _advance_consensus(self, terms: list, weights: list[float]) -> None:
+        """One Euler step of the PI consensus (3.30) for wΠ̂ and w and of the Gramian copies
+        (3.29), symmetrized, on the packed state.
+
+        The step is linear in (x, Σ_j (x − x_j), u), so each new entry is a sum of at most
+        six precomputed coefficients times entries of [x, Σ_j (x − x_j), u]
+        (``_consensus_operator``): one gather, one product, one sum, the same update as
+        ``pi_consensus_step`` and ``gramian_step`` up to round-off.
+        """
+        local_input = [w * x for w, t in zip(weights, terms, strict=True) for x in t[4]]
+        local_input += weights  # u_i = [w Π̂ (9M), w (M)]
+        stacked = np.concatenate((self._cons_array, self._disagreement, local_input))
+        index, coefficients = self._operator
+        updated = np.add.reduce(stacked[index] * coefficients, axis=0)
+        self._cons_array = updated
+        self._cons = updated.tolist()
 
     def _initialise_consensus_states(self) -> None:
         """s_i(0) = u_i(0) from the initial estimate, η_i(0) = 0 (SPEC §6)."""
         m = self.setup.n_targets
         terms = [perception_terms(self._position, self._prior_state[r, :3],
                                   self.setup.perception) for r in range(m)]
-        self._projector_mean = np.array([t.weight * t.projector for t in terms])
-        self._weight_mean = np.array([t.weight for t in terms])
-
-    def _target_velocity_estimates(self) -> Array:
-        if self.setup.estimation.model == "double_integrator":
-            return self._posterior_state[:, 3:6]
-        if self._communicated_velocity is None:
-            return np.zeros((self.setup.n_targets, 3))
-        return self._communicated_velocity
+        cons = list(self._cons)
+        cons[:9 * m] = np.array([t.weight * t.projector for t in terms]).ravel().tolist()
+        cons[9 * m:10 * m] = [t.weight for t in terms]
+        self._cons = cons
+        self._cons_array = np.array(cons)
+        self._consensus_started = True
 
     def _nominal_velocity(
-        self, position: Array, beacons: Mapping[int, Array]
-    ) -> tuple[Array, float | None]:
+        self, position: list[float], beacons: Mapping[int, list[float]]
+    ) -> tuple[tuple[float, float, float], float | None]:
         ctrl = self.setup.control
         if ctrl.task == "zero":
-            return np.zeros(3), None
-        neighbours = {j: beacons[j] for j in self.setup.neighbours if j in beacons}
+            return (0.0, 0.0, 0.0), None
         desired = self.setup.desired_bearings
-        return (bearing_formation_velocity(position, neighbours, desired, ctrl.formation_gain),
-                bearing_error(position, neighbours, desired))
+        neighbours = [(beacons[j], tuple(desired[j].tolist())) for j in self._neighbours
+                      if j in beacons]
+        return bearing_formation_scalars(position, neighbours, ctrl.formation_gain)
 
     def _qp_rows(self, barriers, terms, target_velocities, weight_sums, position, beacons):
+        """Velocity parts (column-major: x, y, z coefficients of every row) and lower bounds
+        of the QP rows: localization (3.32), weight-sum (3.34-3.36), collision (4.1-4.2,
+        inactive slots "0 ≥ −1")."""
         ctrl, n = self.setup.control, self.setup.n_drones
-        m = self.setup.n_targets
-        loc_rows = np.array([b.lie_g for b in barriers]).reshape(m, 3)
-        loc_lower = np.array([b.lower_bound for b in barriers])
-        w_rows = np.zeros((m, 3))
-        w_lower = np.zeros(m)
-        for r in range(m):
-            w_rows[r], w_lower[r] = weight_sum_row(terms[r], target_velocities[r],
-                                                   float(weight_sums[r]), ctrl.gamma, n)
-        col_rows = np.zeros((n - 1, 3))
-        col_lower = np.full(n - 1, INACTIVE_ROW_LOWER)
+        rows = [b[3] for b in barriers] + [t[1] for t in terms]
+        lower = [b[4] for b in barriers]
+        gamma = ctrl.gamma
+        for t, v, s_w in zip(terms, target_velocities, weight_sums, strict=True):
+            grad = t[1]
+            lower.append(-(s_w - gamma) / n + (grad[0] * v[0] + grad[1] * v[1] + grad[2] * v[2]))
+        px, py, pz = position
+        radius, delta, gain = (ctrl.collision_radius_m, ctrl.collision_distance_m,
+                               ctrl.collision_gain)
         slot = 0
-        for _, p_j in sorted(beacons.items()):
+        for j in sorted(beacons):
             if slot >= n - 1:
                 break
-            if np.linalg.norm(p_j - position) <= ctrl.collision_radius_m:
-                col_rows[slot], col_lower[slot] = collision_row(
-                    position, p_j, ctrl.collision_distance_m, ctrl.collision_gain)
+            qx, qy, qz = beacons[j]
+            ox, oy, oz = px - qx, py - qy, pz - qz
+            square = ox * ox + oy * oy + oz * oz
+            if math.sqrt(square) <= radius:
+                rows.append((2.0 * ox, 2.0 * oy, 2.0 * oz))
+                lower.append(-0.5 * gain * (square - delta * delta))
                 slot += 1
-        return loc_rows, loc_lower, w_rows, w_lower, col_rows, col_lower
+        for _ in range(slot, n - 1):
+            rows.append(_ZERO3)
+            lower.append(INACTIVE_ROW_LOWER)
+        xs, ys, zs = zip(*rows, strict=True)
+        return [*xs, *ys, *zs], lower
 
-    def _solve(self, nominal: Array, rows, weights: Array) -> tuple[QpSolution, bool]:
+    def _solve(self, nominal: tuple[float, float, float], u_columns: list[float],
+               lower: list[float], weights: list[float]) -> tuple[QpSolution, bool]:
         """Hard QP (3.37) or relaxed QP (3.36); hard failures fall back to relaxed (SPEC §9)."""
-        ctrl = self.setup.control
-        common = dict(slack_weight=ctrl.slack_weight, weight_floor=ctrl.weight_floor,
-                      u_max=ctrl.u_max_m_s)
-        if ctrl.qp == "hard":
-            hard = self._solver_hard.solve(build_local_qp(nominal, *rows, weights,
-                                                          relaxed=False, **common))
+        if self._qp_hard is not None:
+            hard = self._qp_hard.solve(nominal, u_columns, lower, weights)
             if hard.found:
                 return hard, False
-        relaxed = self._solver_relaxed.solve(build_local_qp(nominal, *rows, weights,
-                                                            relaxed=True, **common))
-        return relaxed, ctrl.qp == "hard" or not relaxed.found
+        relaxed = self._qp_relaxed.solve(nominal, u_columns, lower, weights)
+        return relaxed, self._qp_hard is not None or not relaxed.found
+
+
+_ZERO3 = (0.0, 0.0, 0.0)
+_ZERO9 = (0.0,) * 9
+
+
+def _build(cls: type, **fields: object):  # type: ignore[no-untyped-def]
+    """``cls(**fields)`` for the frozen dataclasses built every step, given every field: the
+    same instance, without the generated ``__init__``'s ``object.__setattr__`` per field,
+    which costs more than everything else these objects need."""
+    obj = object.__new__(cls)
+    obj.__dict__.update(fields)
+    return obj
+
+
+def _consensus_operator(m: int, dt: float, gram: GramianParams,
+                        rate_gain: float) -> tuple[Array, Array]:
+    """Gather index and coefficients of the consensus step on z = [x, D, u] (SPEC §6).
+
+    x = [s (wΠ̂ 9M, w M), η (10M), G (9M)] is the packed state, D = Σ_j (x − x_j) over the
+    round-0 neighbours, u = [wΠ̂, w] the local input. With K = (ζ, K_p, K_i) per entry:
+    s' = (1 − ΔTζ) s + ΔTζ u − ΔT K_p D_s + ΔT K_i D_η (3.30), η' = η − ΔT K_i D_s, and
+    G' = ½(Ĝ + Ĝᵀ) with Ĝ = (1 − ΔTρ) G + ΔT bN s_wΠ̂ − ΔT c D_G (3.29, Σ_j (G_j − G) = −D_G).
+    Returns (index, coefficients), each (6, 29M); unused terms point at a zero coefficient.
+    """
+    n = 29 * m
+    d0, u0 = n, 2 * n  # offsets of D and u in z
+    index = np.zeros((6, n), dtype=np.intp)
+    coefficients = np.zeros((6, n))
+
+    def put(row: int, entry: int, source: int, coefficient: float) -> None:
+        index[row, entry], coefficients[row, entry] = source, coefficient
+
+    pc, wc = gram.projector_consensus, gram.weight_consensus
+    for i in range(10 * m):
+        gains = pc if i < 9 * m else wc
+        e = 10 * m + i  # the matching η entry
+        put(0, i, i, 1.0 - dt * gains.zeta)
+        put(1, i, u0 + i, dt * gains.zeta)
+        put(2, i, d0 + i, -dt * gains.kp)
+        put(3, i, d0 + e, dt * gains.ki)
+        put(0, e, e, 1.0)
+        put(1, e, d0 + i, -dt * gains.ki)
+    keep, rate, couple = 1.0 - dt * gram.forgetting, dt * rate_gain, -dt * gram.consensus_gain
+    for r in range(m):
+        for a in range(3):
+            for b in range(3):
+                k, kt = 9 * r + 3 * a + b, 9 * r + 3 * b + a  # G[a, b] and G[b, a] in the block
+                i, it = 20 * m + k, 20 * m + kt
+                put(0, i, i, 0.5 * keep)
+                put(1, i, it, 0.5 * keep)
+                put(2, i, k, 0.5 * rate)
+                put(3, i, kt, 0.5 * rate)
+                put(4, i, d0 + i, 0.5 * couple)
+                put(5, i, d0 + it, 0.5 * couple)
+    return index, coefficients
+
+
+def _all_finite(values: list[float]) -> bool:
+    return all(map(math.isfinite, values))
+
+
+def _has_states(msg: ConsensusMessage) -> bool:
+    return any(a is not None for a in (msg.projector_mean, msg.projector_integral,
+                                       msg.weight_mean, msg.weight_integral, msg.gramian))
+
+
+def _measured_projector(image_point: list[float]) -> tuple[float, ...]:
+    """Π of the measured bearing [x̄, ȳ, −1]/‖·‖ (SPEC §2, §4), row-major, as floats."""
+    x, y = image_point
+    norm = math.sqrt(x * x + y * y + 1.0)
+    bx, by, bz = x / norm, y / norm, -1.0 / norm
+    pxy, pxz, pyz = 0.0 - bx * by, 0.0 - bx * bz, 0.0 - by * bz
+    return (1.0 - bx * bx, pxy, pxz, pxy, 1.0 - by * by, pyz, pxz, pyz, 1.0 - bz * bz)

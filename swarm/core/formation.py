@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 
 import numpy as np
@@ -51,3 +52,31 @@ def bearing_error(
         g_ij, _ = bearing(position - own_position)
         total += float(np.linalg.norm(g_ij - desired_bearings[j]))
     return total / len(neighbour_positions)
+
+
+def bearing_formation_scalars(
+    own_position: tuple[float, float, float],
+    neighbours: list[tuple[tuple[float, float, float], tuple[float, float, float]]],
+    gain: float,
+) -> tuple[tuple[float, float, float], float]:
+    """``bearing_formation_velocity`` and ``bearing_error`` on plain floats, in one pass.
+
+    ``neighbours`` lists (p_j, g*_ij) of the neighbours whose position is known, in the order
+    the sums run. Same operations as the array versions up to round-off.
+    """
+    if not neighbours:
+        return (0.0, 0.0, 0.0), 0.0
+    px, py, pz = own_position
+    ux = uy = uz = 0.0
+    error = 0.0
+    for (qx, qy, qz), (dx, dy, dz) in neighbours:
+        rx, ry, rz = qx - px, qy - py, qz - pz
+        distance = math.sqrt(rx * rx + ry * ry + rz * rz)
+        gx, gy, gz = rx / distance, ry / distance, rz / distance
+        # P_g g* = (I − g gᵀ) g*
+        ux -= (1.0 - gx * gx) * dx + (0.0 - gx * gy) * dy + (0.0 - gx * gz) * dz
+        uy -= (0.0 - gy * gx) * dx + (1.0 - gy * gy) * dy + (0.0 - gy * gz) * dz
+        uz -= (0.0 - gz * gx) * dx + (0.0 - gz * gy) * dy + (1.0 - gz * gz) * dz
+        ex, ey, ez = gx - dx, gy - dy, gz - dz
+        error += math.sqrt(ex * ex + ey * ey + ez * ez)
+    return (gain * ux, gain * uy, gain * uz), error / len(neighbours)

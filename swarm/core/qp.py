@@ -9,12 +9,15 @@ step; a collision row for a drone out of range is the always-true ``0 ≥ −1``
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 import piqp
 from numpy.typing import NDArray
+
+Array = NDArray[np.float64]
 
 INACTIVE_ROW_LOWER = -1.0  # "0·z ≥ −1": an always-satisfied placeholder row
 
@@ -109,6 +112,26 @@ class QpSolution:
         return self.z[:3]
 
 
+def _new_piqp_solver() -> piqp.DenseSolver:
+    solver = piqp.DenseSolver()
+    settings = solver.settings
+    settings.verbose = False
+    settings.eps_abs = 1e-9
+    settings.eps_rel = 1e-10
+    settings.max_iter = 200
+    return solver
+
+
+_STATUS_NAMES: dict[object, str] = {}
+
+
+def _status_name(status: object) -> str:
+    name = _STATUS_NAMES.get(status)
+    if name is None:
+        name = _STATUS_NAMES[status] = str(status).rsplit(".", 1)[-1]
+    return name
+
+
 @dataclass
 class QpSolver:
     """One PIQP dense solver per drone and QP shape, set up once and updated each step."""
@@ -124,12 +147,7 @@ class QpSolver:
         start = time.perf_counter()
         shape = qp.rows.shape
         if self._solver is None or self._shape != shape:
-            self._solver = piqp.DenseSolver()
-            settings = self._solver.settings
-            settings.verbose = False
-            settings.eps_abs = 1e-9
-            settings.eps_rel = 1e-10
-            settings.max_iter = 200
+            self._solver = _new_piqp_solver()
             self._solver.setup(hessian, qp.cost_linear, None, None, rows, qp.lower, upper,
                                qp.z_min, qp.z_max)
             self._shape = shape
@@ -145,8 +163,112 @@ class QpSolver:
         return QpSolution(
             found=solved and violation <= self.feasibility_tolerance,
             z=z,
-            status=str(status).rsplit(".", 1)[-1],
+            status=_status_name(status),
             iterations=int(result.info.iter),
             solve_time_s=elapsed,
             max_violation=violation,
         )
+
+
+class LocalQpWorkspace:
+    """The local QP of one drone in preallocated matrices, with its own PIQP solver.
+
+    ``solve(...)`` is ``QpSolver().solve(build_local_qp(...))`` for a drone whose QP shape
+    (M targets, ``n_collision`` collision slots, relaxed or hard) never changes: the same
+    matrices, the same solver settings, set up on the first solve and updated afterwards, so
+    the same solution. Only the entries that change are written: the velocity columns of the
+    rows, the bounds, u_d, and the slack penalties; PIQP receives P and c only when they
+    changed (the box and the infinite upper bounds are fixed at setup).
+    """
+
+    def __init__(self, m_targets: int, n_collision: int, *, relaxed: bool, slack_weight: float,
+                 weight_floor: float, u_max: float, feasibility_tolerance: float = 1e-6) -> None:
+        n_slack = 2 * m_targets if relaxed else 0
+        n = 3 + n_slack
+        n_rows = 2 * m_targets + n_collision
+        self.m_targets, self.relaxed, self.u_max = m_targets, relaxed, float(u_max)
+        self.slack_weight, self.weight_floor = slack_weight, weight_floor
+        self.feasibility_tolerance = feasibility_tolerance
+        self.hessian = np.zeros((n, n), order="F")
+        self.hessian[0, 0] = self.hessian[1, 1] = self.hessian[2, 2] = 2.0
+        self.linear = np.zeros(n)
+        self.rows = np.zeros((n_rows, n), order="F")
+        self.lower = np.zeros(n_rows)
+        self.upper = np.full(n_rows, np.inf)
+        self.z_min = np.full(n, -u_max)
+        self.z_max = np.full(n, u_max)
+        if relaxed:
+            self.z_min[3:] = 0.0
+            self.z_max[3:] = np.inf
+            self.rows[np.arange(n_slack), 3 + np.arange(n_slack)] = 1.0
+        # Writable views: the u columns of the rows (contiguous in Fortran order) and the
+        # slack part of P's diagonal.
+        self._u_block = self.rows.T.reshape(-1)[:3 * n_rows]
+        self._slack_diagonal = self.hessian.T.reshape(-1)[3 * (n + 1)::n + 1]
+        self._penalties: tuple[float, ...] | None = None
+        self._nominal: tuple[float, float, float] | None = None
+        self._solver: piqp.DenseSolver | None = None
+
+    def solve(self, nominal: tuple[float, float, float], u_columns: list[float],
+              lower: list[float], weights: list[float]) -> QpSolution:
+        """Solve with u_d, the velocity part of the rows (column-major: the x coefficients of
+        every row, then y, then z; rows in the order localization, weight-sum, collision),
+        their lower bounds and the weights w_r."""
+        self._u_block[:] = u_columns
+        self.lower[:] = lower
+        hessian_changed = linear_changed = False
+        if self.relaxed:
+            k, floor = self.slack_weight, self.weight_floor
+            penalties = [2.0 * k * max(w, floor) for w in weights]
+            if penalties != self._penalties:
+                self._slack_diagonal[:] = penalties + penalties
+                self._penalties = penalties
+                hessian_changed = True
+        if nominal != self._nominal:
+            self.linear[:3] = (-2.0 * nominal[0], -2.0 * nominal[1], -2.0 * nominal[2])
+            self._nominal = nominal
+            linear_changed = True
+        start = time.perf_counter()
+        if self._solver is None:
+            self._solver = _new_piqp_solver()
+            self._solver.setup(self.hessian, self.linear, None, None, self.rows, self.lower,
+                               self.upper, self.z_min, self.z_max)
+        else:
+            self._solver.update(P=self.hessian if hessian_changed else None,
+                                c=self.linear if linear_changed else None,
+                                G=self.rows, h_l=self.lower)
+        status = self._solver.solve()
+        elapsed = time.perf_counter() - start
+        result = self._solver.result
+        z = np.array(result.x, dtype=float)
+        values = z.tolist()
+        solved = status == piqp.PIQP_SOLVED and all(map(math.isfinite, values))
+        violation = self._max_violation(values, u_columns, lower) if solved else float("inf")
+        solution = object.__new__(QpSolution)  # QpSolution(...) without its frozen __init__
+        solution.__dict__.update(
+            found=solved and violation <= self.feasibility_tolerance, z=z,
+            status=_status_name(status), iterations=int(result.info.iter),
+            solve_time_s=elapsed, max_violation=violation)
+        return solution
+
+    def _max_violation(self, z: list[float], u_columns: list[float],
+                       lower: list[float]) -> float:
+        """``LocalQp.max_violation`` of the current QP at a finite z, on plain floats."""
+        u0, u1, u2 = z[0], z[1], z[2]
+        n_rows = len(lower)
+        slacks = z[3:] + [0.0] * (n_rows - len(z) + 3)  # δ_r in row r (x + 0 = x elsewhere)
+        worst = 0.0
+        for bound, a0, a1, a2, slack in zip(lower, u_columns[:n_rows],
+                                            u_columns[n_rows:2 * n_rows], u_columns[2 * n_rows:],
+                                            slacks, strict=True):
+            gap = bound - (a0 * u0 + a1 * u1 + a2 * u2 + slack)
+            if not gap <= worst:  # larger, or NaN (which np.max propagates)
+                if gap != gap:
+                    return gap
+                worst = gap
+        u_max = self.u_max
+        for u in (u0, u1, u2):
+            worst = max(worst, -u_max - u, u - u_max)
+        for slack in z[3:]:
+            worst = max(worst, 0.0 - slack)
+        return float(worst)
