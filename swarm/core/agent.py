@@ -165,6 +165,7 @@ class DroneAgent:
         blocks = [r * n * n + a * n + b for r in range(m) for a in range(3) for b in range(3)]
         parts = [self._n_info + r * n + a for r in range(m) for a in range(3)]
         self._measurement_index = np.array(blocks + parts)
+        self._measurement_terms = np.zeros_like(self._icf)  # zero outside those positions
         # Consensus states packed as one list of floats (SPEC §6): the estimates s (wΠ̂: 9M,
         # w: M), their integrals η (9M, M), then the Gramian copies G (9M).
         self._cons = [0.0] * (20 * m) + initial_gramian(gram.epsilon).ravel().tolist() * m
@@ -262,7 +263,9 @@ class DroneAgent:
                 parts += (gain * (proj[0] * p0 + proj[1] * p1 + proj[2] * p2),
                           gain * (proj[3] * p0 + proj[4] * p1 + proj[5] * p2),
                           gain * (proj[6] * p0 + proj[7] * p1 + proj[8] * p2))
-            packed[self._measurement_index] += np.array(blocks + parts)
+            terms = self._measurement_terms
+            terms[self._measurement_index] = blocks + parts
+            packed += terms
         self._icf = packed
         self._phase = "consensus"
         done = time.perf_counter()
@@ -323,15 +326,7 @@ class DroneAgent:
         own_id = setup.drone_id
         own = self._own
 
-        clean_beacons: dict[int, list[float]] = {}
-        for j, p_j in beacons.items():
-            if j == own_id:
-                continue
-            p_j = np.asarray(p_j, dtype=float)
-            if p_j.shape != (3,) or not _all_finite(xyz := p_j.tolist()):
-                self._rejected += 1
-                continue
-            clean_beacons[j] = xyz
+        clean_beacons = self._clean_beacons(beacons)
 
         # ICF posterior and prediction (2.8-2.11), all targets at once.
         t0 = time.perf_counter()
@@ -403,7 +398,8 @@ class DroneAgent:
         diagnostics = _build(
             StepDiagnostics,
             drone_id=own_id, step=self._step, time_s=time_s,
-            velocity=velocity, nominal_velocity=np.array(nominal),
+            velocity=velocity,
+            nominal_velocity=np.array(nominal) if nominal is not _ZERO3 else np.zeros(3),
             estimates=posterior_state.copy(),
             lambda_bar=series[0:m], psi0=series[m:2 * m], psi1=series[2 * m:3 * m],
             weights=series[3 * m:4 * m], weight_sum_estimate=series[4 * m:],
@@ -518,6 +514,21 @@ class DroneAgent:
             data = data[np.concatenate(([True], finite))]
         return tuple(usable), data
 
+    def _clean_beacons(self, beacons: Mapping[int, Array]) -> dict[int, list[float]]:
+        """Other drones' positions as floats; a non-finite or malformed one is counted
+        rejected (the own id is skipped)."""
+        own_id = self.setup.drone_id
+        clean: dict[int, list[float]] = {}
+        for j, p_j in beacons.items():
+            if j == own_id:
+                continue
+            p_j = np.asarray(p_j, dtype=float)
+            if p_j.shape != (3,) or not _all_finite(xyz := p_j.tolist()):
+                self._rejected += 1
+                continue
+            clean[j] = xyz
+        return clean
+
     def _weight_column(self, usable: tuple[int, ...]) -> Array:
         column = self._weight_columns.get(usable)
         if column is None:
@@ -560,7 +571,7 @@ class DroneAgent:
     ) -> tuple[tuple[float, float, float], float | None]:
         ctrl = self.setup.control
         if ctrl.task == "zero":
-            return (0.0, 0.0, 0.0), None
+            return _ZERO3, None
         desired = self.setup.desired_bearings
         neighbours = [(beacons[j], tuple(desired[j].tolist())) for j in self._neighbours
                       if j in beacons]
