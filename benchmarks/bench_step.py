@@ -17,8 +17,11 @@ section of the step (``DroneAgent.section_us``):
 - estimation: the local ICF steps (V⁰/v⁰, posterior, prediction),
 - consensus: the K rounds and the PI consensus / Gramian update,
 - barrier: perception weights, HOCBF terms and the constraint rows,
-- qp: PIQP update and solve (``qp_solve_us``, PIQP alone, is shown too),
+- qp: writing the rows into the solver's matrices, PIQP update and solve, feasibility check
+  (the PIQP column is update + solve alone, the agent's ``qp_solve_us``),
 - other: input checks, messages and diagnostics.
+
+Messaging encode/decode is not part of this in-process step (the process swarm's wire layer).
 
 Timings are wall-clock (``time.perf_counter``): on a shared machine they include preemption,
 so the load average before and after is printed and stored. The table goes to stdout and

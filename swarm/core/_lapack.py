@@ -1,12 +1,13 @@
 """numpy's LAPACK gufuncs called directly on float64 stacks (internal, for the per-step path).
 
-``np.linalg.inv`` and ``np.linalg.eigh`` run the same gufuncs as below behind a Python layer
+``np.linalg.cholesky``, ``inv`` and ``eigh`` run these same gufuncs behind a Python layer
 (type resolution, an ``errstate`` context, error translation) that costs two to three times
-the factorization itself on 3×3 and 6×6 matrices. The gufuncs signal a failure by filling the
-result with NaN; the wrappers here check for it and then call the public function, which
-raises the same ``LinAlgError`` as before, so only successful calls take the short path and
-results are the same routine's. If numpy ever moves the private module, the public functions
-are used.
+the factorization itself on 3×3 and 6×6 matrices, so results are bit-identical to the public
+calls. A gufunc signals a failure by filling its result with NaN: ``positive_definite`` turns
+that into False (the caller then takes its pseudo-inverse path), ``eigh_lists`` into the
+public call, which raises the same ``LinAlgError`` as before; ``inv_positive_definite`` is
+only for matrices known to be positive definite. If numpy ever moves the private module, the
+public functions are used.
 """
 
 from __future__ import annotations
@@ -42,17 +43,6 @@ def positive_definite(stack: Array) -> bool:
     return math.isfinite(np.add.reduce(factor, axis=None))
 
 
-def inv(stack: Array) -> Array:
-    """``np.linalg.inv`` of a float64 stack of invertible matrices (e.g. positive definite)."""
-    if _inv is None:  # pragma: no cover
-        return np.linalg.inv(stack)
-    result = _inv(stack)
-    if not math.isfinite(np.add.reduce(result, axis=None)):
-        # NaN-filled (singular) or overflowing: the public call raises or returns the same.
-        return np.linalg.inv(stack)
-    return result
-
-
 def inv_positive_definite(stack: Array) -> Array:
     """``np.linalg.inv`` of a stack the caller knows to be positive definite (e.g. after
     ``positive_definite``, or built as one): no failure check."""
@@ -61,11 +51,16 @@ def inv_positive_definite(stack: Array) -> Array:
     return _inv(stack)
 
 
-def eigh(stack: Array) -> tuple[Array, Array]:
-    """``np.linalg.eigh`` of a float64 stack of symmetric matrices (lower triangle used)."""
+def eigh_lists(stack: Array) -> tuple[list, list]:
+    """``np.linalg.eigh`` of a float64 stack of symmetric matrices (lower triangle used), as
+    nested lists of floats (eigenvalues ascending, eigenvectors as columns)."""
     if _eigh is None:  # pragma: no cover
-        return np.linalg.eigh(stack)
+        values, vectors = np.linalg.eigh(stack)
+        return values.tolist(), vectors.tolist()
     values, vectors = _eigh(stack)
-    if not math.isfinite(np.add.reduce(values, axis=None)):
-        return np.linalg.eigh(stack)
-    return values, vectors
+    value_lists = values.tolist()
+    for row in value_lists:
+        if not all(map(math.isfinite, row)):  # NaN-filled: let the public call raise
+            values, vectors = np.linalg.eigh(stack)
+            return values.tolist(), vectors.tolist()
+    return value_lists, vectors.tolist()

@@ -136,14 +136,14 @@ class DroneAgent:
     """State and step of one drone (SPEC §3-§10).
 
     The step runs on stacks over the M targets and on plain floats for 3-vectors, because on
-    arrays this small each numpy call costs far more than its arithmetic: one LAPACK call
-    per routine for all targets (``icf.StackedFilter``, one ``eigh``), the neighbours' data of
-    a round gathered in one array with the own state as its first row, the consensus states
-    (SPEC §6) kept as one list of floats, the barrier terms on floats
-    (``localization_barrier_scalars``), the QP in preallocated matrices
-    (``LocalQpWorkspace``). The array functions of ``swarm.core`` compute the same quantities
-    up to round-off; sums over neighbours run in the same order, so the consensus updates
-    are bit-identical to ``consensus_iteration``, ``pi_consensus_step`` and ``gramian_step``.
+    arrays this small each numpy call costs far more than its arithmetic: one LAPACK call per
+    routine for all targets (``icf.StackedFilter``, one ``eigh``), the neighbours' data of a
+    round gathered in one array with the own state as its first row, the consensus states
+    (SPEC §6) packed in one vector and advanced by one precomputed linear operator, the
+    barrier terms on floats (``localization_barrier_scalars``), the QP in preallocated
+    matrices (``LocalQpWorkspace``). The array functions of ``swarm.core`` compute the same
+    quantities up to round-off (the ICF consensus sums are even bit-identical to
+    ``consensus_iteration``: same terms, same order).
     """
 
     def __init__(self, setup: AgentSetup, initial_target_guesses: Array) -> None:
@@ -176,9 +176,8 @@ class DroneAgent:
         self._neighbours = setup.neighbours
         self._weight_columns: dict[tuple[int, ...], Array] = {}
         self._perception = perception_constants(setup.perception)
-        self._barrier_constants = dict(
-            n_agents=setup.n_drones, forgetting=gram.forgetting, epsilon=gram.epsilon,
-            exponent=gram.smooth_min_exponent, info_gain=est.info_gain)
+        self._barrier_constants = (setup.n_drones, gram.forgetting, gram.epsilon,
+                                   gram.smooth_min_exponent, est.info_gain)
         self._single_integrator = est.model == "single_integrator"
         self._qp_relaxed = LocalQpWorkspace(
             m, setup.n_drones - 1, relaxed=True, slack_weight=ctrl.slack_weight,
@@ -348,13 +347,13 @@ class DroneAgent:
         constants = self._perception
         terms = [perception_scalars(own, estimates[r], constants) for r in range(m)]
         cons = self._cons
-        eigenvalues, eigenvectors = _lapack.eigh(self._cons_array[20 * m:].reshape(m, 3, 3))
-        eigenvalues, eigenvectors = eigenvalues.tolist(), eigenvectors.tolist()
+        eigenvalues, eigenvectors = _lapack.eigh_lists(self._cons_array[20 * m:].reshape(m, 3, 3))
+        n_agents, forgetting, epsilon, exponent, info_gain = self._barrier_constants
         barriers = [
             localization_barrier_scalars(
                 eigenvalues[r], eigenvectors[r], cons[9 * r:9 * r + 9], terms[r],
-                target_velocities[r],
-                **self._barrier_constants)
+                target_velocities[r], n_agents=n_agents, forgetting=forgetting,
+                epsilon=epsilon, exponent=exponent, info_gain=info_gain)
             for r in range(m)
         ]
         weights = [t[0] for t in terms]
@@ -434,7 +433,8 @@ class DroneAgent:
     def section_us(self) -> dict[str, float]:
         """Compute time of the last step by section [µs] (estimation: ICF local steps;
         consensus: rounds and the consensus/Gramian update; barrier: perception, barrier and
-        constraint rows; qp: solver update and solve; other: the rest)."""
+        constraint rows; qp: solver matrices, PIQP update and solve, feasibility check;
+        other: the rest), for benchmarks/bench_step.py."""
         return {name: 1e6 * t for name, t in zip(SECTIONS, self._sections, strict=True)}
 
     def _message(self, rnd: int, *, with_states: bool) -> ConsensusMessage:
@@ -523,7 +523,7 @@ class DroneAgent:
             if j == own_id:
                 continue
             p_j = np.asarray(p_j, dtype=float)
-            if p_j.shape != (3,) or not _all_finite(xyz := p_j.tolist()):
+            if p_j.shape != (3,) or not _finite3(xyz := p_j.tolist()):
                 self._rejected += 1
                 continue
             clean[j] = xyz
@@ -548,6 +548,7 @@ class DroneAgent:
         """
         local_input = [w * x for w, t in zip(weights, terms, strict=True) for x in t[4]]
         local_input += weights  # u_i = [w Π̂ (9M), w (M)]
+        local_input.append(0.0)  # what unused operator terms point at
         stacked = np.concatenate((self._cons_array, self._disagreement, local_input))
         index, coefficients = self._operator
         updated = np.add.reduce(stacked[index] * coefficients, axis=0)
@@ -640,11 +641,11 @@ def _consensus_operator(m: int, dt: float, gram: GramianParams,
     round-0 neighbours, u = [wΠ̂, w] the local input. With K = (ζ, K_p, K_i) per entry:
     s' = (1 − ΔTζ) s + ΔTζ u − ΔT K_p D_s + ΔT K_i D_η (3.30), η' = η − ΔT K_i D_s, and
     G' = ½(Ĝ + Ĝᵀ) with Ĝ = (1 − ΔTρ) G + ΔT bN s_wΠ̂ − ΔT c D_G (3.29, Σ_j (G_j − G) = −D_G).
-    Returns (index, coefficients), each (6, 29M); unused terms point at a zero coefficient.
+    Returns (index, coefficients), each (6, 29M); unused terms point at the 0 that ends z.
     """
     n = 29 * m
     d0, u0 = n, 2 * n  # offsets of D and u in z
-    index = np.zeros((6, n), dtype=np.intp)
+    index = np.full((6, n), 2 * n + 10 * m, dtype=np.intp)
     coefficients = np.zeros((6, n))
 
     def put(row: int, entry: int, source: int, coefficient: float) -> None:
@@ -677,6 +678,12 @@ def _consensus_operator(m: int, dt: float, gram: GramianParams,
 
 def _all_finite(values: list[float]) -> bool:
     return all(map(math.isfinite, values))
+
+
+def _finite3(xyz: list[float]) -> bool:
+    """All three finite: x − x is 0 for a finite x and NaN for ±inf or NaN."""
+    x, y, z = xyz
+    return (x - x) + (y - y) + (z - z) == 0.0
 
 
 def _has_states(msg: ConsensusMessage) -> bool:

@@ -176,9 +176,10 @@ class LocalQpWorkspace:
     ``solve(...)`` is ``QpSolver().solve(build_local_qp(...))`` for a drone whose QP shape
     (M targets, ``n_collision`` collision slots, relaxed or hard) never changes: the same
     matrices, the same solver settings, set up on the first solve and updated afterwards, so
-    the same solution. Only the entries that change are written: the velocity columns of the
-    rows, the bounds, u_d, and the slack penalties; PIQP receives P and c only when they
-    changed (the box and the infinite upper bounds are fixed at setup).
+    the same solution up to round-off. Only the entries that change are written: the velocity
+    columns of the rows, the bounds, u_d, and the slack penalties; PIQP receives P and c only
+    when they changed (the box and the infinite upper bounds are fixed at setup), which moves
+    its re-scaled data by round-off (seen: 1e-20 in z).
     """
 
     def __init__(self, m_targets: int, n_collision: int, *, relaxed: bool, slack_weight: float,
@@ -205,7 +206,7 @@ class LocalQpWorkspace:
         # slack part of P's diagonal.
         self._u_block = self.rows.T.reshape(-1)[:3 * n_rows]
         self._slack_diagonal = self.hessian.T.reshape(-1)[3 * (n + 1)::n + 1]
-        self._penalties: tuple[float, ...] | None = None
+        self._penalties: list[float] | None = None
         self._nominal: tuple[float, float, float] | None = None
         self._solver: piqp.DenseSolver | None = None
 
