@@ -49,7 +49,8 @@ def main() -> None:
             "load_average": os.getloadavg(),
         }
         runs.append(run)
-        print(f"run {repeat}: agent steps {counts['agent_steps']}, late {counts['late_steps']} "
+        print(f"run {repeat}: agent steps {counts['agent_steps']} (telemetry received "
+              f"{counts['telemetry_received']}), late {counts['late_steps']} "
               f"({100 * late:.2f} %), stale {counts['stale_neighbour_messages']}, "
               f"violations {len(run['violations'])}, final errors "
               f"{[round(e, 3) for e in run['final_position_error_m']]}", flush=True)

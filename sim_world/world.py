@@ -26,7 +26,7 @@ import numpy as np
 from sim_world.camera import detect
 from sim_world.fleet import VehicleFleet
 from swarm.config import ScenarioConfig
-from swarm.rate import RateLimiter
+from swarm.rate import RateLimiter, freeze_heap
 from swarm.reference import STREAM_CAMERA, initial_drone_positions, stream
 from swarm.transport import (
     Keys,
@@ -266,6 +266,7 @@ class World:
                    f"{opts.mavlink_base + self.n - 1}" if opts.vehicles == "sim" else ""))
             self.wait_for_mission_start()
             log("world: every drone ready; mission starts")
+            freeze_heap()
             if opts.mode == "lockstep":
                 self.run_lockstep()
             else:

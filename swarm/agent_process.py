@@ -23,7 +23,7 @@ import numpy as np
 from swarm.config import ScenarioConfig
 from swarm.core.agent import ConsensusMessage, DroneAgent
 from swarm.mavlink_link import AutopilotLink, LinkError
-from swarm.rate import RateLimiter
+from swarm.rate import RateLimiter, freeze_heap
 from swarm.reference import build_agent
 from swarm.transport import (
     Keys,
@@ -95,6 +95,8 @@ class AgentProcess:
         self.beacon_latest: LatestValues[BeaconWire] = LatestValues()
         self.clock: LatestValues[ClockWire] = LatestValues()
         self.late_steps = 0
+        self.steps_run = 0
+        self._flying = np.zeros(3)  # the velocity setpoint last sent (what the vehicle flies)
         self.stale_messages = 0
         self.neighbour_age_ms = float("nan")
 
@@ -219,15 +221,31 @@ class AgentProcess:
         self.neighbour_age_ms = 1000.0 * min(ages) if ages else float("nan")
         return inbox
 
-    def _step(self, step: int, position: np.ndarray, frame: CameraFrameWire | None) -> np.ndarray:
-        """One step of the core, with the exchange done the way the mode wants."""
+    def _realtime_beacons(self, own_sample_age_s: float) -> dict[int, np.ndarray]:
+        """Realtime: the other drones' fresh beacons, each position carried forward to the
+        instant of our own position sample (p_j + v_j·a_j − v_i·a_i, a = age of the sample):
+        the collision rows see the relative position as it is, not as it was up to a step
+        ago. Lockstep needs none of it: every position there belongs to the same step."""
+        stale_after = self.options.config.runtime.stale_timeout_s
+        own_shift = own_sample_age_s * self._flying
+        out: dict[int, np.ndarray] = {}
+        for j, (beacon, age) in self.beacon_latest.fresh_with_ages(stale_after).items():
+            lead = beacon.sample_age_s + age
+            out[j] = (np.asarray(beacon.position_m, dtype=float)
+                      + lead * np.asarray(beacon.velocity_m_s, dtype=float) - own_shift)
+        return out
+
+    def _step(self, step: int, position: np.ndarray, frame: CameraFrameWire | None,
+              sample_age_s: float = 0.0) -> np.ndarray:
+        """One step of the core, with the exchange done the way the mode wants
+        (``sample_age_s``: how old ``position`` is, realtime only)."""
         agent = self.agent
         detections = frame.detection_list() if frame is not None else []
         communicated = frame.target_velocity_array() if frame is not None else None
         msg = agent.begin_step(step, position, detections, communicated)
         self._publish(self._pub_beacon, BeaconWire.build(
             sender=self.id, step=step, time_s=step * self.options.config.scenario.dt_s,
-            position_m=position))
+            position_m=position, velocity_m_s=self._flying, sample_age_s=sample_age_s))
         self._publish_consensus(msg)
         for rnd in range(agent.n_rounds):
             if self._lockstep:
@@ -242,18 +260,19 @@ class AgentProcess:
                        self._wait_steps(self.beacon_steps, step, 0, self.others,
                                         "beacon").items()}
         else:
-            stale_after = self.options.config.runtime.stale_timeout_s
-            beacons = {j: np.asarray(b.position_m, dtype=float)
-                       for j, b in self.beacon_latest.fresh(stale_after).items()}
+            beacons = self._realtime_beacons(sample_age_s)
         result = agent.finish_step(beacons)
+        self.steps_run += 1
         stamp = frame.vehicle_time_ms if frame is not None else 0
         self.link.send_velocity(result.velocity, stamp)
+        self._flying = result.velocity
         self._publish(self._pub_telemetry, TelemetryWire.from_diagnostics(
             result.diagnostics, position=position, qp_fallbacks=agent.qp_fallbacks,
             rejected_messages=agent.rejected_inputs + self.rejections.total()
             + self.link.rejected_frames,
             missing_neighbour_messages=agent.missing_neighbour_messages,
             stale_neighbour_messages=self.stale_messages, late_steps=self.late_steps,
+            steps=self.steps_run,
             neighbour_age_ms=self.neighbour_age_ms,
             mavlink_state=f"{'armed' if self.link.armed else 'disarmed'} {self.link.mode}"))
         return result.velocity
@@ -267,6 +286,7 @@ class AgentProcess:
         # Takeoff altitude None: the link climbs to where the vehicle already is (ArduPilot).
         self.link.handshake(timeout_s=cfg.runtime.start_timeout_s)
         self.options.log(f"drone {self.id}: armed and streaming; waiting for the mission")
+        freeze_heap()
         deadline = time.monotonic() + cfg.runtime.start_timeout_s
         while self.camera_latest.get(0) is None:
             self._check_clock()
@@ -294,20 +314,24 @@ class AgentProcess:
     def run_realtime(self) -> None:
         limiter = RateLimiter(self.options.config.scenario.dt_s)
         last_frame_step = -1
-        position = None
-        step = 0
+        position = received_s = None
+        # Count steps from the world's step of the first frame: with both loops on the wall
+        # clock (RateLimiter keeps phase), step k here is sim time k·ΔT there, so telemetry
+        # lines up with truth and the filter predicts exactly as far as the targets moved.
+        first = self.camera_latest.get(0)
+        step = first[0].step if first is not None else 0
         while True:
             self._check_clock()
             sample = self.link.latest_position()
             if sample is not None:
-                position = sample.position_w
+                position, received_s = sample.position_w, sample.received_s
             latest = self.camera_latest.get(0)
             frame = None
             if latest is not None and latest[0].step != last_frame_step:
                 frame = latest[0]
                 last_frame_step = frame.step
             if position is not None:
-                self._step(step, position, frame)
+                self._step(step, position, frame, max(time.monotonic() - received_s, 0.0))
                 step += 1
             if limiter.sleep():
                 self.late_steps += 1

@@ -199,7 +199,8 @@ def print_process_counters(collector: TelemetryCollector, console: Console) -> N
     counts = collector.counters()
     steps = max(counts["agent_steps"], 1)
     console.print(
-        f"agent steps {counts['agent_steps']}, late {counts['late_steps']} "
+        f"agent steps {counts['agent_steps']} (telemetry received "
+        f"{counts['telemetry_received']}), late {counts['late_steps']} "
         f"({100.0 * counts['late_steps'] / steps:.2f} %), stale neighbour messages "
         f"{counts['stale_neighbour_messages']}, rejected messages "
         f"{counts['rejected_messages']}, QP fallbacks {counts['qp_fallbacks']}",

@@ -47,6 +47,7 @@ STOP_GRACE_S = 4.0  # SIGTERM → SIGKILL; the whole stop stays under 5 s
 SUPERVISE_PERIOD_S = 0.1
 LOG_TAIL_LINES = 12
 PR_SET_PDEATHSIG = 1
+BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
 
 class MissionError(RuntimeError):
@@ -154,14 +155,14 @@ class TelemetryCollector:
         self.fallback = np.zeros((k, n), dtype=bool)
         self.step_us = np.full((k, n), np.nan)
         self.latest: dict[int, TelemetryWire] = {}
-        self.agent_steps = np.zeros(n, dtype=int)
+        self.telemetry_received = np.zeros(n, dtype=int)
         self.last_truth_step = -1
         self.missing_samples = 0  # truth or telemetry steps that never arrived (realtime)
 
     def on_telemetry(self, _key: str, tel: TelemetryWire) -> None:
         with self.lock:
             self.latest[tel.drone] = tel
-            self.agent_steps[tel.drone] += 1
+            self.telemetry_received[tel.drone] += 1
             k, i = tel.step, tel.drone
             if not 0 <= k < self.velocities.shape[0]:
                 return
@@ -237,9 +238,10 @@ class TelemetryCollector:
     def counters(self) -> dict[str, int]:
         with self.lock:
             latest = [t.counters for t in self.latest.values()]
-            steps = int(self.agent_steps.sum())
+            received = int(self.telemetry_received.sum())
         return {
-            "agent_steps": steps,
+            "agent_steps": sum(c.steps for c in latest),  # as counted by the agents
+            "telemetry_received": received,  # realtime telemetry may be dropped under load
             "late_steps": sum(c.late_steps for c in latest),
             "rejected_messages": sum(c.rejected_messages for c in latest),
             "stale_neighbour_messages": sum(c.stale_neighbour_messages for c in latest),
@@ -284,6 +286,10 @@ class SwarmLauncher:
         log_path = self.log_dir / f"{name}.log"
         handle = log_path.open("wb")
         env = dict(os.environ, PYTHONUNBUFFERED="1")
+        # The step's matrices are 3x3..6x6: a BLAS thread pool per process only adds threads
+        # that compete for the two cores. An explicit setting by the user wins.
+        for variable in BLAS_THREAD_VARIABLES:
+            env.setdefault(variable, "1")
         process = subprocess.Popen(
             argv, stdout=handle, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
             start_new_session=True, preexec_fn=_die_with_parent, env=env)

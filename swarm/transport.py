@@ -338,6 +338,13 @@ class LatestValues(Generic[T]):
         with self._cond:
             return {s: v for s, (v, t, _) in self._values.items() if now - t <= max_age_s}
 
+    def fresh_with_ages(self, max_age_s: float) -> dict[Hashable, tuple[T, float]]:
+        """(value, age in seconds) of the values no older than ``max_age_s``, by source."""
+        now = self._clock()
+        with self._cond:
+            return {s: (v, now - t) for s, (v, t, _) in self._values.items()
+                    if now - t <= max_age_s}
+
     def ages(self) -> dict[Hashable, float]:
         now = self._clock()
         with self._cond:

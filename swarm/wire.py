@@ -36,7 +36,7 @@ from swarm.core.agent import ConsensusMessage, Detection, StepDiagnostics
 Array = NDArray[np.float64]
 _W = TypeVar("_W")
 
-WIRE_VERSION: Final = 1
+WIRE_VERSION: Final = 2
 
 MAX_DRONES: Final = 1024  # codec limits: a swarm larger than this is a configuration error
 MAX_TARGETS: Final = 1024
@@ -135,11 +135,18 @@ class BeaconWire(_Wire, tag="beacon", kw_only=True):
     step: NonNegativeInt
     time_s: float
     position_m: Vector3
+    # The velocity the drone is flying (its last setpoint) and the age of ``position_m`` when
+    # sent: a realtime receiver extrapolates the position to its own instant.
+    velocity_m_s: Vector3 = (0.0, 0.0, 0.0)
+    sample_age_s: float = 0.0
 
     @classmethod
-    def build(cls, sender: int, step: int, time_s: float, position_m: ArrayLike) -> BeaconWire:
+    def build(cls, sender: int, step: int, time_s: float, position_m: ArrayLike, *,
+              velocity_m_s: ArrayLike = (0.0, 0.0, 0.0), sample_age_s: float = 0.0
+              ) -> BeaconWire:
         return cls(sender=int(sender), step=int(step), time_s=float(time_s),
-                   position_m=_vector3(position_m))
+                   position_m=_vector3(position_m), velocity_m_s=_vector3(velocity_m_s),
+                   sample_age_s=float(sample_age_s))
 
     def position(self) -> Array:
         return np.array(self.position_m, dtype=np.float64)
@@ -230,6 +237,7 @@ class TelemetryCounters(msgspec.Struct, frozen=True, array_like=True,
     missing_neighbour_messages: NonNegativeInt = 0
     stale_neighbour_messages: NonNegativeInt = 0
     late_steps: NonNegativeInt = 0
+    steps: NonNegativeInt = 0  # steps run so far (late_steps / steps is the late rate)
     neighbour_age_ms: float | None = None  # age of the freshest neighbour message; None: none yet
     mavlink_state: Label = ""
 
@@ -626,6 +634,8 @@ class WireCodec:
         _check_int("step", m.step)
         _check_float("time_s", m.time_s, non_negative=True)
         _check_vector3("position_m", m.position_m)
+        _check_vector3("velocity_m_s", m.velocity_m_s)
+        _check_float("sample_age_s", m.sample_age_s, non_negative=True)
 
     def _check_camera(self, m: CameraFrameWire) -> None:
         _check_int("drone", m.drone, self.n_drones)
@@ -701,7 +711,7 @@ class WireCodec:
         if not isinstance(c, TelemetryCounters):
             _fail("counters must be TelemetryCounters")
         for name in ("qp_fallbacks", "rejected_messages", "missing_neighbour_messages",
-                     "stale_neighbour_messages", "late_steps"):
+                     "stale_neighbour_messages", "late_steps", "steps"):
             _check_int(f"counters.{name}", getattr(c, name))
         if c.neighbour_age_ms is not None:
             _check_float("counters.neighbour_age_ms", c.neighbour_age_ms, non_negative=True)

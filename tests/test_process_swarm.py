@@ -226,9 +226,6 @@ def test_an_agent_without_a_world_says_what_is_missing(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason=(
-    "known gap, reported in the issue note: in realtime the estimate lags the target "
-    "(final error 0.10-0.11 m at 6 s measured, vs 0.01 m in lockstep); not yet explained"))
 def test_external_vehicles_fly_against_virtual_targets() -> None:
     """sim-world --vehicles external takes positions from beacons; a separate sim-vehicles
     process plays N real autopilots (realtime). The swarm still localizes the target."""
@@ -240,7 +237,7 @@ def test_external_vehicles_fly_against_virtual_targets() -> None:
     assert {child.name for child in launcher.children} >= {"world", "vehicles", "agent0"}
     assert record.n_steps == config.n_steps
     assert check_invariants(record) == []
-    assert record.position_errors()[-1].max() < 0.1
+    assert record.position_errors()[-1].max() < 0.05  # lockstep: 0.01 m; realtime measured 0.019
     counts = launcher.collector.counters()
     assert counts["agent_steps"] >= 0.9 * config.n_steps * config.swarm.n_drones
 

@@ -38,7 +38,7 @@ from swarm.transport import (
     subscribe,
     zenoh_config,
 )
-from swarm.wire import BeaconWire, WireCodec
+from swarm.wire import WIRE_VERSION, BeaconWire, WireCodec
 
 ROOT = Path(__file__).resolve().parents[1]
 HELPER = Path(__file__).with_name("zenoh_peer_helper.py")
@@ -467,15 +467,15 @@ def test_router_and_client_processes_exchange_validated_messages(spawn) -> None:
         assert consensus.wait_for(4, 1, {1}, timeout_s=0.1) == {}  # nobody sent round 1
 
         # A wrong-version payload from the router is counted in this process, with the reason.
-        bad = CODEC.encode(BeaconWire.build(0, 0, 0.0, [0, 0, 0])).replace(b"\xa6beacon\x01",
-                                                                     b"\xa6beacon\x02")
+        bad = CODEC.encode(BeaconWire.build(0, 0, 0.0, [0, 0, 0])).replace(
+            b"\xa6beacon" + bytes([WIRE_VERSION]), b"\xa6beacon" + bytes([WIRE_VERSION + 1]))
         router.send(cmd="raw", key=keys.beacon(0), hex=bad.hex())
         rejects = RejectionCounter()
         subscribe(client, keys.beacon(0), CODEC.decode_beacon, lambda k, v: None, rejects,
                   "beacon")
         repeat_until(lambda: router.send(cmd="raw", key=keys.beacon(0), hex=bad.hex()),
                      lambda wait_s: rejects.wait_for_total(1, wait_s))
-        assert "version 2" in rejects.snapshot()["beacon"]["last_reason"]
+        assert f"version {WIRE_VERSION + 1}" in rejects.snapshot()["beacon"]["last_reason"]
 
         # Nothing outside loopback: the router's sockets are loopback TCP only, no UDP at all.
         assert_loopback_only(router.ready["pid"])
