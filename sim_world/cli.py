@@ -10,12 +10,10 @@ from swarm.cli_common import (
     EXIT_INTERRUPTED,
     ConfigError,
     OneLineParser,
+    add_run_arguments,
     fail,
     load_scenario,
     port,
-    positive_float,
-    run_id,
-    seed,
     terminate_on_sigterm,
 )
 
@@ -27,11 +25,7 @@ def build_parser() -> OneLineParser:
         "Simulate targets, cameras and one PX4/ArduPilot-style MAVLink vehicle per drone; "
         "host the swarm's Zenoh router."))
     parser.add_argument("config", help="scenario file, e.g. configs/case1.toml")
-    parser.add_argument("--run-id", type=run_id, default="vigil",
-                        help="Zenoh key prefix vigil/<run-id>/ (default: vigil)")
-    parser.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep")
-    parser.add_argument("--seed", type=seed, default=None, help="default: scenario.seed")
-    parser.add_argument("--duration", type=positive_float, default=None, metavar="S")
+    add_run_arguments(parser, run_id_help="Zenoh key prefix vigil/<run-id>/ (default: vigil)")
     parser.add_argument("--listen", action="append", default=None, metavar="ENDPOINT",
                         help="Zenoh endpoint to listen on (default tcp/127.0.0.1:7447)")
     parser.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",

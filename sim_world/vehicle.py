@@ -117,6 +117,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 from sim_world.kinematics import clamp_velocity
 from sim_world.mavlink_endpoint import VehicleEndpoint
 from swarm import frames
+from swarm.mavlink_parse import parse_bytes
 
 Array = NDArray[np.float64]
 Flavour = Literal["px4", "ardupilot"]
@@ -408,12 +409,7 @@ class EmulatedVehicle:
     # ---------------------------------------------------------------- incoming
     def receive(self, data: bytes, now_s: float) -> list[bytes]:
         replies: list[Any] = []
-        try:
-            messages = self._parse(data)
-        except Exception as exc:  # pymavlink should not raise with robust_parsing; be safe
-            self._reject(f"parser_error:{type(exc).__name__}")
-            self._reset_parser()
-            messages = []
+        messages = parse_bytes(self._rx, data, self.rejections, datagram=self._datagram_framing)
         for msg in messages:
             try:
                 replies.extend(self._handle(msg, now_s))
@@ -424,27 +420,6 @@ class EmulatedVehicle:
     # ================================================================ internals
     def _reject(self, reason: str) -> None:
         self.rejections[reason] += 1
-
-    def _reset_parser(self) -> None:
-        self._rx.buf = bytearray()
-        self._rx.buf_index = 0
-        self._rx.expected_length = mavlink2.HEADER_LEN_V1 + 2
-
-    def _parse(self, data: bytes) -> list[Any]:
-        out: list[Any] = []
-        msgs = self._rx.parse_buffer(bytes(data)) or []
-        for msg in msgs:
-            kind = msg.get_type()
-            if kind == "BAD_DATA":
-                self._reject("bad_data")  # bad CRC, bad length, junk between frames
-            elif kind.startswith("UNKNOWN_"):
-                self._reject("unknown_message")
-            else:
-                out.append(msg)
-        if self._datagram_framing and self._rx.buf_len() > 0:
-            self._reject("truncated")
-            self._reset_parser()
-        return out
 
     def _emit(self, msgs: list[Any]) -> list[bytes]:
         for msg in msgs:

@@ -10,11 +10,9 @@ from swarm.cli_common import (
     EXIT_INTERRUPTED,
     ConfigError,
     OneLineParser,
+    add_run_arguments,
     fail,
     load_scenario,
-    positive_float,
-    run_id,
-    seed,
     terminate_on_sigterm,
 )
 from swarm.mavlink_link import LinkError
@@ -33,10 +31,7 @@ def build_parser() -> OneLineParser:
     parser.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
                         help="Zenoh endpoint of the world's router (default tcp/127.0.0.1:7447)")
     parser.add_argument("--listen", action="append", default=[], metavar="ENDPOINT")
-    parser.add_argument("--run-id", type=run_id, default="vigil")
-    parser.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep")
-    parser.add_argument("--seed", type=seed, default=None, help="default: scenario.seed")
-    parser.add_argument("--duration", type=positive_float, default=None, metavar="S")
+    add_run_arguments(parser, run_id_help="the world's --run-id (default: vigil)")
     return parser
 
 

@@ -40,24 +40,22 @@ def positive_float(text: str) -> float:
     return value
 
 
-def seed(text: str) -> int:
+def _int_in(text: str, low: int, high: int, what: str, bounds: str) -> int:
     try:
         value = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
-    if not 0 <= value < 2**63:
-        raise argparse.ArgumentTypeError(f"must be in [0, 2^63), got {text!r}")
+        raise argparse.ArgumentTypeError(f"not {what}: {text!r}") from None
+    if not low <= value <= high:
+        raise argparse.ArgumentTypeError(f"must be in {bounds}, got {text!r}")
     return value
+
+
+def seed(text: str) -> int:
+    return _int_in(text, 0, 2**63 - 1, "an integer", "[0, 2^63)")
 
 
 def port(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a port number: {text!r}") from None
-    if not 1 <= value <= 65535:
-        raise argparse.ArgumentTypeError(f"must be in [1, 65535], got {text!r}")
-    return value
+    return _int_in(text, 1, 65535, "a port number", "[1, 65535]")
 
 
 def run_id(text: str) -> str:
@@ -65,6 +63,14 @@ def run_id(text: str) -> str:
         raise argparse.ArgumentTypeError(
             f"must be 1-64 characters of A-Z a-z 0-9 _ - (got {text!r})")
     return text
+
+
+def add_run_arguments(parser: argparse.ArgumentParser, *, run_id_help: str) -> None:
+    """The options that name one run, shared by the world and the agent processes."""
+    parser.add_argument("--run-id", type=run_id, default="vigil", help=run_id_help)
+    parser.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep")
+    parser.add_argument("--seed", type=seed, default=None, help="default: scenario.seed")
+    parser.add_argument("--duration", type=positive_float, default=None, metavar="S")
 
 
 def load_scenario(path: str, duration_s: float | None) -> ScenarioConfig:
@@ -84,5 +90,5 @@ def terminate_on_sigterm() -> None:
     signal.signal(signal.SIGTERM, _raise)
 
 
-__all__ = ["ConfigError", "OneLineParser", "fail", "load_scenario", "port", "positive_float",
-           "run_id", "seed", "terminate_on_sigterm"]
+__all__ = ["ConfigError", "OneLineParser", "add_run_arguments", "fail", "load_scenario", "port",
+           "positive_float", "run_id", "seed", "terminate_on_sigterm"]

@@ -73,6 +73,7 @@ from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from swarm import frames
+from swarm.mavlink_parse import parse_bytes
 
 Array = NDArray[np.float64]
 Flavour = Literal["px4", "ardupilot"]
@@ -508,9 +509,8 @@ class AutopilotLink:
             self._handle(msg)
 
     def _drain_datagrams(self) -> None:
-        """UDP: a MAVLink frame never spans datagrams, so bytes left over at the end of one
-        are a truncated frame: count and drop them, or they would swallow the next valid
-        frame (pymavlink's own recv_msg keeps them as the start of a stream)."""
+        """UDP, one datagram at a time (pymavlink's own recv_msg would keep a truncated
+        frame as the start of a stream; ``parse_bytes`` counts and drops it)."""
         mav = self._conn.mav
         for _ in range(_MAX_MESSAGES_PER_DRAIN):
             try:
@@ -520,17 +520,7 @@ class AutopilotLink:
                 return
             if not data:
                 return
-            try:
-                msgs = mav.parse_buffer(data) or []
-            except Exception as exc:  # should not happen with robust parsing
-                self.rejections[f"parser_error:{type(exc).__name__}"] += 1
-                msgs = []
-            if mav.buf_len() > 0:
-                self.rejections["truncated"] += 1
-                mav.buf = bytearray()
-                mav.buf_index = 0
-                mav.expected_length = mavlink2.HEADER_LEN_V1 + 2
-            for msg in msgs:
+            for msg in parse_bytes(mav, data, self.rejections, datagram=True):
                 self._handle(msg)
 
     def _handle(self, msg: Any) -> None:

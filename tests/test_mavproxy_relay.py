@@ -25,11 +25,8 @@ from __future__ import annotations
 
 import contextlib
 import os
-import random
-import shutil
 import signal
 import subprocess
-import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,9 +36,10 @@ from pymavlink import mavutil
 
 from swarm.checks import check_invariants
 from swarm.config import load_config
-from swarm.launcher import LaunchOptions, SwarmLauncher, udp_ports_free
+from swarm.launcher import LaunchOptions, SwarmLauncher
 from swarm.mavlink_link import IDLE_STAMP_MS
 from swarm.reference import run_reference
+from tests.process_tools import console_script, free_udp_block
 
 ROOT = Path(__file__).resolve().parent.parent
 CASE1 = ROOT / "configs" / "case1.toml"
@@ -52,24 +50,6 @@ MAVPROXY_SYSTEM_ID = 255
 COMPANION_COMPONENT_ID = 191  # swarm.mavlink_link: the agent speaks as the onboard computer
 COMPARED = ("drone_positions_m", "velocities_m_s", "estimates", "lambda_bar", "weights",
             "target_positions_m")
-
-
-def mavproxy_command() -> list[str]:
-    """The ``mavproxy.py`` console script of this interpreter's environment."""
-    script = shutil.which("mavproxy.py", path=str(Path(sys.executable).parent))
-    return [script] if script else [sys.executable, "-m", "MAVProxy.mavproxy"]
-
-
-def free_udp_block(count: int) -> int:
-    """A base port p with UDP p..p+count-1 free on 127.0.0.1. Drawn at random below Linux's
-    ephemeral range (32768+), so that no socket bound to port 0 later (the world's vehicle
-    sockets, Zenoh, MAVSDK) can land in the block, and concurrent runs rarely pick the same."""
-    rng = random.SystemRandom()
-    for _ in range(500):
-        base = rng.randrange(20000, 32768 - count)
-        if udp_ports_free(base, count):
-            return base
-    raise RuntimeError("no free block of UDP ports on 127.0.0.1")
 
 
 @dataclass
@@ -107,7 +87,7 @@ class MavProxy:
 def start_mavproxy(master_port: int, out_port: int, state_dir: Path) -> MavProxy:
     state_dir.mkdir(parents=True, exist_ok=True)
     log_path, tlog_path = state_dir / "mavproxy.log", state_dir / "relay.tlog"
-    argv = [*mavproxy_command(),
+    argv = [*console_script("mavproxy.py", "MAVProxy.mavproxy"),
             f"--master=udpin:127.0.0.1:{master_port}",  # where vehicle 0 sends
             f"--out=udp:127.0.0.1:{out_port}",  # to agent 0, which listens (udpin) there
             "--non-interactive", "--default-modules=", "--streamrate=-1",

@@ -33,11 +33,8 @@ import contextlib
 import itertools
 import math
 import os
-import random
-import shutil
 import signal
 import subprocess
-import sys
 import time
 from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
@@ -60,7 +57,8 @@ from mavsdk.asyncio.plugins.telemetry import (
     TelemetryAsync,
 )
 
-from swarm.launcher import free_tcp_port, udp_ports_free
+from swarm.launcher import free_tcp_port
+from tests.process_tools import console_script, free_udp_block
 
 ROOT = Path(__file__).resolve().parent.parent
 N_DRONES = 2
@@ -79,24 +77,6 @@ TIME_TOLERANCE_S = 0.1
 # at 2-4 m), so the displacement's component off the commanded direction is ~1e-6 m at most.
 DIRECTION_TOLERANCE_M = 1e-5
 FLOAT32_EPS = 1e-6  # velocities reported back are float32 copies of the commanded ones
-
-
-def sim_world_command() -> list[str]:
-    """The ``sim-world`` console script of this interpreter's environment."""
-    script = shutil.which("sim-world", path=str(Path(sys.executable).parent))
-    return [script] if script else [sys.executable, "-m", "sim_world.cli"]
-
-
-def free_udp_block(count: int) -> int:
-    """A base port p with UDP p..p+count-1 free on 127.0.0.1. Drawn at random below Linux's
-    ephemeral range (32768+), so that no socket bound to port 0 later (the world's vehicle
-    sockets, Zenoh, MAVSDK) can land in the block, and concurrent runs rarely pick the same."""
-    rng = random.SystemRandom()
-    for _ in range(500):
-        base = rng.randrange(20000, 32768 - count)
-        if udp_ports_free(base, count):
-            return base
-    raise RuntimeError("no free block of UDP ports on 127.0.0.1")
 
 
 @dataclass
@@ -136,7 +116,8 @@ def start_world(flavour: str, tmp_path: Path, base: int) -> WorldProcess:
     log_path = tmp_path / "world.log"
     with log_path.open("wb") as out:
         process = subprocess.Popen(
-            [*sim_world_command(), str(config), "--run-id", f"mavsdk{os.getpid()}{flavour}",
+            [*console_script("sim-world", "sim_world.cli"), str(config),
+             "--run-id", f"mavsdk{os.getpid()}{flavour}",
              "--listen", f"tcp/127.0.0.1:{free_tcp_port()}", "--mavlink-base", str(base)],
             stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
             start_new_session=True, env=dict(os.environ, PYTHONUNBUFFERED="1"))
