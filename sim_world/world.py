@@ -111,12 +111,12 @@ class World:
         except Exception:
             self.session.close()
             raise
-        # Lockstep cannot lose a message (peers would wait for it); realtime drops rather than
-        # queue behind a slow consumer.
-        block = options.mode == "lockstep"
-        self._pub_camera = [declare_publisher(self.session, self.keys.camera(i), block=block)
+        # Nothing the world publishes is dropped: lockstep peers wait for every message, and a
+        # recording keeps every detection and truth sample. zenoh_config gives each link room
+        # for a whole step's burst, so a put waits only if a link is stuck.
+        self._pub_camera = [declare_publisher(self.session, self.keys.camera(i), block=True)
                             for i in range(self.n)]
-        self._pub_truth = declare_publisher(self.session, self.keys.truth, block=block)
+        self._pub_truth = declare_publisher(self.session, self.keys.truth, block=True)
         self._pub_clock = declare_publisher(self.session, self.keys.clock, block=True)
 
     # -- plumbing ---------------------------------------------------------------------------

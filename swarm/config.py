@@ -342,6 +342,14 @@ def config_from_dict(data: dict[str, object], source: str = "<memory>") -> Scena
     return dataclasses.replace(config, source=source)
 
 
+def config_to_data(config: ScenarioConfig) -> dict[str, object]:
+    """The config as plain JSON-ready data that ``config_from_dict`` turns back into an equal
+    config (recordings keep the resolved config this way); ``source`` is left out."""
+    data = msgspec.to_builtins(config)
+    data.pop("source", None)
+    return data
+
+
 def load_config(path: str | Path) -> ScenarioConfig:
     """Read and validate a scenario TOML file (raises ConfigError, one line)."""
     path = Path(path)

@@ -5,7 +5,8 @@ parent-death signal), its output goes to a log file, and on any way out — miss
 a child dying, Ctrl-C or SIGTERM — every group gets SIGTERM, then SIGKILL after a grace
 period, so no process and no port outlives the launcher. The launcher is a Zenoh client of
 the world's router: it listens to telemetry and truth like any other consumer and builds
-the run record from them.
+the run record from them (``swarm.collector``); with ``record_dir`` it also records them,
+with every beacon and camera frame, to an MCAP file as the run goes (``swarm.recording``).
 """
 
 from __future__ import annotations
@@ -22,15 +23,15 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
 import zenoh
 
+from swarm.collector import TelemetryCollector
 from swarm.config import ScenarioConfig
-from swarm.ground_truth import ReferenceGramians
+from swarm.recording import Recorder, RecordingError, RecordingMetadata
 from swarm.reference import RunRecord
 from swarm.transport import (
     Keys,
@@ -41,7 +42,7 @@ from swarm.transport import (
     subscribe,
     zenoh_config,
 )
-from swarm.wire import ClockWire, TelemetryWire, TruthWire, WireCodec
+from swarm.wire import BeaconWire, CameraFrameWire, ClockWire, TelemetryWire, TruthWire, WireCodec
 
 STOP_GRACE_S = 4.0  # SIGTERM → SIGKILL; the whole stop stays under 5 s
 SUPERVISE_PERIOD_S = 0.1
@@ -69,12 +70,20 @@ class LaunchOptions:
     # The world serves no vehicles (--vehicles external) and a separate ``sim-vehicles``
     # process plays the autopilots, as real ones would be flown; realtime only.
     external_vehicles: bool = False
+    # Record telemetry, beacons, detections and truth to record_dir/run.mcap (swarm.recording).
+    record_dir: Path | None = None
 
 
 def _die_with_parent() -> None:
-    """Runs in the child before exec: SIGTERM it when the launcher dies, however it dies."""
+    """Runs in the child before exec: kill it when the launcher dies, however it dies.
+
+    SIGKILL, not SIGTERM: this fires only when the launcher could not stop its children itself
+    (kill -9, a crash), so nobody is left to escalate, and a child's graceful exit can stall
+    in zenoh's session close for seconds (seen after a kill -9 of a recording launcher: world
+    and agents all waited in close until a second signal).
+    """
     with contextlib.suppress(OSError, AttributeError):
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
 
 
 def free_tcp_port() -> int:
@@ -132,125 +141,10 @@ class Child:
         return [line for line in text.splitlines() if line.strip()][-lines:]
 
 
-class TelemetryCollector:
-    """Fills the run arrays from telemetry and truth messages (zenoh callback threads)."""
-
-    def __init__(self, config: ScenarioConfig, n_state: int) -> None:
-        n, m, k = config.swarm.n_drones, len(config.targets), config.n_steps
-        self.config = config
-        self.lock = threading.Lock()
-        self.positions = np.full((k, n, 3), np.nan)
-        self.targets = np.full((k, m, 3), np.nan)
-        self.target_vel = np.full((k, m, 3), np.nan)
-        self.velocities = np.full((k, n, 3), np.nan)
-        self.estimates = np.full((k, n, m, n_state), np.nan)
-        self.lambda_bar = np.full((k, n, m), np.nan)
-        self.psi0 = np.full((k, n, m), np.nan)
-        self.psi1 = np.full((k, n, m), np.nan)
-        self.weights = np.full((k, n, m), np.nan)
-        self.slacks = np.full((k, n, m), np.nan)
-        self.weight_slacks = np.full((k, n, m), np.nan)
-        self.detected = np.zeros((k, n, m), dtype=bool)
-        self.bearing = np.full((k, n), np.nan)
-        self.fallback = np.zeros((k, n), dtype=bool)
-        self.step_us = np.full((k, n), np.nan)
-        self.latest: dict[int, TelemetryWire] = {}
-        self.telemetry_received = np.zeros(n, dtype=int)
-        self.last_truth_step = -1
-        self.missing_samples = 0  # truth or telemetry steps that never arrived (realtime)
-
-    def on_telemetry(self, _key: str, tel: TelemetryWire) -> None:
-        with self.lock:
-            self.latest[tel.drone] = tel
-            self.telemetry_received[tel.drone] += 1
-            k, i = tel.step, tel.drone
-            if not 0 <= k < self.velocities.shape[0]:
-                return
-            diag = tel.to_diagnostics()
-            self.velocities[k, i] = diag.velocity
-            self.estimates[k, i] = diag.estimates
-            self.lambda_bar[k, i] = diag.lambda_bar
-            self.psi0[k, i], self.psi1[k, i] = diag.psi0, diag.psi1
-            self.weights[k, i] = diag.weights
-            self.slacks[k, i], self.weight_slacks[k, i] = diag.slacks, diag.weight_slacks
-            self.detected[k, i] = diag.detected
-            self.fallback[k, i] = diag.qp_fallback
-            self.step_us[k, i] = diag.step_us
-            if diag.bearing_error is not None:
-                self.bearing[k, i] = diag.bearing_error
-
-    def on_truth(self, _key: str, truth: TruthWire) -> None:
-        with self.lock:
-            k = truth.step
-            if not 0 <= k < self.positions.shape[0]:
-                return
-            arrays = truth.arrays()
-            self.positions[k] = arrays["drone_positions"]
-            self.targets[k] = arrays["target_positions"]
-            self.target_vel[k] = arrays["target_velocities"]
-            self.last_truth_step = max(self.last_truth_step, k)
-
-    def record(self, seed: int, wall_time_s: float) -> RunRecord:
-        """The run as a RunRecord.
-
-        In realtime, publishers drop rather than queue, so a step can be missing: gaps are
-        filled with the previous value (the first step with the next one); ``missing_samples``
-        says how many were filled.
-        """
-        with self.lock:
-            arrays = {name: getattr(self, name).copy() for name in (
-                "positions", "targets", "target_vel", "velocities", "estimates", "lambda_bar",
-                "psi0", "psi1", "weights", "slacks", "weight_slacks", "bearing", "step_us")}
-            detected, fallback = self.detected.copy(), self.fallback.copy()
-        steps = max(self.last_truth_step + 1, 0)
-        self.missing_samples = 0
-        for name, values in arrays.items():
-            values = values[:steps]
-            self.missing_samples += int(np.isnan(values).any(axis=tuple(range(1, values.ndim)))
-                                        .sum()) if name in ("positions", "velocities") else 0
-            for k in range(1, steps):
-                gap = np.isnan(values[k])
-                values[k][gap] = values[k - 1][gap]
-            for k in range(steps - 2, -1, -1):
-                gap = np.isnan(values[k])
-                values[k][gap] = values[k + 1][gap]
-            arrays[name] = values
-        cfg = self.config
-        dt = cfg.scenario.dt_s
-        truth = ReferenceGramians(len(cfg.targets), cfg.gramian, cfg.perception,
-                                  cfg.estimation.info_gain, dt)
-        true_min = np.zeros((steps, len(cfg.targets)))
-        measured_min = np.zeros_like(true_min)
-        for k in range(steps):
-            true_min[k], measured_min[k] = truth.lambda_min()
-            truth.advance(arrays["positions"][k], arrays["targets"][k], detected[k])
-        return RunRecord(
-            config=cfg, seed=seed, times_s=np.arange(steps) * dt,
-            drone_positions_m=arrays["positions"], velocities_m_s=arrays["velocities"],
-            target_positions_m=arrays["targets"], target_velocities_m_s=arrays["target_vel"],
-            estimates=arrays["estimates"], lambda_bar=arrays["lambda_bar"],
-            psi0=arrays["psi0"], psi1=arrays["psi1"], weights=arrays["weights"],
-            slacks=arrays["slacks"], weight_slacks=arrays["weight_slacks"],
-            detected=detected[:steps], true_lambda_min=true_min,
-            measured_lambda_min=measured_min, bearing_errors=arrays["bearing"],
-            qp_fallback=fallback[:steps], step_us=arrays["step_us"], wall_time_s=wall_time_s)
-
-    def counters(self) -> dict[str, int]:
-        with self.lock:
-            latest = [t.counters for t in self.latest.values()]
-            received = int(self.telemetry_received.sum())
-        return {
-            "agent_steps": sum(c.steps for c in latest),  # as counted by the agents
-            "telemetry_received": received,  # realtime telemetry may be dropped under load
-            "late_steps": sum(c.late_steps for c in latest),
-            "rejected_messages": sum(c.rejected_messages for c in latest),
-            "stale_neighbour_messages": sum(c.stale_neighbour_messages for c in latest),
-            "missing_neighbour_messages": sum(c.missing_neighbour_messages for c in latest),
-            "qp_fallbacks": sum(c.qp_fallbacks for c in latest),
-        }
-
-
 ProgressCallback = Callable[[int, "TelemetryCollector"], None]
+# Extra consumers of the telemetry stream (e.g. the live dashboard), called on Zenoh's
+# callback thread with each decoded message after the collector has stored it.
+TelemetryListener = Callable[[TelemetryWire], None]
 
 
 class SwarmLauncher:
@@ -279,6 +173,8 @@ class SwarmLauncher:
                                                 frozenset(options.mavlink_urls))
         self.session: zenoh.Session | None = None
         self._subscribers: list = []
+        self.recorder: Recorder | None = None
+        self.telemetry_listeners: tuple[TelemetryListener, ...] = ()
 
     # -- children ---------------------------------------------------------------------------
 
@@ -381,12 +277,36 @@ class SwarmLauncher:
         keys = self.keys
         self._subscribers = [
             subscribe(session, keys.all_telemetry, self.codec.decode_telemetry,
-                      self.collector.on_telemetry, self.rejections, "telemetry"),
-            subscribe(session, keys.truth, self.codec.decode_truth, self.collector.on_truth,
+                      self._on_telemetry, self.rejections, "telemetry"),
+            subscribe(session, keys.truth, self.codec.decode_truth, self._on_truth,
                       self.rejections, "truth"),
             subscribe(session, keys.clock, self.codec.decode_clock,
                       lambda _k, c: self.clock.put(0, c), self.rejections, "clock"),
         ]
+        if self.recorder is not None:
+            self._subscribers += [
+                subscribe(session, keys.all_beacons, self.codec.decode_beacon,
+                          self._record, self.rejections, "beacon"),
+                subscribe(session, keys.all_cameras, self.codec.decode_camera,
+                          self._record, self.rejections, "camera"),
+            ]
+
+    def _on_telemetry(self, key: str, tel: TelemetryWire) -> None:
+        """One decode, every consumer: the collector, then each listener."""
+        self.collector.on_telemetry(key, tel)
+        self._record(key, tel)
+        for listener in self.telemetry_listeners:
+            listener(tel)
+
+    def _on_truth(self, key: str, truth: TruthWire) -> None:
+        self.collector.on_truth(key, truth)
+        self._record(key, truth)
+
+    def _record(self, _key: str,
+                message: TelemetryWire | TruthWire | BeaconWire | CameraFrameWire) -> None:
+        """Hand a message to the recorder's queue (its own thread writes it)."""
+        if self.recorder is not None:
+            self.recorder.put(message)
 
     def _mission_state(self) -> str:
         latest = self.clock.get(0)
@@ -394,14 +314,21 @@ class SwarmLauncher:
 
     # -- the mission -------------------------------------------------------------------------
 
-    def run(self, on_progress: ProgressCallback | None = None) -> RunRecord:
-        """Run the mission to its end; MissionError if a process dies or the world aborts."""
+    def run(self, on_progress: ProgressCallback | None = None,
+            telemetry_listeners: Sequence[TelemetryListener] = ()) -> RunRecord:
+        """Run the mission to its end; MissionError if a process dies or the world aborts.
+
+        ``on_progress(step, collector)`` runs on this thread whenever the truth step moves;
+        ``telemetry_listeners`` get every telemetry message as it arrives.
+        """
+        self.telemetry_listeners = tuple(telemetry_listeners)
         cfg = self.options.config
         started = time.monotonic()
         try:
             self.log(f"launch-swarm: run {self.run_id}: world + {self.n} agents "
                      f"({self.options.mode}), zenoh {self.endpoint}, MAVLink "
                      f"{self.mavlink_base}..{self.mavlink_base + self.n - 1}, logs {self.log_dir}")
+            self._open_recorder()
             if self.options.external_vehicles:
                 if self.options.mode != "realtime":
                     raise MissionError("external vehicles need --mode realtime")
@@ -436,6 +363,7 @@ class SwarmLauncher:
                 if state == "done":
                     break
             self._wait_agents_done()
+            self._leave_zenoh()  # no message arrives after this: record and recording agree
             record = self.collector.record(self.options.seed, time.monotonic() - started)
             self.close()
             if self._own_log_dir:
@@ -452,8 +380,35 @@ class SwarmLauncher:
             except subprocess.TimeoutExpired:
                 break
 
+    def _open_recorder(self) -> None:
+        opts = self.options
+        if opts.record_dir is None:
+            return
+        metadata = RecordingMetadata.for_run(opts.config, opts.seed, opts.mode, self.run_id,
+                                             opts.config_path)
+        try:
+            self.recorder = Recorder(opts.record_dir, metadata)
+        except RecordingError as err:
+            raise MissionError(str(err)) from None
+        self.log(f"launch-swarm: recording to {self.recorder.path}")
+
+    def _close_recorder(self) -> None:
+        recorder, self.recorder = self.recorder, None
+        if recorder is None:
+            return
+        recorder.close()
+        problem = f"; {recorder.dropped} not written: {recorder.error}" if recorder.error else ""
+        self.log(f"launch-swarm: recorded {recorder.written} messages to {recorder.path}"
+                 f"{problem}")
+
     def close(self) -> None:
-        """Leave Zenoh and stop every child; safe to call more than once."""
+        """Leave Zenoh, finish the recording and stop every child; safe to call more than
+        once."""
+        self._leave_zenoh()
+        self._close_recorder()
+        self.stop_children()
+
+    def _leave_zenoh(self) -> None:
         for sub in self._subscribers:
             with contextlib.suppress(Exception):
                 sub.undeclare()
@@ -462,4 +417,3 @@ class SwarmLauncher:
             with contextlib.suppress(Exception):
                 self.session.close()
             self.session = None
-        self.stop_children()

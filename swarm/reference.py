@@ -14,6 +14,8 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
@@ -21,10 +23,20 @@ from numpy.typing import NDArray
 from sim_world.camera import detect
 from sim_world.kinematics import sample_initial_positions, step_drone
 from swarm.config import ScenarioConfig
-from swarm.core.agent import AgentSetup, DroneAgent, StepDiagnostics
+from swarm.core.agent import AgentSetup, Detection, DroneAgent, StepDiagnostics
 from swarm.core.formation import circle_bearings
 from swarm.frames import position_over_link, velocity_over_link
 from swarm.ground_truth import ReferenceGramians
+from swarm.wire import (
+    BeaconWire,
+    CameraFrameWire,
+    TelemetryCounters,
+    TruthWire,
+    telemetry_from_diagnostics,
+)
+
+if TYPE_CHECKING:
+    from swarm.recording import Recorder
 
 Array = NDArray[np.float64]
 
@@ -128,9 +140,51 @@ StepCallback = Callable[[int, list[StepDiagnostics]], None]
 
 
 def run_reference(config: ScenarioConfig, seed: int | None = None,
-                  on_step: StepCallback | None = None) -> RunRecord:
-    """Run the scenario in one process and return every time series."""
+                  on_step: StepCallback | None = None,
+                  record_dir: Path | None = None) -> RunRecord:
+    """Run the scenario in one process and return every time series.
+
+    ``record_dir``: also write ``record_dir/run.mcap`` with the channels a process swarm's
+    recording holds (telemetry, beacons, camera frames, truth; ``swarm.recording``).
+    """
     seed = config.scenario.seed if seed is None else seed
+    if record_dir is None:
+        return _run(config, seed, on_step, None)
+    # Imported here: swarm.recording builds on RunRecord, defined in this module.
+    from swarm.recording import Recorder, RecordingMetadata
+
+    metadata = RecordingMetadata.for_run(config, seed, "inprocess", run_id="inprocess",
+                                         config_path=config.source)
+    with Recorder(record_dir, metadata) as recorder:
+        return _run(config, seed, on_step, recorder)
+
+
+def _record_step(recorder: Recorder, agents: list[DroneAgent], step: int, time_s: float,
+                 positions: Array, seen: list[Array], flying: Array,
+                 detections: list[list[Detection]], targets: Array, target_vel: Array,
+                 communicated: Array | None, diags: list[StepDiagnostics]) -> None:
+    """One step as the process swarm's recorder would hear it: each agent's beacon (what it
+    read from its autopilot and the velocity it flies) and telemetry, each camera frame, and
+    the ground truth."""
+    stamp_ms = round(time_s * 1000)
+    for i, agent in enumerate(agents):
+        recorder.put(CameraFrameWire.build(drone=i, step=step, time_s=time_s,
+                                           vehicle_time_ms=stamp_ms, detections=detections[i],
+                                           target_velocities=communicated))
+        recorder.put(BeaconWire.build(sender=i, step=step, time_s=time_s, position_m=seen[i],
+                                      velocity_m_s=flying[i]))
+        counters = TelemetryCounters(
+            qp_fallbacks=agent.qp_fallbacks, rejected_messages=agent.rejected_inputs,
+            missing_neighbour_messages=agent.missing_neighbour_messages, steps=step + 1,
+            mavlink_state="in-process")
+        recorder.put(telemetry_from_diagnostics(diags[i], seen[i], counters))
+    recorder.put(TruthWire.build(step=step, time_s=time_s, drone_positions=positions,
+                                 target_positions=targets, target_velocities=target_vel))
+
+
+def _run(config: ScenarioConfig, seed: int, on_step: StepCallback | None,
+         recorder: Recorder | None) -> RunRecord:
+    """The run itself; every step also goes to ``recorder`` when one is given."""
     started = time.perf_counter()
     n, m, dt = config.swarm.n_drones, len(config.targets), config.scenario.dt_s
     steps = config.n_steps
@@ -143,6 +197,7 @@ def run_reference(config: ScenarioConfig, seed: int | None = None,
     origins = [config.vehicles.origin_w(i) for i in range(n)]
     truth = ReferenceGramians(m, config.gramian, config.perception, config.estimation.info_gain,
                               dt)
+    flying = np.zeros((n, 3))  # the setpoint each drone flies (its beacon's velocity)
 
     rec = {
         "pos": np.zeros((steps, n, 3)), "vel": np.zeros((steps, n, 3)),
@@ -171,6 +226,10 @@ def run_reference(config: ScenarioConfig, seed: int | None = None,
         beacons = dict(enumerate(seen))
         results = [agents[i].finish_step(beacons) for i in range(n)]
         diags = [r.diagnostics for r in results]
+        if recorder is not None:
+            _record_step(recorder, agents, k, t, positions, seen, flying, detections, targets,
+                         target_vel, communicated, diags)
+            flying = np.array([r.velocity for r in results])
 
         rec["pos"][k], rec["tpos"][k], rec["tvel"][k] = positions, targets, target_vel
         for i, d in enumerate(diags):

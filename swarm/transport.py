@@ -43,6 +43,7 @@ _RUN_ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 _HOSTNAME = re.compile(r"^(?=.{1,253}$)[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?"
                        r"(?:\.[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?)*$")
 _MAX_REASON_CHARS: Final = 300
+TX_DATA_QUEUE_BATCHES: Final = 16  # per link and priority; zenoh allocates batches lazily
 
 
 class TransportError(RuntimeError):
@@ -154,6 +155,12 @@ def zenoh_config(
         "scouting/gossip/enabled": mode != "client",
         "scouting/gossip/multihop": False,
         "transport/shared_memory/enabled": bool(shared_memory),
+        # Room for a whole step's burst per link. Every message here is express (one batch
+        # each) and zenoh's default data queue holds 2 batches, so a world step (N camera
+        # frames, truth, clock) toward one subscriber overflowed whenever the link's tx task
+        # was not scheduled within wait_before_drop (1 ms) on a loaded machine: droppable
+        # (realtime) messages were lost, ~10 % of the truth toward a recording launcher.
+        "transport/link/tx/queue/size/data": TX_DATA_QUEUE_BATCHES,
     }
     if connect_timeout_s is not None:
         settings["connect/timeout_ms"] = max(1, round(connect_timeout_s * 1000))
@@ -302,7 +309,9 @@ class LatestValues(Generic[T]):
 
     ``put(source, value, seq=step)`` ignores a value older (lower ``seq``) than the stored one,
     so a late out-of-order delivery never replaces newer data. Memory: one entry per source,
-    at most ``max_sources`` sources.
+    at most ``max_sources`` sources. Every clock reading happens under the lock, so an age
+    is never negative (a reading taken before a concurrent ``put`` stored a newer time gave
+    e.g. a negative neighbour age, which the telemetry encoder then refused).
     """
 
     def __init__(self, *, clock: Callable[[], float] = time.monotonic,
@@ -314,8 +323,8 @@ class LatestValues(Generic[T]):
 
     def put(self, source: Hashable, value: T, *, seq: int | None = None) -> bool:
         """Store ``value`` as the newest from ``source``; False if refused (older, or full)."""
-        now = self._clock()
         with self._cond:
+            now = self._clock()
             old = self._values.get(source)
             if old is None and len(self._values) >= self._max_sources:
                 return False
@@ -327,27 +336,27 @@ class LatestValues(Generic[T]):
 
     def get(self, source: Hashable) -> tuple[T, float] | None:
         """(value, age in seconds) or None if ``source`` never sent anything."""
-        now = self._clock()
         with self._cond:
+            now = self._clock()
             entry = self._values.get(source)
         return None if entry is None else (entry[0], now - entry[1])
 
     def fresh(self, max_age_s: float) -> dict[Hashable, T]:
         """The values no older than ``max_age_s`` seconds, by source."""
-        now = self._clock()
         with self._cond:
+            now = self._clock()
             return {s: v for s, (v, t, _) in self._values.items() if now - t <= max_age_s}
 
     def fresh_with_ages(self, max_age_s: float) -> dict[Hashable, tuple[T, float]]:
         """(value, age in seconds) of the values no older than ``max_age_s``, by source."""
-        now = self._clock()
         with self._cond:
+            now = self._clock()
             return {s: (v, now - t) for s, (v, t, _) in self._values.items()
                     if now - t <= max_age_s}
 
     def ages(self) -> dict[Hashable, float]:
-        now = self._clock()
         with self._cond:
+            now = self._clock()
             return {s: now - t for s, (_, t, _) in self._values.items()}
 
     def wait_for(self, sources: Iterable[Hashable], timeout_s: float, *,
