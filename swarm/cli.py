@@ -34,7 +34,6 @@ from swarm.reference import RunRecord, run_reference
 from swarm.report import build_report, render_report
 from swarm.wire import TelemetryCounters
 
-EXIT_VIOLATION = EXIT_FAILED
 PROG = "launch-swarm"
 # Live tables at 4 Hz at most on a terminal; a line every 5 simulated seconds otherwise.
 DASHBOARD = DashboardSettings(refresh_hz=4.0, log_period_s=5.0)
