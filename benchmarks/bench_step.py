@@ -1,32 +1,34 @@
-"""Per-drone step benchmark (issue 5): compute time of ``DroneAgent``'s step for M = 1, 2, 3.
+"""Per-drone step (issue 5): compute time of one drone's step for M = 1, 2, 3, wire included.
 
-Run from the repository root, in the project's virtualenv::
+    python benchmarks/bench_step.py [--duration 20] [--repeats 3] [--out FILE]
+    (or as the ``step`` section of ``python benchmarks/run_all.py``)
 
-    python benchmarks/bench_step.py                 # 20 s per scenario, 3 repeats
-    python benchmarks/bench_step.py --duration 10 --repeats 5 --out /tmp/step.json
+Scenarios: Case 1 (M = 1, hard QP), Case 2 (M = 2, relaxed QP), Case 2 with a third target
+added in code (M = 3), and Case 2 with the QP rebuilt in CVXPY at every step as the thesis
+did (``cvxpy_qp.CvxpyRebuiltWorkspace``, PIQP underneath). Each runs in process
+(``swarm.reference.run_reference``, 6 drones, seed 0); every drone and every step with the
+barrier QP active (t ≥ ``control.start_s``) is one sample. The CVXPY scenario flies our path
+until ``cvxpy_step_start_s`` (12 s: from about then on Case 2's QP rows are active), then
+alternates step by step between the QP rebuilt in CVXPY and ours: the ratio compares the two
+under the same load (a sequential comparison on a shared machine drifted from 17× to 50×).
 
-Scenarios: Case 1 (M = 1, hard QP), Case 2 (M = 2, relaxed QP) and Case 2 with a third
-target added in code (M = 3). Each is run in process by ``swarm.reference.run_reference``
-(6 drones, seed 0); the numbers are the agents' own ``step_us`` (``begin_step`` +
-``consensus_round`` × K + ``finish_step``, without waiting for neighbours) over every drone
-and every step once the barrier QP is active (t ≥ ``control.start_s``), and the thread CPU
-time of the same calls (which leaves out waiting for a CPU on a loaded machine). Per run:
-median and p99; the table shows the median over the repeats of each, and the median per
-section of the step (``DroneAgent.section_us``):
+Per sample, wall clock (``time.perf_counter``):
 
-- estimation: the local ICF steps (V⁰/v⁰, posterior, prediction),
-- consensus: the K rounds and the PI consensus / Gramian update,
-- barrier: perception weights, HOCBF terms and the constraint rows,
-- qp: writing the rows into the solver's matrices, PIQP update and solve, feasibility check
-  (the PIQP column is update + solve alone, the agent's ``qp_solve_us``),
-- other: input checks, messages and diagnostics.
+- core: the agent's own ``step_us`` (``begin_step`` + K × ``consensus_round`` +
+  ``finish_step``, no waiting for neighbours), split by ``DroneAgent.section_us`` into
+  estimation (ICF local steps), consensus (the K rounds and the PI-consensus/Gramian update),
+  barrier (perception weights, HOCBF terms, constraint rows), qp (solver matrices, PIQP update
+  and solve, feasibility check) and other;
+- encode: what ``swarm.agent_process`` encodes for that step with ``swarm.wire.WireCodec``:
+  the consensus message of every round, the beacon and the telemetry (wire structs built and
+  validated);
+- decode: what it decodes for that step: the camera frame (and its detections), every
+  neighbour's consensus message of every round and the other drones' beacons. The agent runs
+  on the decoded messages (bit-exact), as in the process swarm;
+- total = core + encode + decode ("everything included"); cpu = thread CPU time of the same
+  work (leaves out waiting for a CPU on a loaded machine).
 
-Messaging encode/decode is not part of this in-process step (the process swarm's wire layer).
-
-Timings are wall-clock (``time.perf_counter``): on a shared machine they include preemption,
-so the load average before and after is printed and stored. The table goes to stdout and
-everything to ``benchmarks/results/step.json`` (``--out``). ``PYTHONPATH=<other checkout>``
-benchmarks another version of ``swarm`` (its sections only if it has ``section_us``).
+Per run: median and p99 of each; tables show the median over the repeats and its spread.
 """
 
 from __future__ import annotations
@@ -34,25 +36,45 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
-import json
-import os
-import platform
+import gc
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
-import piqp
+from common import (
+    CONFIGS,
+    PROFILES,
+    RESULTS,
+    Profile,
+    SectionClock,
+    console,
+    fmt,
+    fmt_spread,
+    machine_info,
+    new_table,
+    progress,
+    spread,
+    stats,
+    write_json,
+)
+from cvxpy_qp import CvxpyRebuiltWorkspace
+from rich.table import Table
+from rich.text import Text
 
-import swarm
 import swarm.reference as reference
 from swarm.config import ScenarioConfig, TargetSection, load_config
+from swarm.core.agent import ConsensusMessage, Detection, DroneAgent, StepResult
+from swarm.wire import BeaconWire, CameraFrameWire, TelemetryWire, WireCodec
 
-ROOT = Path(__file__).resolve().parents[1]
-CONFIGS = ROOT / "configs"
-DEFAULT_OUT = ROOT / "benchmarks" / "results" / "step.json"
-SECTIONS = ("estimation", "consensus", "barrier", "qp", "other")
+CORE_SECTIONS = ("estimation", "consensus", "barrier", "qp", "other")
+# The wire work of one drone step, by message (all rounds, all neighbours, all beacons).
+WIRE_KINDS = ("encode consensus", "encode beacon", "encode telemetry", "decode camera",
+              "decode consensus", "decode beacons")
+SECTIONS = (*CORE_SECTIONS, "encode", "decode")
+CVXPY_LABEL = "case2, QP rebuilt in CVXPY"
 
 
 def three_target_config(case2: ScenarioConfig) -> ScenarioConfig:
@@ -62,162 +84,358 @@ def three_target_config(case2: ScenarioConfig) -> ScenarioConfig:
     return dataclasses.replace(case2, targets=(*case2.targets, third))
 
 
-def scenarios(duration_s: float) -> list[tuple[str, int, ScenarioConfig]]:
-    case1 = load_config(CONFIGS / "case1.toml").with_duration(duration_s)
-    case2 = load_config(CONFIGS / "case2.toml").with_duration(duration_s)
-    return [("case1 (hard QP)", 1, case1), ("case2 (relaxed QP)", 2, case2),
-            ("case2 + 1 target", 3, three_target_config(case2))]
+@dataclasses.dataclass(frozen=True)
+class Scenario:
+    label: str
+    m_targets: int
+    config: ScenarioConfig
+    qp: str = "piqp"  # "piqp" (ours) or "cvxpy" (rebuilt every step, from qp_switch_s on)
+    qp_switch_s: float = 0.0  # cvxpy: our path until here, samples only after
 
 
-def _cpu_timed(agent, cpu_s: list[float]) -> None:
-    """Wrap the agent's step methods to add their thread CPU time to ``cpu_s[0]`` (reset by
-    ``begin_step``): unlike ``step_us`` (wall clock) it leaves out time the process waited
-    for a CPU, which dominates on a loaded machine."""
-    begin, rounds, finish = agent.begin_step, agent.consensus_round, agent.finish_step
+def scenarios(profile: Profile) -> list[Scenario]:
+    case1 = load_config(CONFIGS / "case1.toml").with_duration(profile.step_duration_s)
+    case2 = load_config(CONFIGS / "case2.toml").with_duration(profile.step_duration_s)
+    by_m = {1: Scenario("case1 (hard QP)", 1, case1),
+            2: Scenario("case2 (relaxed QP)", 2, case2),
+            3: Scenario("case2 + 1 target", 3, three_target_config(case2))}
+    chosen = [by_m[m] for m in profile.step_targets]
+    # Case 2's QP rows become active from about 12 s: the CVXPY step is timed in that regime.
+    cvxpy_case = case2.with_duration(profile.cvxpy_step_start_s + profile.cvxpy_step_duration_s)
+    return [*chosen, Scenario(CVXPY_LABEL, 2, cvxpy_case, qp="cvxpy",
+                              qp_switch_s=profile.cvxpy_step_start_s)]
 
-    def begin_step(*args, **kwargs):
-        start = time.thread_time()
-        result = begin(*args, **kwargs)
-        cpu_s[0] = time.thread_time() - start
+
+# -- the wire work of one step ----------------------------------------------------------
+
+
+class WireBus:
+    """The payloads of the current step, as the process swarm would have them on Zenoh."""
+
+    def __init__(self) -> None:
+        self.consensus: dict[tuple[int, int], bytes] = {}  # (round, sender) → payload
+        self.beacons: dict[int, bytes] = {}  # sender → payload
+
+
+class StepProbe:
+    """Wraps one agent's step methods: runs them on decoded messages and encodes what they
+    send, as ``swarm.agent_process`` does, timing the agent and the wire work apart.
+
+    After each ``finish_step``: ``core_cpu_s`` (thread CPU of the agent's calls),
+    ``encode_s`` / ``decode_s`` (wall), ``wire_s`` (wall, by message: ``WIRE_KINDS``) and
+    ``wire_cpu_s`` (thread CPU of all the wire work).
+    """
+
+    def __init__(self, agent: DroneAgent, codec: WireCodec, bus: WireBus,
+                 config: ScenarioConfig) -> None:
+        self.agent, self.codec, self.bus, self.config = agent, codec, bus, config
+        self.drone = agent.setup.drone_id
+        self.others = [j for j in range(config.swarm.n_drones) if j != self.drone]
+        self._begin, self._round, self._finish = (agent.begin_step, agent.consensus_round,
+                                                  agent.finish_step)
+        agent.begin_step, agent.consensus_round, agent.finish_step = (  # type: ignore[method-assign]
+            self.begin_step, self.consensus_round, self.finish_step)
+        self.core_cpu_s = self.encode_s = self.decode_s = self.wire_cpu_s = 0.0
+        self.wire_s = dict.fromkeys(WIRE_KINDS, 0.0)
+        self._current_round = 0
+        self._step = 0
+        self._position = np.zeros(3)
+        self._flying = np.zeros(3)
+
+    def _timed(self, kind: str, work: Callable[[], Any]) -> Any:
+        wall, cpu = time.perf_counter(), time.thread_time()
+        result = work()
+        self.wire_cpu_s += time.thread_time() - cpu
+        elapsed = time.perf_counter() - wall
+        self.wire_s[kind] += elapsed
+        if kind.startswith("encode"):
+            self.encode_s += elapsed
+        else:
+            self.decode_s += elapsed
         return result
 
-    def consensus_round(*args, **kwargs):
-        start = time.thread_time()
-        result = rounds(*args, **kwargs)
-        cpu_s[0] += time.thread_time() - start
+    def _core(self, call: Callable[..., Any], *args: Any) -> Any:
+        cpu = time.thread_time()
+        result = call(*args)
+        self.core_cpu_s += time.thread_time() - cpu
         return result
 
-    def finish_step(*args, **kwargs):
-        start = time.thread_time()
-        result = finish(*args, **kwargs)
-        cpu_s[0] += time.thread_time() - start
+    def _send_consensus(self, message: ConsensusMessage | None) -> None:
+        if message is not None:
+            payload = self._timed("encode consensus", lambda: self.codec.encode(
+                self.codec.consensus_to_wire(message)))
+            self.bus.consensus[(message.round, self.drone)] = payload
+
+    def begin_step(self, step: int, position: np.ndarray, detections: list[Detection],
+                   communicated: np.ndarray | None = None) -> ConsensusMessage:
+        self.core_cpu_s = self.encode_s = self.decode_s = self.wire_cpu_s = 0.0
+        self.wire_s = dict.fromkeys(WIRE_KINDS, 0.0)
+        self._step, self._position, self._current_round = step, position, 0
+        dt = self.config.scenario.dt_s
+        # The world's side (not timed): the camera frame of this drone.
+        frame = self.codec.encode(CameraFrameWire.build(
+            drone=self.drone, step=step, time_s=step * dt, vehicle_time_ms=round(step * dt * 1e3),
+            detections=detections, target_velocities=communicated))
+
+        def decode_frame() -> tuple[list[Detection], np.ndarray | None]:
+            wire = self.codec.decode_camera(frame)
+            return wire.detection_list(), wire.target_velocity_array()
+
+        detections, communicated = self._timed("decode camera", decode_frame)
+        message = self._core(self._begin, step, position, detections, communicated)
+        self.bus.beacons[self.drone] = self._timed("encode beacon", lambda: self.codec.encode(
+            BeaconWire.build(sender=self.drone, step=step, time_s=step * dt,
+                             position_m=position, velocity_m_s=self._flying)))
+        self._send_consensus(message)
+        return message
+
+    def consensus_round(self, inbox: dict[int, ConsensusMessage]) -> ConsensusMessage | None:
+        rnd = self._current_round
+        decoded = self._timed("decode consensus", lambda: {
+            j: self.codec.decode_consensus(self.bus.consensus[(rnd, j)]) for j in inbox})
+        message = self._core(self._round, decoded)
+        self._current_round += 1
+        self._send_consensus(message)
+        return message
+
+    def finish_step(self, _beacons: dict[int, np.ndarray]) -> StepResult:
+        decoded = self._timed("decode beacons", lambda: {
+            j: np.asarray(self.codec.decode_beacon(self.bus.beacons[j]).position_m, dtype=float)
+            for j in self.others})
+        result: StepResult = self._core(self._finish, decoded)
+        agent = self.agent
+        self._timed("encode telemetry", lambda: self.codec.encode(TelemetryWire.from_diagnostics(
+            result.diagnostics, position=self._position, qp_fallbacks=agent.qp_fallbacks,
+            rejected_messages=agent.rejected_inputs,
+            missing_neighbour_messages=agent.missing_neighbour_messages, late_steps=0,
+            steps=self._step + 1, neighbour_age_ms=float("nan"),
+            mavlink_state="armed OFFBOARD")))
+        self._flying = result.velocity
         return result
 
-    agent.begin_step, agent.consensus_round, agent.finish_step = (begin_step, consensus_round,
-                                                                  finish_step)
+
+class QpSwitch:
+    """Swaps one agent's relaxed-QP workspace between ours and the QP rebuilt in CVXPY (a
+    benchmark-only swap of the agent's private attribute)."""
+
+    def __init__(self, agent: DroneAgent, config: ScenarioConfig) -> None:
+        ctrl = config.control
+        if ctrl.qp != "relaxed":
+            raise ValueError("the CVXPY step is written for the relaxed QP (Case 2)")
+        self.agent = agent
+        self.ours = agent._qp_relaxed
+        self.cvxpy = CvxpyRebuiltWorkspace(
+            agent.setup.n_targets, agent.setup.n_drones - 1, slack_weight=ctrl.slack_weight,
+            weight_floor=ctrl.weight_floor, u_max=ctrl.u_max_m_s)
+
+    def use(self, backend: str) -> None:
+        self.agent._qp_relaxed = (  # type: ignore[assignment]
+            self.cvxpy if backend == "cvxpy" else self.ours)
+
+
+def warm_up_cvxpy() -> None:
+    """One throw-away solve: CVXPY's first call in a process imports and sets up far more
+    than the later ones."""
+    CvxpyRebuiltWorkspace(1, 1, slack_weight=1.0, weight_floor=1e-3, u_max=1.0).solve(
+        (0.0, 0.0, 0.0), [0.0] * 9, [0.0, 0.0, -1.0], [1.0])
 
 
 @contextlib.contextmanager
-def captured_agents() -> Iterator[list]:
-    """Collect the agents ``run_reference`` builds (each with a CPU-time accumulator), to
-    read their per-section and CPU timings."""
-    agents: list = []
+def probed_agents(config: ScenarioConfig) -> Iterator[list[StepProbe]]:
+    """The agents ``run_reference`` builds, each wrapped in a ``StepProbe``."""
+    probes: list[StepProbe] = []
+    bus = WireBus()
     original = reference.build_agent
 
-    def build(*args, **kwargs):
+    def build(*args: Any, **kwargs: Any) -> DroneAgent:
         agent = original(*args, **kwargs)
-        cpu_s = [0.0]
-        _cpu_timed(agent, cpu_s)
-        agents.append((agent, cpu_s))
+        n_state = agent.target_estimates.shape[1]
+        codec = WireCodec(config.swarm.n_drones, len(config.targets), n_state)
+        probes.append(StepProbe(agent, codec, bus, config))
         return agent
 
     reference.build_agent = build
     try:
-        yield agents
+        yield probes
     finally:
         reference.build_agent = original
 
 
-def run_once(config: ScenarioConfig) -> dict:
-    """One run: every control-active step of every drone."""
-    step_us: list[float] = []
-    cpu_us: list[float] = []
-    piqp_us: list[float] = []
-    sections: dict[str, list[float]] = {name: [] for name in SECTIONS}
-    with captured_agents() as agents:
+def run_once(scenario: Scenario) -> dict[str, Any]:
+    """One run: a sample per drone and control-active step.
 
-        def on_step(_k: int, diagnostics: list) -> None:
-            for (agent, cpu_s), diag in zip(agents, diagnostics, strict=True):
-                if not diag.control_active:
+    The CVXPY scenario flies our path until its switch, then alternates step by step: even
+    steps with the QP rebuilt in CVXPY (the samples), odd steps with ours (``paired``), so
+    that both are timed under the same load (the solutions agree to ~1e-7 m/s, so the
+    trajectory is ours).
+    """
+    samples: dict[str, list[float]] = {
+        name: [] for name in ("core", "total", "cpu", "core_cpu", "piqp", *SECTIONS,
+                              *WIRE_KINDS)}
+    paired: dict[str, list[float]] = {"core": [], "total": [], "cpu": []}
+    config = scenario.config
+    dt = config.scenario.dt_s
+    switch = round(scenario.qp_switch_s / dt) if scenario.qp == "cvxpy" else None
+    if switch is not None:
+        warm_up_cvxpy()
+
+    def backend(k: int) -> str:
+        return "piqp" if switch is None or k < switch or (k - switch) % 2 else "cvxpy"
+
+    progress(f"step: {scenario.label}, {config.scenario.duration_s:g} s simulated")
+    with probed_agents(config) as probes:
+        switches: list[QpSwitch] = []
+
+        def on_step(k: int, diagnostics: list) -> None:
+            if switch is not None and k + 1 >= switch:
+                if not switches:
+                    switches.extend(QpSwitch(p.agent, config) for p in probes)
+                for qp_switch in switches:
+                    qp_switch.use(backend(k + 1))
+            for probe, diag in zip(probes, diagnostics, strict=True):
+                if not diag.control_active or (switch is not None and k < switch):
                     continue
-                step_us.append(diag.step_us)
-                cpu_us.append(cpu_s[0] * 1e6)
-                piqp_us.append(diag.qp_solve_us)
-                timing = getattr(agent, "section_us", None)
-                if timing is not None:
-                    for name in SECTIONS:
-                        sections[name].append(timing[name])
+                encode_us, decode_us = probe.encode_s * 1e6, probe.decode_s * 1e6
+                total_us = diag.step_us + encode_us + decode_us
+                cpu_us = (probe.core_cpu_s + probe.wire_cpu_s) * 1e6
+                if switch is not None and backend(k) == "piqp":
+                    paired["core"].append(diag.step_us)
+                    paired["total"].append(total_us)
+                    paired["cpu"].append(cpu_us)
+                    continue
+                samples["core"].append(diag.step_us)
+                samples["total"].append(total_us)
+                samples["core_cpu"].append(probe.core_cpu_s * 1e6)
+                samples["cpu"].append(cpu_us)
+                samples["piqp"].append(diag.qp_solve_us)
+                samples["encode"].append(encode_us)
+                samples["decode"].append(decode_us)
+                for kind, seconds in probe.wire_s.items():
+                    samples[kind].append(seconds * 1e6)
+                timing = probe.agent.section_us
+                for name in CORE_SECTIONS:
+                    samples[name].append(timing[name])
 
-        record = reference.run_reference(config, seed=0, on_step=on_step)
-    steps = np.array(step_us)
+        # As an agent process does after its set-up (swarm.rate.freeze_heap): the long-lived
+        # objects leave the collector's reach, so a collection does not walk them mid-step.
+        gc.collect()
+        gc.freeze()
+        try:
+            record = reference.run_reference(config, seed=0, on_step=on_step)
+        finally:
+            gc.unfreeze()
+    result: dict[str, Any] = {
+        "stats_us": {name: stats(values) for name, values in samples.items()},
+        "samples": len(samples["core"]), "qp_fallbacks": int(record.qp_fallback.sum()),
+        "wall_s": record.wall_time_s}
+    if switch is not None:
+        ours = {name: stats(values) for name, values in paired.items()}
+        theirs = result["stats_us"]
+        result["paired_ours_us"] = ours
+        result["ratio"] = {name: _ratio(theirs[name]["median"], ours[name]["median"])
+                           for name in ("total", "core", "cpu")}
+    return result
+
+
+def _ratio(a: float | None, b: float | None) -> float | None:
+    return None if a is None or not b else a / b
+
+
+def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """Median over the repeats (and spread) of each run's median and p99 per quantity."""
+    names = runs[0]["stats_us"].keys()
+    return {name: {key: spread([r["stats_us"][name][key] for r in runs])
+                   for key in ("median", "p99")} for name in names}
+
+
+def run(profile: Profile) -> dict[str, Any]:
+    clock = SectionClock()
+    results = []
+    for scenario in scenarios(profile):
+        runs = [run_once(scenario) for _ in range(profile.step_repeats)]
+        results.append({"scenario": scenario.label, "m_targets": scenario.m_targets,
+                        "qp": scenario.qp, "duration_s": scenario.config.scenario.duration_s,
+                        "qp_switch_s": scenario.qp_switch_s if scenario.qp == "cvxpy" else None,
+                        "runs": runs, "summary": summarise(runs)})
+    return {"section": "step", "profile": profile.name, "repeats": profile.step_repeats,
+            "results": results, "cvxpy_step_ratio": cvxpy_ratio(results), **clock.done()}
+
+
+def cvxpy_ratio(results: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """How many times our whole M = 2 step (everything included) is faster than the same
+    step with the QP rebuilt in CVXPY, from the interleaved steps of the CVXPY scenario:
+    per run the ratio of the medians, then the median (and spread) over the runs; by wall
+    time (total, core) and by thread CPU time (cpu)."""
+    theirs = next((r for r in results if r["qp"] == "cvxpy"), None)
+    if theirs is None:
+        return None
+    runs = theirs["runs"]
     return {
-        "median_us": float(np.median(steps)),
-        "p99_us": float(np.percentile(steps, 99)),
-        "mean_us": float(steps.mean()),
-        "cpu_median_us": float(np.median(cpu_us)),
-        "cpu_p99_us": float(np.percentile(cpu_us, 99)),
-        "piqp_median_us": float(np.median(piqp_us)),
-        "sections_median_us": ({name: float(np.median(v)) for name, v in sections.items()}
-                               if sections["other"] else None),
-        "samples": int(steps.size),
-        "qp_fallbacks": int(record.qp_fallback.sum()),
-        "wall_s": record.wall_time_s,
-    }
+        **{name: spread([r["ratio"][name] for r in runs]) for name in ("total", "core", "cpu")},
+        "cvxpy_total_us": spread([r["stats_us"]["total"]["median"] for r in runs]),
+        "ours_total_us": spread([r["paired_ours_us"]["total"]["median"] for r in runs]),
+        "from_s": theirs["qp_switch_s"]}
 
 
-def summarise(runs: list[dict]) -> dict:
-    def median_of(key: str) -> float:
-        return float(np.median([r[key] for r in runs]))
-
-    sections = None
-    if runs[0]["sections_median_us"] is not None:
-        sections = {name: float(np.median([r["sections_median_us"][name] for r in runs]))
-                    for name in SECTIONS}
-    return {"median_us": median_of("median_us"), "p99_us": median_of("p99_us"),
-            "cpu_median_us": median_of("cpu_median_us"), "cpu_p99_us": median_of("cpu_p99_us"),
-            "piqp_median_us": median_of("piqp_median_us"), "sections_median_us": sections}
-
-
-def table(results: list[dict]) -> str:
-    header = (f"{'scenario':<20} {'M':>2} {'median':>8} {'p99':>8} {'cpu med':>8} "
-              f"{'cpu p99':>8} {'PIQP':>7} "
-              + " ".join(f"{name:>10}" for name in SECTIONS))
-    lines = [header, "-" * len(header)]
-    for res in results:
+def tables(result: dict[str, Any]) -> list[Table]:
+    columns = ["scenario", "M", "total med", "total p99", "core med", "core p99", "cpu med",
+               *SECTIONS, "PIQP", "samples"]
+    table = new_table(
+        "Per-drone step [µs] (6 drones in process; wire encode/decode as the process swarm)",
+        columns,
+        caption=("total = core + encode + decode (everything included); medians over "
+                 f"{result['repeats']} repeats of each run's median/p99, (min–max) over the "
+                 "repeats;\nsections: median of each; PIQP: update + solve; cpu: thread CPU "
+                 "of core + wire"))
+    for res in result["results"]:
         s = res["summary"]
-        parts = (" ".join(f"{s['sections_median_us'][name]:>10.0f}" for name in SECTIONS)
-                 if s["sections_median_us"] else "  (no per-section timings in this version)")
-        lines.append(f"{res['scenario']:<20} {res['m_targets']:>2} {s['median_us']:>8.0f} "
-                     f"{s['p99_us']:>8.0f} {s['cpu_median_us']:>8.0f} {s['cpu_p99_us']:>8.0f} "
-                     f"{s['piqp_median_us']:>7.0f} {parts}")
-    lines.append("µs per drone step; median/p99: wall clock (the agent's step_us), cpu: thread "
-                 "CPU time of the same calls;\nmedians over the repeats of each run's median or "
-                 "p99; PIQP: update + solve; sections: median of each (wall clock)")
-    return "\n".join(lines)
+        table.add_row(
+            res["scenario"], str(res["m_targets"]), fmt_spread(s["total"]["median"]),
+            fmt_spread(s["total"]["p99"]), fmt(s["core"]["median"]["median"]),
+            fmt(s["core"]["p99"]["median"]), fmt(s["cpu"]["median"]["median"]),
+            *(fmt(s[name]["median"]["median"]) for name in SECTIONS),
+            fmt(s["piqp"]["median"]["median"]), str(res["runs"][0]["samples"]))
+    wire = new_table(
+        "Wire work of one drone step [µs], by message (medians; M = number of targets)",
+        ["scenario", "M", *WIRE_KINDS],
+        caption=("consensus: every round's message (sent once, decoded once per neighbour); "
+                 "beacons: the other N − 1 drones'; camera: the frame and its detections"))
+    for res in result["results"]:
+        s = res["summary"]
+        wire.add_row(res["scenario"], str(res["m_targets"]),
+                     *(fmt(s[kind]["median"]["median"]) for kind in WIRE_KINDS))
+    ratio = result.get("cvxpy_step_ratio")
+    if ratio:
+        table.caption += Text(
+            f"\nthe M = 2 step with the QP rebuilt in CVXPY, interleaved step by step with ours "
+            f"from t = {ratio['from_s']:g} s: {ratio['cvxpy_total_us']['median']:.0f} µs "
+            f"against {ratio['ours_total_us']['median']:.0f} µs, "
+            f"{fmt_spread(ratio['total'], 1)}× slower everything included "
+            f"({fmt_spread(ratio['core'], 1)}× core step, {fmt_spread(ratio['cpu'], 1)}× "
+            f"by thread CPU time)")
+    return [table, wire]
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--duration", type=float, default=20.0, help="simulated s per run")
-    parser.add_argument("--repeats", type=int, default=3, help="runs per scenario")
-    parser.add_argument("--out", type=Path, default=DEFAULT_OUT, help="JSON output")
+    parser.add_argument("--duration", type=float, default=None, help="simulated s per run")
+    parser.add_argument("--repeats", type=int, default=None, help="runs per scenario")
+    parser.add_argument("--profile", choices=sorted(PROFILES), default="full")
+    parser.add_argument("--out", type=Path, default=RESULTS / "step.json", help="JSON output")
     args = parser.parse_args(argv)
-
-    load_before = os.getloadavg()
-    started = time.perf_counter()
-    results = []
-    for label, m_targets, config in scenarios(args.duration):
-        runs = [run_once(config) for _ in range(args.repeats)]
-        results.append({"scenario": label, "m_targets": m_targets, "runs": runs,
-                        "summary": summarise(runs)})
-    load_after = os.getloadavg()
-    print(table(results))
-    print(f"load average (1/5/15 min) before {load_before[0]:.2f}/{load_before[1]:.2f}/"
-          f"{load_before[2]:.2f}, after {load_after[0]:.2f}/{load_after[1]:.2f}/"
-          f"{load_after[2]:.2f} on {os.cpu_count()} CPUs; {time.perf_counter() - started:.0f} s")
-    report = {
-        "command": " ".join(["python", "benchmarks/bench_step.py", *(argv or sys.argv[1:])]),
-        "swarm_package": str(Path(swarm.__file__).resolve().parent),
-        "duration_s": args.duration, "repeats": args.repeats,
-        "machine": {"cpus": os.cpu_count(), "load_before": load_before,
-                    "load_after": load_after, "python": platform.python_version(),
-                    "numpy": np.__version__, "piqp": piqp.__version__,
-                    "processor": platform.processor() or platform.machine()},
-        "results": results,
-    }
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.write_text(json.dumps(report, indent=2) + "\n")
-    print(f"wrote {args.out}")
+    profile = PROFILES[args.profile]
+    if args.duration is not None:
+        profile = dataclasses.replace(profile, step_duration_s=args.duration)
+    if args.repeats is not None:
+        profile = dataclasses.replace(profile, step_repeats=args.repeats)
+    result = run(profile)
+    out = console()
+    for table in tables(result):
+        out.print(table)
+    result["command"] = " ".join(["python", "benchmarks/bench_step.py", *(argv or sys.argv[1:])])
+    result["machine"] = machine_info()
+    write_json(args.out, result)
+    out.print(f"wrote {args.out}")
     return 0
 
 

@@ -1,66 +1,149 @@
-"""Realtime process swarm on this machine: late agent steps at 50 Hz (issue 3, point 6).
+"""Realtime process swarm at 50 Hz for N = 6, 12, 24 drones (issue 3 point 6, issue 5).
 
-Run:  python benchmarks/realtime_swarm.py [--case case2] [--repeats 3]
+    python benchmarks/realtime_swarm.py [--profile quick] [--sizes 6,12,24] [--duration S]
+                                        [--repeats R] [--out FILE]
+    python benchmarks/realtime_swarm.py --sizes 6 --duration 50    # full Case 2, 3 runs
+    (or as the ``realtime`` section of ``python benchmarks/run_all.py``)
 
-Runs the full scenario as a realtime process swarm (world + N agents, 50 Hz wall clock)
-``--repeats`` times, prints each run's counters and the median late-step rate, and writes
-benchmarks/results/realtime_<case>.json. A timing figure depends on the machine and its load,
-so it is measured here and quoted, not asserted by a unit test.
+Each run is a real process swarm (``SwarmLauncher``, mode realtime: every loop at 50 Hz on
+the wall clock with the newest data) of Case 2 scaled to N drones (``swarm_configs``).
+Per run (``swarm_probe``):
+
+- late-step rate: the agents' own counters (late steps / steps, ``collector.counters()``),
+  over the whole mission and after each agent's first second (its start-up transient);
+- step latency: the agents' ``step_us`` from telemetry (compute time of a step, barrier QP
+  active), median and p99;
+- neighbour-data age: ``counters.neighbour_age_ms`` from telemetry — the age of the freshest
+  neighbour consensus message when a step uses it, counted from its arrival at the receiver
+  (so without the Zenoh hop itself), median and p99;
+- CPU per agent process (and the world's, and their total) over the mission window, in cores;
+- the SPEC invariants and the final estimation errors, to see that the swarm still works.
+
+A timing figure depends on the machine and its load: it is measured here, not asserted.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import statistics
+import dataclasses
+import sys
 from pathlib import Path
+from typing import Any
 
-from swarm.checks import check_invariants, summarize_targets
-from swarm.config import load_config
-from swarm.launcher import LaunchOptions, SwarmLauncher
+from common import (
+    PROFILES,
+    RESULTS,
+    Profile,
+    SectionClock,
+    console,
+    fmt_spread,
+    machine_info,
+    new_table,
+    over_runs,
+    write_json,
+)
+from rich.table import Table
+from swarm_configs import load_scaled
+from swarm_probe import attempt_swarm
 
-ROOT = Path(__file__).resolve().parent.parent
+
+def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
+    """Median (and spread) over the repeats of each run's figures."""
+
+    def over(get: Any) -> dict[str, Any]:
+        return over_runs(runs, get)
+
+    return {
+        "late_fraction": over(lambda r: r["late_fraction"]),
+        "late_fraction_after_1s": over(lambda r: r["late_fraction_after_1s"]),
+        "step_us_median": over(lambda r: r["step_us"]["median"]),
+        "step_us_p99": over(lambda r: r["step_us"]["p99"]),
+        "neighbour_age_ms_median": over(lambda r: r["neighbour_age_ms"]["median"]),
+        "neighbour_age_ms_p99": over(lambda r: r["neighbour_age_ms"]["p99"]),
+        "agent_cores_median": over(lambda r: r["cpu"]["agent_cores"]["median"]),
+        "world_cores": over(lambda r: r["cpu"]["world_cores"]),
+        "total_cores": over(lambda r: r["cpu"]["total_cores"]),
+        "stale_messages": over(lambda r: r["counters"]["stale_neighbour_messages"]),
+        "final_error_max_m": over(lambda r: max(r["final_position_error_m"])),
+        "violations": sum(len(r.get("violations", [])) for r in runs),
+        "failed_runs": [{"error": r["error"], "usable": r["usable"]}
+                        for r in runs if "error" in r],
+    }
 
 
-def main() -> None:
+def run(profile: Profile) -> dict[str, Any]:
+    clock = SectionClock()
+    results = []
+    for n in profile.swarm_sizes:
+        path, config = load_scaled(n)
+        config = config.with_duration(profile.realtime_duration_s)
+        runs = [attempt_swarm(path, config, "realtime")
+                for _ in range(profile.realtime_repeats)]
+        results.append({"n_drones": n, "config": str(path), "runs": runs,
+                        "summary": summarise(runs)})
+    return {"section": "realtime", "profile": profile.name,
+            "duration_s": profile.realtime_duration_s, "repeats": profile.realtime_repeats,
+            "results": results, **clock.done()}
+
+
+def tables(result: dict[str, Any]) -> list[Table]:
+    table = new_table(
+        f"Realtime process swarm at 50 Hz, Case 2 scaled ({result['duration_s']:g} s per run)",
+        ["N", "late steps %", "late after 1 s %", "step µs med", "step µs p99",
+         "nbr age ms med", "p99", "CPU/agent", "world CPU", "total CPU", "stale msgs",
+         "max final err m", "violations"],
+        caption=(f"median (min–max) over {result['repeats']} runs; late: agents' counters; "
+                 "step µs: telemetry step_us (QP active); neighbour age: freshest neighbour "
+                 "message at use, since its arrival;\nCPU in cores over the mission window"))
+    for res in result["results"]:
+        s = res["summary"]
+        table.add_row(str(res["n_drones"]), fmt_spread(s["late_fraction"], 2, scale=100.0),
+                      fmt_spread(s["late_fraction_after_1s"], 2, scale=100.0),
+                      fmt_spread(s["step_us_median"]), fmt_spread(s["step_us_p99"]),
+                      fmt_spread(s["neighbour_age_ms_median"], 1),
+                      fmt_spread(s["neighbour_age_ms_p99"], 1),
+                      fmt_spread(s["agent_cores_median"], 2), fmt_spread(s["world_cores"], 2),
+                      fmt_spread(s["total_cores"], 2), fmt_spread(s["stale_messages"]),
+                      fmt_spread(s["final_error_max_m"], 3), _violations(s))
+    return [table]
+
+
+def _violations(summary: dict[str, Any]) -> str:
+    """Invariant violations, and failed runs if any."""
+    failed = summary["failed_runs"]
+    if not failed:
+        return str(summary["violations"])
+    kept = sum(f["usable"] for f in failed)
+    return f"{summary['violations']}; {len(failed)} run(s) failed, {kept} with figures kept"
+
+
+def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--case", default="case2")
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--duration", type=float, default=None)
-    args = parser.parse_args()
-    path = ROOT / "configs" / f"{args.case}.toml"
-    config = load_config(path)
-    if args.duration:
-        config = config.with_duration(args.duration)
-    runs = []
-    for repeat in range(args.repeats):
-        launcher = SwarmLauncher(LaunchOptions(config=config, config_path=str(path), seed=0,
-                                               mode="realtime"), log=lambda _line: None)
-        record = launcher.run()
-        counts = launcher.collector.counters()
-        late = counts["late_steps"] / max(counts["agent_steps"], 1)
-        targets = summarize_targets(record)
-        run = {
-            "repeat": repeat, **counts, "late_fraction": late,
-            "violations": [str(v) for v in check_invariants(record)],
-            "final_position_error_m": [t.final_position_error_m for t in targets],
-            "min_lambda_bar_margin": [t.min_lambda_bar_margin for t in targets],
-            "load_average": os.getloadavg(),
-        }
-        runs.append(run)
-        print(f"run {repeat}: agent steps {counts['agent_steps']} (telemetry received "
-              f"{counts['telemetry_received']}), late {counts['late_steps']} "
-              f"({100 * late:.2f} %), stale {counts['stale_neighbour_messages']}, "
-              f"violations {len(run['violations'])}, final errors "
-              f"{[round(e, 3) for e in run['final_position_error_m']]}", flush=True)
-    median = statistics.median(r["late_fraction"] for r in runs)
-    print(f"median late-step rate over {len(runs)} runs: {100 * median:.2f} % (target ≤ 1 %)")
-    out = ROOT / "benchmarks" / "results" / f"realtime_{args.case}.json"
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"case": args.case, "runs": runs, "median_late_fraction": median},
-                              indent=2))
+    parser.add_argument("--profile", choices=sorted(PROFILES), default="full")
+    parser.add_argument("--sizes", default=None, help="comma-separated N, e.g. 6,12,24")
+    parser.add_argument("--duration", type=float, default=None, help="simulated s per run")
+    parser.add_argument("--repeats", type=int, default=None)
+    parser.add_argument("--out", type=Path, default=RESULTS / "realtime.json")
+    args = parser.parse_args(argv)
+    profile = PROFILES[args.profile]
+    if args.sizes:
+        profile = dataclasses.replace(
+            profile, swarm_sizes=tuple(int(v) for v in args.sizes.split(",")))
+    if args.duration is not None:
+        profile = dataclasses.replace(profile, realtime_duration_s=args.duration)
+    if args.repeats is not None:
+        profile = dataclasses.replace(profile, realtime_repeats=args.repeats)
+    result = run(profile)
+    out = console()
+    for table in tables(result):
+        out.print(table)
+    result["command"] = " ".join(["python", "benchmarks/realtime_swarm.py",
+                                  *(argv or sys.argv[1:])])
+    result["machine"] = machine_info()
+    write_json(args.out, result)
+    out.print(f"wrote {args.out}")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

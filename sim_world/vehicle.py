@@ -8,7 +8,9 @@ starts, e.g. wall time until then and that instant plus sim time after). Bytes i
 out, so the same
 object is driven by ``sim-world`` in both time modes and by tests without any network.
 Encoding and parsing use pymavlink's generated MAVLink 2 module
-(``pymavlink.dialects.v20.ardupilotmega``); no byte is packed by hand. Not thread-safe.
+(``pymavlink.dialects.v20.ardupilotmega``); the per-step LOCAL_POSITION_NED out and velocity
+setpoints in go through ``swarm.mavlink_parse.FastFrame`` (pymavlink's formats and checksum,
+byte-identical frames, without its per-byte parser). Not thread-safe.
 
 Vehicle ``drone_id`` is MAVLink system ``drone_id + 1``, component 1 (MAV_COMP_ID_AUTOPILOT1).
 
@@ -117,7 +119,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 from sim_world.kinematics import clamp_velocity
 from sim_world.mavlink_endpoint import VehicleEndpoint
 from swarm import frames
-from swarm.mavlink_parse import parse_bytes
+from swarm.mavlink_parse import LOCAL_POSITION_NED, SET_POSITION_TARGET_LOCAL_NED, parse_bytes
 
 Array = NDArray[np.float64]
 Flavour = Literal["px4", "ardupilot"]
@@ -400,16 +402,22 @@ class EmulatedVehicle:
     def telemetry(self, time_boot_ms: int, now_s: float) -> list[bytes]:
         self._update(now_s)
         self._last_time_boot_ms = int(time_boot_ms) & 0xFFFFFFFF
-        msgs = []
+        packets: list[bytes] = []
         for name, stream in self._streams.items():
-            if self._due(stream, now_s):
-                msgs.append(self._stream_msg(name, self._last_time_boot_ms))
-        return self._emit(msgs)
+            if not self._due(stream, now_s):
+                continue
+            packet = self._local_position_packet() if name == "LOCAL_POSITION_NED" else None
+            packets += [packet] if packet is not None else self._emit(
+                [self._stream_msg(name, self._last_time_boot_ms)])
+        return packets
 
     # ---------------------------------------------------------------- incoming
     def receive(self, data: bytes, now_s: float) -> list[bytes]:
         replies: list[Any] = []
-        messages = parse_bytes(self._rx, data, self.rejections, datagram=self._datagram_framing)
+        setpoint = SET_POSITION_TARGET_LOCAL_NED.message(data) if self._datagram_framing \
+            else None
+        messages = [setpoint] if setpoint is not None else parse_bytes(
+            self._rx, data, self.rejections, datagram=self._datagram_framing)
         for msg in messages:
             try:
                 replies.extend(self._handle(msg, now_s))
@@ -690,13 +698,22 @@ class EmulatedVehicle:
         return self._tx.heartbeat_encode(_MSG.MAV_TYPE_QUADROTOR, autopilot, base_mode,
                                          self.custom_mode, status, 3)
 
+    def _local_position_fields(self) -> tuple[float, ...]:
+        x, y, z = (float(c) for c in frames.local_ned_from_world(self._position, self._origin))
+        vx, vy, vz = (float(c) for c in frames.enu_to_ned(self._velocity))
+        return x, y, z, vx, vy, vz
+
+    def _local_position_packet(self) -> bytes | None:
+        """LOCAL_POSITION_NED packed on the fast path (None: pymavlink must pack it)."""
+        return LOCAL_POSITION_NED.pack(self._tx, self._last_time_boot_ms,
+                                       *self._local_position_fields())
+
     def _stream_msg(self, name: str, time_boot_ms: int) -> Any:
         if name == "HEARTBEAT":
             return self._heartbeat_msg()
         if name == "LOCAL_POSITION_NED":
-            x, y, z = (float(c) for c in frames.local_ned_from_world(self._position, self._origin))
-            vx, vy, vz = (float(c) for c in frames.enu_to_ned(self._velocity))
-            return self._tx.local_position_ned_encode(time_boot_ms, x, y, z, vx, vy, vz)
+            return self._tx.local_position_ned_encode(time_boot_ms,
+                                                      *self._local_position_fields())
         if name == "ATTITUDE":
             return self._tx.attitude_encode(time_boot_ms, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         if name == "SYS_STATUS":

@@ -47,7 +47,10 @@ from swarm.wire import (
 
 Mode = Literal["lockstep", "realtime"]
 VehicleSource = Literal["sim", "external"]
-PRE_MISSION_PERIOD_S = 0.02  # telemetry and command handling before the mission starts
+PRE_MISSION_PERIOD_S = 0.02  # telemetry and vehicle motion before the mission starts
+# "running" on world/clock is repeated this often (wall), not every step: readers only act on
+# state changes (start, done, aborted), and a message per step cost every agent a wake-up.
+CLOCK_PERIOD_S = 0.25
 MISSION_TIME_OFFSET_MS = 1000  # mission stamps start this far past every pre-mission stamp
 DONE_LINGER_S = 10.0  # the world stays up this long after the mission unless stopped
 
@@ -90,6 +93,7 @@ class World:
         self.rejections = RejectionCounter()
         self.started = time.monotonic()
         self._sim_now: float | None = None
+        self._last_clock_s = -np.inf  # wall time of the last world/clock message
         self.positions = initial_drone_positions(cfg, options.seed)
         self.beacons: LatestValues[BeaconWire] = LatestValues()
         self.fleet: VehicleFleet | None = None
@@ -104,6 +108,8 @@ class World:
                     base_port=options.mavlink_base, u_max_m_s=cfg.control.u_max_m_s,
                     setpoint_timeout_s=cfg.vehicles.failsafe_timeout_s, clock=self.now_s)
             else:
+                # Not direct: this process hosts the router, whose threads must never wait
+                # for the GIL.
                 self._subscribers.append(subscribe(
                     self.session, self.keys.all_beacons, self.codec.decode_beacon,
                     lambda _key, beacon: self.beacons.put(beacon.sender, beacon),
@@ -138,9 +144,15 @@ class World:
             time.sleep(timeout_s)
 
     def publish_clock(self, step: int, state: str, detail: str = "") -> None:
+        self._last_clock_s = time.monotonic()
         self._pub_clock.put(self.codec.encode(ClockWire(
             step=step, time_s=step * self.dt_s, state=state, mode=self.options.mode,
             detail=detail)))
+
+    def publish_running(self, step: int) -> None:
+        """``running`` at step 0 (the mission starts), then every CLOCK_PERIOD_S."""
+        if step == 0 or time.monotonic() - self._last_clock_s >= CLOCK_PERIOD_S:
+            self.publish_clock(step, "running")
 
     def publish_step(self, step: int, vehicle_time_ms: int) -> None:
         """Camera frames for every drone and the ground truth of step k."""
@@ -176,10 +188,11 @@ class World:
 
     def wait_for_mission_start(self) -> None:
         """Serve the vehicles until every drone is armed and streaming setpoints (external
-        vehicles: until every drone's beacon has been heard)."""
+        vehicles: until every drone's beacon has been heard): commands are answered as they
+        arrive, the vehicles move and report every PRE_MISSION_PERIOD_S."""
         deadline = self.now_s() + self.options.config.runtime.start_timeout_s
         last_report = -np.inf
-        last_move = self.now_s()
+        last_move = next_tick = self.now_s()
         while True:
             # Drain what arrived first: after a stall (a loaded machine) the queued setpoints
             # must count before any failsafe timer is evaluated.
@@ -196,14 +209,18 @@ class World:
             if now - last_report >= 0.5:
                 last_report = now
                 self.publish_clock(0, "waiting", f"waiting for drones {pending}")
-            if self.fleet is not None:
-                # Armed vehicles fly what they are told even before the mission (any MAVLink
-                # client can fly one); the agents' idle setpoints are exactly zero.
-                self.fleet.fly(now - last_move)
-                self.positions[:] = self.fleet.positions_w
-                self.fleet.send_telemetry(self.boot_ms())
-            last_move = now
-            self._wait(PRE_MISSION_PERIOD_S)
+            if now >= next_tick:
+                next_tick += PRE_MISSION_PERIOD_S
+                if next_tick <= now:  # fell behind (a stall): no burst of catch-up ticks
+                    next_tick = now + PRE_MISSION_PERIOD_S
+                if self.fleet is not None:
+                    # Armed vehicles fly what they are told even before the mission (any
+                    # MAVLink client can fly one); the agents' idle setpoints are exactly zero.
+                    self.fleet.fly(now - last_move)
+                    self.positions[:] = self.fleet.positions_w
+                    self.fleet.send_telemetry(self.boot_ms())
+                last_move = now
+            self._wait(max(next_tick - self.now_s(), 0.0))
 
     def run_lockstep(self) -> None:
         fleet = self.fleet
@@ -218,7 +235,7 @@ class World:
                 vehicle.begin_step(stamp)
             fleet.send_telemetry(stamp)
             self.publish_step(k, stamp)
-            self.publish_clock(k, "running")
+            self.publish_running(k)
             deadline = time.monotonic() + timeout
             velocities: list[np.ndarray | None] = [None] * self.n
             while True:
@@ -245,7 +262,7 @@ class World:
             else:
                 self.fleet.send_telemetry(self.boot_ms())
             self.publish_step(k, self.boot_ms())
-            self.publish_clock(k, "running")
+            self.publish_running(k)
             # Until the next tick: answer MAVLink as it comes, then move every vehicle with
             # what it applies at that moment (its latest setpoint, or a failsafe hold).
             while (remaining := limiter.remaining()) > 0:
@@ -264,9 +281,9 @@ class World:
                 f"{', '.join(opts.listen)}"
                 + (f", MAVLink to {opts.mavlink_host}:{opts.mavlink_base}.."
                    f"{opts.mavlink_base + self.n - 1}" if opts.vehicles == "sim" else ""))
+            freeze_heap()  # set up: collect now, not between "every drone ready" and step 0
             self.wait_for_mission_start()
             log("world: every drone ready; mission starts")
-            freeze_heap()
             if opts.mode == "lockstep":
                 self.run_lockstep()
             else:

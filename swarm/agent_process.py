@@ -46,7 +46,8 @@ from swarm.wire import (
 )
 
 Mode = Literal["lockstep", "realtime"]
-WAIT_SLICE_S = 0.25  # lockstep waits are cut into slices to notice the end of the mission
+WAIT_SLICE_S = 0.25  # lockstep waits wake at least this often to check their deadline
+ROUTER_RETRY_S = 0.05  # the world's router is not up yet: try again this soon
 
 
 class MissionEnded(Exception):
@@ -101,16 +102,19 @@ class AgentProcess:
         self.neighbour_age_ms = float("nan")
 
         self.session = self._open_session()
+        # Direct callbacks (on zenoh's receiving thread): every step waits on these, and each
+        # only decodes and stores. Our own beacon never comes back to us.
         subs = [
             subscribe(self.session, self.keys.camera(self.id), self.codec.decode_camera,
-                      self._on_camera, self.rejections, "camera"),
+                      self._on_camera, self.rejections, "camera", direct=True),
             subscribe(self.session, self.keys.all_beacons, self.codec.decode_beacon,
-                      self._on_beacon, self.rejections, "beacon"),
+                      self._on_beacon, self.rejections, "beacon", direct=True,
+                      remote_only=True),
             subscribe(self.session, self.keys.clock, self.codec.decode_clock,
-                      lambda _k, c: self.clock.put(0, c), self.rejections, "clock"),
+                      self._on_clock, self.rejections, "clock", direct=True),
         ]
         subs += [subscribe(self.session, self.keys.consensus(j), self.codec.decode_consensus,
-                           self._on_consensus, self.rejections, "consensus")
+                           self._on_consensus, self.rejections, "consensus", direct=True)
                  for j in sorted(self.neighbours)]
         self._subscribers = subs
         self._lockstep = lockstep
@@ -147,9 +151,15 @@ class AgentProcess:
                     announced = True
                     opts.log(f"drone {self.id}: waiting for the world's Zenoh router at "
                              f"{', '.join(opts.connect)}")
-                time.sleep(0.2)
+                time.sleep(ROUTER_RETRY_S)
 
     # -- subscriptions (zenoh threads) ------------------------------------------------------
+
+    def _on_clock(self, _key: str, clock: ClockWire) -> None:
+        self.clock.put(0, clock)
+        if clock.state in ("done", "aborted"):  # whatever the loop waits for is not coming
+            for mailbox in (self.camera_steps, self.consensus_steps, self.beacon_steps):
+                mailbox.close()
 
     def _on_camera(self, _key: str, frame: CameraFrameWire) -> None:
         if frame.drone != self.id:
@@ -246,10 +256,11 @@ class AgentProcess:
         detections = frame.detection_list() if frame is not None else []
         communicated = frame.target_velocity_array() if frame is not None else None
         msg = agent.begin_step(step, position, detections, communicated)
+        # Consensus first: the neighbours wait for it before anything else of this step.
+        self._publish_consensus(msg)
         self._publish(self._pub_beacon, BeaconWire.build(
             sender=self.id, step=step, time_s=step * self.options.config.scenario.dt_s,
             position_m=position, velocity_m_s=self._flying, sample_age_s=sample_age_s))
-        self._publish_consensus(msg)
         for rnd in range(agent.n_rounds):
             if self._lockstep:
                 inbox = self._wait_steps(self.consensus_steps, step, rnd, self.neighbours,
@@ -285,11 +296,11 @@ class AgentProcess:
     def start(self) -> None:
         """MAVLink handshake, then keep the setpoint stream alive until the mission starts."""
         cfg = self.options.config
+        freeze_heap()  # set up: collect now, not between the handshake and the first step
         self.link.wait_heartbeat(timeout_s=cfg.runtime.start_timeout_s)
         # Takeoff altitude None: the link climbs to where the vehicle already is (ArduPilot).
         self.link.handshake(timeout_s=cfg.runtime.start_timeout_s)
         self.options.log(f"drone {self.id}: armed and streaming; waiting for the mission")
-        freeze_heap()
         deadline = time.monotonic() + cfg.runtime.start_timeout_s
         while self.camera_latest.get(0) is None:
             self._check_clock()

@@ -16,7 +16,10 @@ Reading drains the socket completely and keeps only the newest sample (a queue o
 samples is the classic bug). Bad bytes never raise: BAD_DATA (garbage, bad CRC, bad length)
 and unknown message ids are counted in ``rejected_frames`` (reasons in ``rejections``);
 frames from other systems (another vehicle, a GCS, MAVProxy's own heartbeat) are ignored and
-counted in ``foreign_frames``.
+counted in ``foreign_frames``. The per-step messages (LOCAL_POSITION_NED in, the velocity
+setpoint out) take ``swarm.mavlink_parse``'s fast path over UDP: same bytes, no
+pymavlink message objects (so pymavlink's own bookkeeping, e.g. ``messages`` and packet-loss
+counts, does not see those samples).
 
 Public API
 ----------
@@ -41,8 +44,11 @@ clock=time.monotonic)``
     ``last_heartbeat_s``, ``rejected_frames``, ``rejections``, ``foreign_frames``.
     Times (``now_s``, ``received_s``, ``last_heartbeat_s``) are on ``clock``.
 
+``wait_heartbeat`` asks the vehicle for a HEARTBEAT (MAV_CMD_REQUEST_MESSAGE, every 0.25 s)
+as soon as any frame of it arrives, rather than waiting up to a second for the 1 Hz one.
+
 Handshake (each stage logged as ``drone <id>: ...``; a stage already in effect is skipped):
-PX4: stream zero setpoints at 20 Hz for 0.5 s; DO_SET_MODE OFFBOARD (custom main mode 6)
+PX4: stream zero setpoints at 20 Hz for 0.2 s; DO_SET_MODE OFFBOARD (custom main mode 6)
 until ACCEPTED and the heartbeat shows OFFBOARD; ARM until ACCEPTED and the heartbeat shows
 armed. ArduPilot: MAV_CMD_SET_MESSAGE_INTERVAL LOCAL_POSITION_NED at 50 Hz until ACCEPTED and
 a sample arrives; DO_SET_MODE GUIDED (4); ARM; MAV_CMD_NAV_TAKEOFF to ``takeoff_altitude_m``
@@ -73,7 +79,7 @@ from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from swarm import frames
-from swarm.mavlink_parse import parse_bytes
+from swarm.mavlink_parse import LOCAL_POSITION_NED, SET_POSITION_TARGET_LOCAL_NED, parse_bytes
 
 Array = NDArray[np.float64]
 Flavour = Literal["px4", "ardupilot"]
@@ -88,9 +94,15 @@ _ACM_MODE_GUIDED = 4
 _SETPOINT_PERIOD_S = 0.05  # zero setpoints during the handshake: 20 Hz
 _KEEPALIVE_PERIOD_S = 0.1
 _COMPANION_HEARTBEAT_PERIOD_S = 1.0
-_PRE_STREAM_S = 0.5
+# PX4 takes OFFBOARD once setpoints arrive (a 2 Hz "proof of life" within COM_OF_LOSS_T);
+# a few at 20 Hz are plenty, and this wait is on every agent's path to the mission.
+_PRE_STREAM_S = 0.2
 _CONFIRM_TIMEOUT_S = 2.5
 _RETRY_PAUSE_S = 0.3
+# Ask for a HEARTBEAT (MAV_CMD_REQUEST_MESSAGE) at most this often once the vehicle is heard,
+# instead of waiting up to a second for its 1 Hz one; autopilots that refuse just NACK.
+_HEARTBEAT_REQUEST_PERIOD_S = 0.25
+_MAV_CMD_REQUEST_MESSAGE = 512
 _MAX_STAMPED_SAMPLES = 512
 _MAX_MESSAGES_PER_DRAIN = 100_000
 _AUTOPILOT_NAMES = {mavlink2.MAV_AUTOPILOT_PX4: "PX4",
@@ -168,7 +180,10 @@ class AutopilotLink:
         self._closed = False
 
         self._heartbeat: Any = None
+        self._mode_name: str | None = None  # mode_string_v10 of _heartbeat, computed once
         self._last_heartbeat_s: float | None = None
+        self._vehicle_heard = False  # any valid frame from the autopilot (its address known)
+        self._last_heartbeat_request_s: float | None = None
         self._other_systems: set[int] = set()
         self._acks: dict[int, int] = {}
         self._latest: PositionSample | None = None
@@ -215,7 +230,11 @@ class AutopilotLink:
 
     @property
     def mode(self) -> str:
-        return "UNKNOWN" if self._heartbeat is None else mavutil.mode_string_v10(self._heartbeat)
+        if self._heartbeat is None:
+            return "UNKNOWN"
+        if self._mode_name is None:  # read every step (telemetry); the heartbeat comes at 1 Hz
+            self._mode_name = mavutil.mode_string_v10(self._heartbeat)
+        return self._mode_name
 
     @property
     def custom_mode(self) -> int | None:
@@ -265,7 +284,10 @@ class AutopilotLink:
         start = self._clock()
 
         def fresh() -> bool:
-            return self._last_heartbeat_s is not None and self._last_heartbeat_s >= start - 1.5
+            if self._last_heartbeat_s is not None and self._last_heartbeat_s >= start - 1.5:
+                return True
+            self._request_heartbeat()
+            return False
 
         if not self._pump(fresh, start + timeout_s, stream=False):
             raise LinkError(self._no_heartbeat_message(timeout_s))
@@ -461,11 +483,35 @@ class AutopilotLink:
                 wait = min(wait, _SETPOINT_PERIOD_S)
             self._wait_readable(min(wait, 0.05))
 
+    def _request_heartbeat(self) -> None:
+        """Ask the autopilot for a HEARTBEAT now, once it is heard (udpin: before that its
+        address is unknown) and at most every _HEARTBEAT_REQUEST_PERIOD_S."""
+        if not self._vehicle_heard:
+            return
+        now = self._clock()
+        if self._last_heartbeat_request_s is not None \
+                and now - self._last_heartbeat_request_s < _HEARTBEAT_REQUEST_PERIOD_S:
+            return
+        self._last_heartbeat_request_s = now
+        self._conn.mav.command_long_send(self._sysid, AUTOPILOT_COMPONENT_ID,
+                                         _MAV_CMD_REQUEST_MESSAGE, 0,
+                                         mavlink2.MAVLINK_MSG_ID_HEARTBEAT, 0, 0, 0, 0, 0, 0)
+
     def _send_setpoint(self, ned: Array, stamp: int) -> None:
         vn, ve, vd = (float(c) for c in ned)
-        self._conn.mav.set_position_target_local_ned_send(
-            stamp, self._sysid, AUTOPILOT_COMPONENT_ID, mavlink2.MAV_FRAME_LOCAL_NED,
-            VELOCITY_ONLY_TYPE_MASK, 0.0, 0.0, 0.0, vn, ve, vd, 0.0, 0.0, 0.0, 0.0, 0.0)
+        mav = self._conn.mav
+        # Fields in wire order (SET_POSITION_TARGET_LOCAL_NED.fields); pymavlink's own send
+        # when the fast path does not apply (signing, a send callback).
+        frame = SET_POSITION_TARGET_LOCAL_NED.pack(
+            mav, stamp, 0.0, 0.0, 0.0, vn, ve, vd, 0.0, 0.0, 0.0, 0.0, 0.0,
+            VELOCITY_ONLY_TYPE_MASK, self._sysid, AUTOPILOT_COMPONENT_ID,
+            mavlink2.MAV_FRAME_LOCAL_NED)
+        if frame is not None:
+            mav.file.write(frame)
+        else:
+            mav.set_position_target_local_ned_send(
+                stamp, self._sysid, AUTOPILOT_COMPONENT_ID, mavlink2.MAV_FRAME_LOCAL_NED,
+                VELOCITY_ONLY_TYPE_MASK, 0.0, 0.0, 0.0, vn, ve, vd, 0.0, 0.0, 0.0, 0.0, 0.0)
         now = self._clock()
         self._last_setpoint_sent_s = now
         if self._last_companion_hb_s is None \
@@ -520,6 +566,11 @@ class AutopilotLink:
                 return
             if not data:
                 return
+            fast = LOCAL_POSITION_NED.unpack(data)
+            if fast is not None and fast[0] == self._sysid and fast[1] == AUTOPILOT_COMPONENT_ID:
+                self._vehicle_heard = True
+                self._on_local_position(*fast[2])  # the 50 Hz sample: no message object
+                continue
             for msg in parse_bytes(mav, data, self.rejections, datagram=True):
                 self._handle(msg)
 
@@ -547,26 +598,31 @@ class AutopilotLink:
         if msg.get_srcComponent() != AUTOPILOT_COMPONENT_ID:
             self.foreign_frames += 1
             return
+        self._vehicle_heard = True
         if kind == "HEARTBEAT":
             self._heartbeat = msg
+            self._mode_name = None
             self._last_heartbeat_s = self._clock()
         elif kind == "LOCAL_POSITION_NED":
-            ned = np.array([msg.x, msg.y, msg.z], dtype=np.float64)
-            vel = np.array([msg.vx, msg.vy, msg.vz], dtype=np.float64)
-            if not (np.all(np.isfinite(ned)) and np.all(np.isfinite(vel))):
-                self.rejections["nonfinite_position"] += 1
-                return
-            sample = PositionSample(int(msg.time_boot_ms),
-                                    frames.world_from_local_ned(ned, self._origin),
-                                    frames.ned_to_enu(vel), self._clock())
-            self._latest = sample
-            self._samples_received += 1
-            self._by_stamp[sample.time_boot_ms] = sample
-            self._by_stamp.move_to_end(sample.time_boot_ms)
-            while len(self._by_stamp) > _MAX_STAMPED_SAMPLES:
-                self._by_stamp.popitem(last=False)
+            self._on_local_position(msg.time_boot_ms, msg.x, msg.y, msg.z, msg.vx, msg.vy,
+                                    msg.vz)
         elif kind == "COMMAND_ACK" and msg.target_system in (0, self._source_system):
             self._acks[int(msg.command)] = int(msg.result)
+
+    def _on_local_position(self, time_boot_ms: int, x: float, y: float, z: float,
+                           vx: float, vy: float, vz: float) -> None:
+        if not all(map(math.isfinite, (x, y, z, vx, vy, vz))):
+            self.rejections["nonfinite_position"] += 1
+            return
+        sample = PositionSample(int(time_boot_ms),
+                                frames.world_from_local_ned((x, y, z), self._origin),
+                                frames.ned_to_enu((vx, vy, vz)), self._clock())
+        self._latest = sample
+        self._samples_received += 1
+        self._by_stamp[sample.time_boot_ms] = sample
+        self._by_stamp.move_to_end(sample.time_boot_ms)
+        while len(self._by_stamp) > _MAX_STAMPED_SAMPLES:
+            self._by_stamp.popitem(last=False)
 
 
 def _udpin_port(url: str) -> int | None:

@@ -35,11 +35,14 @@ class ServedVehicle:
 
     ``intercept(message, now_s)`` may answer a parsed incoming message itself (returning the
     reply packets) instead of passing its datagram to the vehicle; it returns None to pass.
+    ``heartbeat_period_s`` None: no periodic HEARTBEAT (only requested ones).
     """
 
     def __init__(self, vehicle: EmulatedVehicle, agent_port: int,
-                 intercept: Callable[[Any, float], list[bytes] | None] | None = None) -> None:
+                 intercept: Callable[[Any, float], list[bytes] | None] | None = None,
+                 heartbeat_period_s: float | None = 1.0) -> None:
         self.vehicle = vehicle
+        self.heartbeat_period_s = heartbeat_period_s
         self.endpoint = VehicleEndpoint(("127.0.0.1", agent_port))
         self.intercept = intercept
         self.lock = threading.Lock()
@@ -63,9 +66,9 @@ class ServedVehicle:
             while not self._stop.is_set():
                 now = time.monotonic()
                 with self.lock:
-                    if now >= next_heartbeat:  # 1 Hz, as sim-world does
-                        self.endpoint.send([self.vehicle.heartbeat()])
-                        next_heartbeat += 1.0
+                    if self.heartbeat_period_s is not None and now >= next_heartbeat:
+                        self.endpoint.send([self.vehicle.heartbeat()])  # 1 Hz, as sim-world
+                        next_heartbeat += self.heartbeat_period_s
                     for data in self.endpoint.poll():
                         self._deliver(data, now - self._t0)
                     if now >= next_step:
@@ -114,11 +117,12 @@ def served() -> Iterator[Callable[..., tuple[AutopilotLink, ServedVehicle]]]:
     made: list[tuple[AutopilotLink, ServedVehicle]] = []
 
     def factory(flavour: str, logs: list[str], *, link_flavour: str | None = None,
-                intercept: Any = None) -> tuple[AutopilotLink, ServedVehicle]:
+                intercept: Any = None, heartbeat_period_s: float | None = 1.0
+                ) -> tuple[AutopilotLink, ServedVehicle]:
         link = make_link(link_flavour or flavour, logs)
         vehicle = EmulatedVehicle(DRONE, flavour, START, ORIGIN)  # type: ignore[arg-type]
         assert link.local_address is not None
-        server = ServedVehicle(vehicle, link.local_address[1], intercept)
+        server = ServedVehicle(vehicle, link.local_address[1], intercept, heartbeat_period_s)
         made.append((link, server))
         return link, server
 
@@ -252,6 +256,17 @@ def test_flavour_mismatch_is_reported(served: Any, logs: list[str]) -> None:
         link.wait_heartbeat(3.0)
     assert str(err.value) == (f"drone {DRONE}: system {SYS} on {link.url} reports autopilot "
                               f"ArduPilot but flavour 'px4' is configured")
+
+
+def test_a_heartbeat_is_requested_as_soon_as_the_vehicle_is_heard(served: Any,
+                                                                   logs: list[str]) -> None:
+    """A vehicle that streams LOCAL_POSITION_NED but sends no periodic HEARTBEAT answers
+    MAV_CMD_REQUEST_MESSAGE: the link does not wait for a 1 Hz heartbeat."""
+    link, _server = served("px4", logs, heartbeat_period_s=None)
+    started = time.monotonic()
+    link.wait_heartbeat(timeout_s=5.0)
+    assert time.monotonic() - started < 1.0
+    assert link.autopilot == mav.MAV_AUTOPILOT_PX4 and link.mode == "LOITER"
 
 
 def test_no_heartbeat_error_names_the_port_base() -> None:

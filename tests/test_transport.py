@@ -227,6 +227,27 @@ def test_mailbox_wakes_as_soon_as_the_last_sender_arrives() -> None:
     assert results["elapsed"] < 5.0
 
 
+def test_a_closed_mailbox_stops_waiting_now_and_later() -> None:
+    box: StepMailbox[int] = StepMailbox()
+    box.put(5, 0, 1, 10)
+    results: dict[str, object] = {}
+
+    def waiter() -> None:
+        started = time.monotonic()
+        results["got"] = box.wait_for(5, 0, {1, 2}, timeout_s=30.0)
+        results["elapsed"] = time.monotonic() - started
+
+    thread = threading.Thread(target=waiter)
+    thread.start()
+    box.put(5, 0, 3, 30)  # not what the waiter needs: it keeps waiting
+    box.close()
+    thread.join(timeout=10.0)
+    assert results["got"] == {1: 10} and results["elapsed"] < 5.0
+    started = time.monotonic()
+    assert box.wait_for(6, 0, {1}, timeout_s=30.0) == {}
+    assert time.monotonic() - started < 1.0
+
+
 def test_mailbox_memory_stays_bounded() -> None:
     box: StepMailbox[int] = StepMailbox(horizon_steps=2, max_ahead_steps=3, max_entries=1000)
     for step in range(200):
@@ -481,6 +502,33 @@ def test_router_and_client_processes_exchange_validated_messages(spawn) -> None:
         assert_loopback_only(router.ready["pid"])
         assert any(port == p for _, _, p in inet_sockets(router.ready["pid"]))
     assert rejections.total() == 0
+
+
+def test_direct_remote_only_subscription_skips_its_own_session(spawn) -> None:
+    """``direct=True`` callbacks run on zenoh's thread; ``remote_only=True`` leaves out what
+    the subscribing session itself publishes on the same key expression."""
+    port = free_port()
+    router = spawn("--mode", "router", "--listen", endpoint(port), "--run-id", "delta")
+    keys = Keys("delta")
+    received: LatestValues = LatestValues()
+    threads: set[str] = set()
+
+    def handler(_key: str, beacon) -> None:
+        threads.add(type(threading.current_thread()).__name__)
+        received.put(beacon.sender, beacon, seq=beacon.step)
+
+    with session(zenoh_config(mode="client", connect=[endpoint(port)])) as local:
+        subscribe(local, keys.all_beacons, CODEC.decode_beacon, handler, RejectionCounter(),
+                  "beacon", direct=True, remote_only=True)
+        own = declare_publisher(local, keys.beacon(1))
+        repeat_until(lambda: (own.put(CODEC.encode(BeaconWire.build(1, 0, 0.0, [0, 0, 1.0]))),
+                              router.send(cmd="beacon", sender=4, step=0)),
+                     lambda wait_s: received.wait_for({4}, wait_s))
+        own.put(CODEC.encode(BeaconWire.build(1, 1, 0.02, [0, 0, 1.0])))
+        router.send(cmd="beacon", sender=4, step=1)
+        assert received.wait_for({4}, DEADLINE_S, min_seq=1)
+    assert received.get(1) is None  # our own beacons never came back
+    assert threads == {"_DummyThread"}  # zenoh's own thread, not a Python-made one
 
 
 def test_handler_and_decoder_exceptions_never_reach_zenoh(spawn) -> None:

@@ -1,0 +1,227 @@
+"""Every benchmark of issue 5 in one command: tables on stdout, JSON in benchmarks/results/.
+
+    python benchmarks/run_all.py                   # full run (~15 min on 2 cores)
+    python benchmarks/run_all.py --quick           # a few minutes, to benchmarks/results/quick/
+    python benchmarks/run_all.py --only step,qp    # some sections
+
+Sections (each also runs alone: ``python benchmarks/<module>.py``):
+
+- ``step``     (bench_step.py)     per-drone step for M = 1, 2, 3 with its breakdown and wire
+                                   encode/decode, and the M = 2 step with the QP rebuilt in
+                                   CVXPY;
+- ``qp``       (bench_qp.py)       the local QP of real Case 2 steps: our PIQP path against
+                                   CVXPY rebuilt and parametrized (PIQP, CLARABEL, OSQP);
+- ``lockstep`` (bench_lockstep.py) process-swarm throughput for N = 6, 12, 24;
+- ``realtime`` (realtime_swarm.py) 50 Hz process swarm for N = 6, 12, 24: late steps, step
+                                   latency, neighbour-data age, CPU per agent;
+- ``startup``  (bench_startup.py)  launch → every drone streaming, agent memory, imports.
+
+Writes ``<out>/<section>.json`` and ``<out>/summary.json`` (machine, versions, load average
+before and after each section, the issue's targets against the newest figures of every
+section, those of sections not run this time read from their JSON). Nothing is asserted:
+the figures depend on the machine and its load, which the summary records. Exit code 1 if a
+section failed to run (its error is in the summary), else 0.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import bench_lockstep
+import bench_qp
+import bench_startup
+import bench_step
+import realtime_swarm
+from common import (
+    PROFILES,
+    RESULTS,
+    SectionClock,
+    console,
+    fmt,
+    load_average,
+    machine_info,
+    new_table,
+    write_json,
+)
+from rich.table import Table
+
+SECTIONS = ("step", "qp", "lockstep", "realtime", "startup")
+MIB_PER_MB = 1e6 / 2**20
+
+
+def run_section(name: str, profile: Any, done: dict[str, dict[str, Any]],
+                out_dir: Path) -> dict[str, Any]:
+    if name == "step":
+        return bench_step.run(profile)
+    if name == "qp":  # the whole-step estimate takes the newest step figures
+        step = done.get("step")
+        if step is None and (out_dir / "step.json").exists():
+            step = json.loads((out_dir / "step.json").read_text())
+        return bench_qp.run(profile, step_result=step)
+    if name == "lockstep":
+        return bench_lockstep.run(profile)
+    if name == "realtime":
+        return realtime_swarm.run(profile)
+    return bench_startup.run(profile)
+
+
+TABLES: dict[str, Callable[[dict[str, Any]], list[Table]]] = {
+    "step": bench_step.tables, "qp": bench_qp.tables, "lockstep": bench_lockstep.tables,
+    "realtime": realtime_swarm.tables, "startup": bench_startup.tables,
+}
+
+
+# -- the issue's targets ------------------------------------------------------------------
+
+
+def _swarm_figure(section: dict[str, Any] | None, n: int, key: str) -> float | None:
+    if section is None:
+        return None
+    res = next((r for r in section["results"] if r["n_drones"] == n), None)
+    return None if res is None else res["summary"][key]["median"]
+
+
+def targets(done: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
+    """Each target of issue 5 with the figure measured for it (None: section not run)."""
+    step, startup = done.get("step"), done.get("startup")
+    step_m2 = cvxpy_ratio = cpu_ratio = None
+    if step is not None:
+        ours = next((r for r in step["results"] if r["m_targets"] == 2 and r["qp"] == "piqp"),
+                    None)
+        step_m2 = None if ours is None else ours["summary"]["total"]["median"]["median"]
+        ratio = step.get("cvxpy_step_ratio")
+        cvxpy_ratio = None if ratio is None else ratio["total"]["median"]
+        cpu_ratio = None if ratio is None else ratio["cpu"]["median"]
+    rss = launch = None
+    if startup is not None:
+        rss = startup["summary"]["agent_hwm_mib_max"]["median"]
+        launch = startup["summary"]["launch_to_streaming_s"]["median"]
+    else:  # the lockstep N = 6 runs measure both as well
+        rss = _swarm_figure(done.get("lockstep"), 6, "agent_hwm_mib_max")
+        launch = _swarm_figure(done.get("lockstep"), 6, "launch_to_streaming_s")
+    rows = [
+        ("per-drone step, M = 2, everything included (median)", "≤ 150 µs", step_m2,
+         lambda v: v <= 150.0, lambda v: f"{v:.0f} µs"),
+        ("the same step with the QP rebuilt in CVXPY is slower by (wall; thread CPU)",
+         "≥ 30×", cvxpy_ratio, lambda v: v >= 30.0,
+         lambda v: f"{v:.1f}×; {cpu_ratio:.1f}×" if cpu_ratio else f"{v:.1f}×"),
+        ("lockstep N = 6 real-time factor", "≥ 5×",
+         _swarm_figure(done.get("lockstep"), 6, "real_time_factor"),
+         lambda v: v >= 5.0, lambda v: f"{v:.2f}×"),
+        ("realtime 50 Hz N = 12 late steps", "≤ 1 %",
+         _swarm_figure(done.get("realtime"), 12, "late_fraction"),
+         lambda v: v <= 0.01, lambda v: f"{100 * v:.2f} %"),
+        ("agent peak RSS (largest agent's VmHWM)", "≤ 70 MB", rss,
+         lambda v: v <= 70.0, lambda v: f"{v:.1f} MiB = {v / MIB_PER_MB:.1f} MB"),
+        ("launch of N = 6 → every drone streaming setpoints", "≤ 3 s", launch,
+         lambda v: v <= 3.0, lambda v: f"{v:.2f} s"),
+    ]
+    out = []
+    for label, goal, value, ok, shown in rows:
+        if value is None:
+            status, text = "not measured", "—"
+        else:
+            status, text = ("met" if ok(value) else "not met"), shown(value)
+            if goal == "≤ 70 MB" and ok(value) != (value / MIB_PER_MB <= 70.0):
+                status = "met in MiB, not in MB"
+        out.append({"target": label, "goal": goal, "value": value, "shown": text,
+                    "status": status})
+    return out
+
+
+def targets_table(rows: list[dict[str, Any]]) -> Table:
+    table = new_table("Issue 5 targets", ["target", "goal", "measured", "status"],
+                      caption="medians over the repeats (see each section)")
+    for row in rows:
+        table.add_row(row["target"], row["goal"], row["shown"], row["status"])
+    return table
+
+
+def _load_line(clock: dict[str, Any]) -> str:
+    cores = clock["cpu_cores"]
+    return (f"load average {clock['load_before']} → {clock['load_after']}; CPU cores used by "
+            f"us {cores['ours']:.2f}, by other processes {cores['others']:.2f}, stolen "
+            f"{cores['steal']:.2f}")
+
+
+# -- main ---------------------------------------------------------------------------------
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="a few minutes instead of ~15")
+    parser.add_argument("--profile", choices=sorted(PROFILES), default=None,
+                        help="run sizes: full (default), quick (= --quick), smoke (tests)")
+    parser.add_argument("--only", default=",".join(SECTIONS),
+                        help=f"comma-separated sections of {', '.join(SECTIONS)}")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="output directory (default benchmarks/results, or "
+                             "benchmarks/results/quick with --quick)")
+    args = parser.parse_args(argv)
+    profile = PROFILES[args.profile or ("quick" if args.quick else "full")]
+    chosen = [s.strip() for s in args.only.split(",") if s.strip()]
+    unknown = sorted(set(chosen) - set(SECTIONS))
+    if unknown:
+        parser.error(f"unknown sections {unknown}; choose from {', '.join(SECTIONS)}")
+    out_dir = args.out or (RESULTS if profile.name == "full" else RESULTS / profile.name)
+    out = console()
+    machine = machine_info()
+    out.print(f"benchmarks ({profile.name}): {', '.join(chosen)} on {machine['cpus']} CPUs "
+              f"({machine['cpu_model']}), load average {load_average()}, commit "
+              f"{machine['git_commit']}")
+    clock = SectionClock()
+    done: dict[str, dict[str, Any]] = {}
+    sections_info: dict[str, Any] = {}
+    for name in SECTIONS:
+        if name not in chosen:
+            continue
+        out.print(f"[{time.strftime('%H:%M:%S')}] {name} ...", style="bold")
+        try:
+            result = run_section(name, profile, done, out_dir)
+        except Exception as err:  # one broken section must not lose the others' figures
+            out.print(f"{name}: failed: {type(err).__name__}: {err}", style="red")
+            sections_info[name] = {"error": f"{type(err).__name__}: {err}"}
+            continue
+        result["finished_at"] = time.strftime("%Y-%m-%dT%H:%M:%S%z")
+        done[name] = result
+        path = out_dir / f"{name}.json"
+        write_json(path, {**result, "machine": machine})
+        for table in TABLES[name](result):
+            out.print(table)
+        sections_info[name] = {"json": str(path), "wall_s": result["wall_s"],
+                               "load_before": result["load_before"],
+                               "load_after": result["load_after"],
+                               "cpu_cores": result["cpu_cores"]}
+        out.print(f"{name}: {result['wall_s']:.0f} s; {_load_line(result)}; wrote {path}")
+    # The targets take every section's newest figures: a section not run now comes from its
+    # JSON of an earlier run in the same directory (said so in the summary).
+    newest = dict(done)
+    for name in SECTIONS:
+        path = out_dir / f"{name}.json"
+        if name not in newest and name not in sections_info and path.exists():
+            earlier = json.loads(path.read_text())
+            newest[name] = earlier
+            sections_info[name] = {"json": str(path), "from_earlier_run": True,
+                                   "finished_at": earlier.get("finished_at"),
+                                   "machine": earlier.get("machine")}
+    goals = targets(newest)
+    out.print(targets_table(goals))
+    total = clock.done()
+    summary = {"command": " ".join(["python", "benchmarks/run_all.py",
+                                    *(argv if argv is not None else sys.argv[1:])]),
+               "profile": profile.name, "machine": machine, **total,
+               "sections": sections_info, "targets": goals}
+    write_json(out_dir / "summary.json", summary)
+    out.print(f"total {fmt(total['wall_s'], 0)} s; {_load_line(total)}; wrote "
+              f"{out_dir / 'summary.json'}")
+    return 1 if any("error" in info for info in sections_info.values()) else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,90 @@
+"""The benchmark harness (benchmarks/run_all.py) in its smallest form: every section runs and
+writes the fields the report is made of. Timings are measured, never asserted here."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+pytest.importorskip("cvxpy", reason="the benchmarks need the 'bench' extra (cvxpy)")
+
+import bench_startup  # noqa: E402
+import run_all  # noqa: E402
+import swarm_configs  # noqa: E402
+
+
+def test_scaled_configs_are_generated_from_case2_and_valid() -> None:
+    for n in swarm_configs.SCALED_SIZES:
+        path, config = swarm_configs.load_scaled(n)
+        assert path.read_text() == swarm_configs.scaled_toml(n), (
+            f"{path} is stale: run python benchmarks/swarm_configs.py --write")
+        assert config.swarm.n_drones == n
+        assert config.swarm.graph.is_connected()
+        assert {config.swarm.graph.degree(i) for i in range(n)} == {3}
+
+
+def test_importtime_lines_are_parsed_with_their_importer() -> None:
+    text = ("import time: self [us] | cumulative | imported package\n"
+            "import time:       100 |        100 |     numpy.core\n"
+            "import time:        50 |        150 |   numpy\n"
+            "import time:        10 |        160 | swarm.agent_cli\n")
+    entries = {e["module"]: e for e in bench_startup.parse_importtime(text)}
+    assert entries["numpy"]["parent"] == "swarm.agent_cli"
+    assert entries["numpy.core"]["parent"] == "numpy"
+    assert entries["numpy"]["cumulative_us"] == 150 and entries["numpy"]["self_us"] == 50
+
+
+def test_every_section_runs_and_writes_its_fields(tmp_path: Path) -> None:
+    assert run_all.main(["--profile", "smoke", "--out", str(tmp_path)]) == 0
+    load = lambda name: json.loads((tmp_path / f"{name}.json").read_text())  # noqa: E731
+
+    summary = load("summary")
+    assert summary["machine"]["cpus"] >= 1 and "numpy" in summary["machine"]["versions"]
+    assert set(summary["sections"]) == set(run_all.SECTIONS)
+    assert len(summary["targets"]) == 6
+    for section in run_all.SECTIONS:
+        assert "load_before" in summary["sections"][section]
+
+    step = load("step")
+    ours = next(r for r in step["results"] if r["qp"] == "piqp")
+    for name in ("total", "core", "estimation", "consensus", "barrier", "qp", "encode",
+                 "decode"):
+        assert ours["summary"][name]["median"]["median"] > 0, name
+        assert ours["summary"][name]["p99"]["median"] > 0, name
+    for kind in ("encode consensus", "encode beacon", "encode telemetry", "decode camera",
+                 "decode consensus", "decode beacons"):
+        assert ours["summary"][kind]["median"]["median"] > 0, kind
+    assert step["cvxpy_step_ratio"]["total"]["median"] > 0
+
+    qp = load("qp")
+    methods = {r["method"]: r for r in qp["results"]}
+    assert "CVXPY rebuilt, PIQP" in methods and "CVXPY parametrized, PIQP" in methods
+    for result in methods.values():
+        assert result["median_us"]["median"] > 0 and result["ratio_to_ours"] > 0
+        assert result["max_du_norm"] < 1e-5  # the solutions agree
+    assert qp["whole_step"]["ratio"] > 0
+
+    lockstep = load("lockstep")["results"][0]
+    assert lockstep["summary"]["failed_runs"] == []
+    run = lockstep["runs"][0]
+    assert run["mission"]["sim_steps_per_s"] > 0 and run["mission"]["real_time_factor"] > 0
+    assert run["cpu"]["agent_cores"]["n"] == 6
+
+    realtime = load("realtime")["results"][0]
+    assert realtime["summary"]["failed_runs"] == []
+    run = realtime["runs"][0]
+    assert 0.0 <= run["late_fraction"] <= 1.0
+    for key in ("step_us", "neighbour_age_ms"):
+        assert "p99" in run[key]
+    assert run["counters"]["agent_steps"] > 0
+
+    startup = load("startup")
+    assert startup["summary"]["launch_to_streaming_s"]["median"] > 0
+    assert startup["summary"]["agent_hwm_mib_max"]["median"] > 0
+    assert startup["imports"]["by_package_self_ms"]
