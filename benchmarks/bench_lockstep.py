@@ -34,7 +34,7 @@ from common import (
 )
 from rich.table import Table
 from swarm_configs import load_scaled
-from swarm_probe import attempt_swarm
+from swarm_probe import THREAD_GROUPS, attempt_swarm
 
 
 def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
@@ -55,6 +55,10 @@ def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
         "world_cpu_ms_per_step": over(lambda r: 1e3 * r["cpu"]["world_cores"]
                                       / r["mission"]["sim_steps_per_s"]),
         "world_cores": over(lambda r: r["cpu"]["world_cores"]),
+        # An agent's CPU per simulated step by thread group [ms] (swarm_probe.THREAD_GROUPS).
+        **{f"agent_{group}_ms_per_step": over(
+            lambda r, g=group: 1e3 * r["cpu"]["agent_thread_cores"][g]["median"]
+            / r["mission"]["sim_steps_per_s"]) for group in THREAD_GROUPS},
         "total_cores": over(lambda r: r["cpu"]["total_cores"]),
         "step_us_median": over(lambda r: r["step_us"]["median"]),
         "step_us_p99": over(lambda r: r["step_us"]["p99"]),
@@ -103,7 +107,20 @@ def tables(result: dict[str, Any]) -> list[Table]:
                       fmt(s["step_us_p99"]["median"]),
                       fmt_spread(s["launch_to_streaming_s"], 1),
                       fmt(s["agent_hwm_mib_max"]["median"], 1), _violations(s))
-    return [table]
+    threads = new_table(
+        "Where an agent's CPU goes in lockstep [ms per simulated step]",
+        ["N", "agent total", "Python main thread", "Zenoh rx threads (+ our callbacks)",
+         "other Zenoh threads", "agent step µs (compute)"],
+        caption=("median (min–max) over the runs of the median agent; main thread: the step, "
+                 "MAVLink, encoding and publishing, waiting for the GIL is not CPU;\nrx: "
+                 "Zenoh's receive path and our subscription callbacks (decode, validate, "
+                 "mailbox)"))
+    for res in result["results"]:
+        s = res["summary"]
+        threads.add_row(str(res["n_drones"]), fmt_spread(s["agent_cpu_ms_per_step"], 2),
+                        *(fmt_spread(s[f"agent_{g}_ms_per_step"], 2) for g in THREAD_GROUPS),
+                        f"{fmt(s['step_us_median']['median'])} µs")
+    return [table, threads]
 
 
 def _violations(summary: dict[str, Any]) -> str:

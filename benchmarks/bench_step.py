@@ -20,8 +20,8 @@ Per sample, wall clock (``time.perf_counter``):
   barrier (perception weights, HOCBF terms, constraint rows), qp (solver matrices, PIQP update
   and solve, feasibility check) and other;
 - encode: what ``swarm.agent_process`` encodes for that step with ``swarm.wire.WireCodec``:
-  the consensus message of every round, the beacon and the telemetry (wire structs built and
-  validated);
+  the consensus message of every round, the beacon and the telemetry (``encode_consensus``,
+  ``encode_beacon``, ``encode_telemetry``: built from the core's types and checked);
 - decode: what it decodes for that step: the camera frame (and its detections), every
   neighbour's consensus message of every round and the other drones' beacons. The agent runs
   on the decoded messages (bit-exact), as in the process swarm;
@@ -67,7 +67,7 @@ from rich.text import Text
 import swarm.reference as reference
 from swarm.config import ScenarioConfig, TargetSection, load_config
 from swarm.core.agent import ConsensusMessage, Detection, DroneAgent, StepResult
-from swarm.wire import BeaconWire, CameraFrameWire, TelemetryWire, WireCodec
+from swarm.wire import CameraFrameWire, WireCodec
 
 CORE_SECTIONS = ("estimation", "consensus", "barrier", "qp", "other")
 # The wire work of one drone step, by message (all rounds, all neighbours, all beacons).
@@ -162,8 +162,8 @@ class StepProbe:
 
     def _send_consensus(self, message: ConsensusMessage | None) -> None:
         if message is not None:
-            payload = self._timed("encode consensus", lambda: self.codec.encode(
-                self.codec.consensus_to_wire(message)))
+            payload = self._timed("encode consensus",
+                                  lambda: self.codec.encode_consensus(message))
             self.bus.consensus[(message.round, self.drone)] = payload
 
     def begin_step(self, step: int, position: np.ndarray, detections: list[Detection],
@@ -183,9 +183,9 @@ class StepProbe:
 
         detections, communicated = self._timed("decode camera", decode_frame)
         message = self._core(self._begin, step, position, detections, communicated)
-        self.bus.beacons[self.drone] = self._timed("encode beacon", lambda: self.codec.encode(
-            BeaconWire.build(sender=self.drone, step=step, time_s=step * dt,
-                             position_m=position, velocity_m_s=self._flying)))
+        self.bus.beacons[self.drone] = self._timed("encode beacon", lambda: (
+            self.codec.encode_beacon(self.drone, step, step * dt, position,
+                                     velocity_m_s=self._flying, sample_age_s=0.0)))
         self._send_consensus(message)
         return message
 
@@ -204,12 +204,12 @@ class StepProbe:
             for j in self.others})
         result: StepResult = self._core(self._finish, decoded)
         agent = self.agent
-        self._timed("encode telemetry", lambda: self.codec.encode(TelemetryWire.from_diagnostics(
-            result.diagnostics, position=self._position, qp_fallbacks=agent.qp_fallbacks,
+        self._timed("encode telemetry", lambda: self.codec.encode_telemetry(
+            result.diagnostics, self._position, qp_fallbacks=agent.qp_fallbacks,
             rejected_messages=agent.rejected_inputs,
-            missing_neighbour_messages=agent.missing_neighbour_messages, late_steps=0,
-            steps=self._step + 1, neighbour_age_ms=float("nan"),
-            mavlink_state="armed OFFBOARD")))
+            missing_neighbour_messages=agent.missing_neighbour_messages,
+            stale_neighbour_messages=0, late_steps=0, steps=self._step + 1,
+            neighbour_age_ms=float("nan"), mavlink_state="armed OFFBOARD"))
         self._flying = result.velocity
         return result
 

@@ -96,6 +96,32 @@ def read_proc(pid: int) -> tuple[float, float, float] | None:
     return cpu_s, memory["VmRSS"], memory.get("VmHWM", memory["VmRSS"])
 
 
+THREAD_GROUPS = ("python", "zenoh_rx", "zenoh_other")
+
+
+def read_thread_cpu(pid: int) -> tuple[float, float, float] | None:
+    """CPU seconds of a live process by thread group: the Python main thread (tid = pid),
+    Zenoh's receive threads ("rx-*", which also run our subscription callbacks: decoding and
+    validation), and every other thread (Zenoh's tx/accept/app runtimes, pymavlink has none);
+    None once it is gone. Threads that ended earlier are not counted."""
+    groups = [0.0, 0.0, 0.0]
+    try:
+        tids = os.listdir(f"/proc/{pid}/task")
+    except OSError:
+        return None
+    for tid in tids:
+        try:
+            stat = Path(f"/proc/{pid}/task/{tid}/stat").read_text()
+        except OSError:
+            continue
+        name = stat[stat.index("(") + 1:stat.rindex(")")]
+        fields = stat.rsplit(")", 1)[1].split()
+        cpu_s = (int(fields[11]) + int(fields[12])) / CLK_TCK
+        group = 0 if tid == str(pid) else 1 if name.startswith("rx-") else 2
+        groups[group] += cpu_s
+    return groups[0], groups[1], groups[2]
+
+
 def read_pss_mib(pid: int) -> float | None:
     """Proportional set size [MiB]: private pages plus a share of the shared ones (the
     libraries every agent maps), from /proc/<pid>/smaps_rollup."""
@@ -140,6 +166,8 @@ class ChildTrace:
     pid: int
     start_s: float | None
     cpu: list[tuple[float, float]] = field(default_factory=list)  # (t, CPU s)
+    # (t, (python, zenoh_rx, zenoh_other) CPU s), see read_thread_cpu
+    thread_cpu: list[tuple[float, tuple[float, float, float]]] = field(default_factory=list)
     rss_mb: list[float] = field(default_factory=list)  # [MiB]
     hwm_mb: float = 0.0  # [MiB]
     pss_mb: float | None = None  # newest [MiB]
@@ -190,6 +218,9 @@ class Sampler(threading.Thread):
             return
         cpu_s, rss_mb, hwm_mb = reading
         trace.cpu.append((t, cpu_s))
+        threads = read_thread_cpu(trace.pid)
+        if threads is not None:
+            trace.thread_cpu.append((t, threads))
         trace.rss_mb.append(rss_mb)
         trace.hwm_mb = max(trace.hwm_mb, hwm_mb)
         if with_pss:  # 0.5 ms a read: not at every sample
@@ -219,6 +250,16 @@ def _cpu_share(trace: ChildTrace, start: float, end: float) -> float | None:
         return None
     (t0, c0), (t1, c1) = inside[0], inside[-1]
     return (c1 - c0) / (t1 - t0)
+
+
+def _thread_shares(trace: ChildTrace, start: float, end: float) -> dict[str, float] | None:
+    """``_cpu_share`` by thread group (cores), None without two samples in the window."""
+    inside = [(t, c) for t, c in trace.thread_cpu if start <= t <= end]
+    if len(inside) < 2 or inside[-1][0] - inside[0][0] <= 0:
+        return None
+    (t0, c0), (t1, c1) = inside[0], inside[-1]
+    return {group: (b - a) / (t1 - t0)
+            for group, a, b in zip(THREAD_GROUPS, c0, c1, strict=True)}
 
 
 def _phase_times(trace: ChildTrace) -> dict[str, float | None]:
@@ -371,6 +412,14 @@ def _summarise(config: Any, mode: str, launcher: SwarmLauncher, tap: ClockTap,
         },
         "cpu": {
             "agent_cores": stats(cpu_agents),
+            # Where an agent's (the world's) CPU goes, by thread group: cores, median over
+            # the agents of each group.
+            "agent_thread_cores": {
+                group: stats([shares[group] for tr in agents
+                              if (shares := _thread_shares(tr, start, done)) is not None])
+                for group in THREAD_GROUPS} if window else None,
+            "world_thread_cores": (_thread_shares(world, start, done)
+                                   if world is not None and window else None),
             "world_cores": _cpu_share(world, start, done) if world and window else None,
             "total_cores": (sum(c for c in cpu_agents if c is not None)
                             + (_cpu_share(world, start, done) or 0.0)) if window else None,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import sys
 from collections.abc import Sequence
 
+from sim_world.fleet import mavlink_hosts
 from sim_world.world import World, WorldOptions
 from swarm.cli_common import (
     EXIT_INTERRUPTED,
@@ -16,6 +17,7 @@ from swarm.cli_common import (
     port,
     terminate_on_sigterm,
 )
+from swarm.transport import check_tls_endpoints, local_endpoint
 
 PROG = "sim-world"
 
@@ -27,11 +29,13 @@ def build_parser() -> OneLineParser:
     parser.add_argument("config", help="scenario file, e.g. configs/case1.toml")
     add_run_arguments(parser, run_id_help="Zenoh key prefix vigil/<run-id>/ (default: vigil)")
     parser.add_argument("--listen", action="append", default=None, metavar="ENDPOINT",
-                        help="Zenoh endpoint to listen on (default tcp/127.0.0.1:7447)")
+                        help="Zenoh endpoint to listen on (default tcp/127.0.0.1:7447; "
+                             "tls/... with [security])")
     parser.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
                         help="Zenoh endpoint to connect to (another router), repeatable")
-    parser.add_argument("--mavlink-host", default="127.0.0.1",
-                        help="where the agents listen for their vehicle (default 127.0.0.1)")
+    parser.add_argument("--mavlink-host", default="127.0.0.1", metavar="HOST[,HOST...]",
+                        help="where the agents listen for their vehicle: one address, or one "
+                             "per drone comma-separated, drone 0 first (default 127.0.0.1)")
     parser.add_argument("--mavlink-base", type=port, default=14540,
                         help="vehicle i sends to UDP port base+i (default 14540, as PX4 SITL)")
     parser.add_argument("--vehicles", choices=("sim", "external"), default="sim",
@@ -45,14 +49,23 @@ def main(argv: Sequence[str] | None = None) -> int:
         config = load_scenario(args.config, args.duration)
     except ConfigError as err:
         return fail(PROG, f"config error: {err}")
+    try:
+        mavlink_hosts(args.mavlink_host, config.swarm.n_drones)
+    except ValueError as err:
+        return fail(PROG, str(err))
     if args.vehicles == "external" and args.mode == "lockstep":
         return fail(PROG, "--vehicles external needs --mode realtime: real autopilots cannot "
                           "wait for the simulation")
+    try:
+        check_tls_endpoints([*(args.listen or []), *args.connect], tls=config.security.enabled)
+    except ValueError as err:
+        return fail(PROG, str(err))
     terminate_on_sigterm()
     options = WorldOptions(
         config=config, seed=config.scenario.seed if args.seed is None else args.seed,
         run_id=args.run_id, mode=args.mode,
-        listen=tuple(args.listen or ["tcp/127.0.0.1:7447"]), connect=tuple(args.connect),
+        listen=tuple(args.listen or [local_endpoint(7447, tls=config.security.enabled)]),
+        connect=tuple(args.connect),
         mavlink_host=args.mavlink_host, mavlink_base=args.mavlink_base, vehicles=args.vehicles,
         log=lambda line: print(line, flush=True))
     world = None
@@ -61,6 +74,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return world.run()
     except KeyboardInterrupt:
         return EXIT_INTERRUPTED
+    except ConfigError as err:  # the signing key file, read again when the vehicles start
+        return fail(PROG, f"config error: {err}")
     except OSError as err:
         return fail(PROG, f"cannot open the world's sockets: {err}", 1)
     finally:

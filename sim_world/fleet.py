@@ -3,10 +3,15 @@
 Used by the world process, and standalone by ``sim-vehicles``: N PX4/ArduPilot-style
 autopilots flying at 50 Hz, a stand-in for N SITL instances when the world runs with
 ``--vehicles external``.
+
+With a MAVLink signing key every vehicle signs and checks signatures, and its endpoint
+follows a new sender only once one of its frames passed the signature check: an unsigned or
+forged datagram is dropped unanswered and cannot redirect the vehicle's telemetry.
 """
 
 from __future__ import annotations
 
+import ipaddress
 import selectors
 import time
 from collections.abc import Callable, Sequence
@@ -22,23 +27,48 @@ HEARTBEAT_PERIOD_S = 1.0
 Array = NDArray[np.float64]
 
 
+def mavlink_hosts(host: str, n: int) -> list[str]:
+    """``--mavlink-host``: where each vehicle sends, i.e. where its agent listens. One address
+    for every vehicle, or N comma-separated addresses, vehicle 0 first (agents spread over
+    several machines). ValueError (one line) otherwise."""
+    hosts = [part.strip() for part in host.split(",")]
+    if not all(hosts) or len(hosts) not in (1, n):
+        raise ValueError(f"--mavlink-host {host!r}: give one address for every drone or {n} "
+                         f"comma-separated addresses, one per drone")
+    return hosts * n if len(hosts) == 1 else hosts
+
+
+def bind_address_for(host: str) -> tuple[str, int]:
+    """The vehicle's own socket: on loopback when its agent is on this machine, else on every
+    interface (a socket bound to 127.0.0.1 cannot send off the machine: EINVAL)."""
+    try:
+        loopback = ipaddress.ip_address(host).is_loopback
+    except ValueError:  # a host name
+        loopback = host == "localhost"
+    return ("127.0.0.1", 0) if loopback else ("0.0.0.0", 0)
+
+
 class VehicleFleet:
-    """Vehicles i = 0..N−1; vehicle i sends to (host, base + i) and answers whoever talks."""
+    """Vehicles i = 0..N−1; vehicle i sends to (host_i, base + i) and answers whoever talks
+    (``host``: one address, or one per vehicle comma-separated, see ``mavlink_hosts``)."""
 
     def __init__(self, positions_w: Array, origins_w: Sequence[Array], flavour: Flavour, *,
                  host: str, base_port: int, u_max_m_s: float, setpoint_timeout_s: float,
-                 clock: Callable[[], float]) -> None:
+                 clock: Callable[[], float], signing_key: bytes | None = None) -> None:
         self.clock = clock  # the fleet's notion of "now" [s] (wall, or a lockstep sim clock)
         self.vehicles: list[EmulatedVehicle] = []
         self.endpoints: list[VehicleEndpoint] = []
         self.selector = selectors.DefaultSelector()
         self._last_heartbeat = -np.inf
+        hosts = mavlink_hosts(host, len(positions_w))
         try:
             for i, position in enumerate(positions_w):
                 self.vehicles.append(EmulatedVehicle(
                     i, flavour, position, origins_w[i], u_max_m_s=u_max_m_s,
-                    setpoint_timeout_s=setpoint_timeout_s))
-                endpoint = VehicleEndpoint((host, base_port + i))
+                    setpoint_timeout_s=setpoint_timeout_s, signing_key=signing_key))
+                endpoint = VehicleEndpoint((hosts[i], base_port + i),
+                                           bind_address=bind_address_for(hosts[i]),
+                                           follow_sender=signing_key is None)
                 self.endpoints.append(endpoint)
                 self.selector.register(endpoint.fileno(), selectors.EVENT_READ, i)
         except OSError:
@@ -61,10 +91,20 @@ class VehicleFleet:
                 endpoint.send([vehicle.heartbeat()])
         for key, _ in self.selector.select(timeout=max(timeout_s, 0.0)):
             i = key.data
-            for chunk in self.endpoints[i].poll():
-                replies = self.vehicles[i].receive(chunk, self.clock())
+            vehicle, endpoint = self.vehicles[i], self.endpoints[i]
+            if vehicle.signing:
+                for chunk, sender in endpoint.poll_from():
+                    authenticated = vehicle.authenticated_frames
+                    replies = vehicle.receive(chunk, self.clock())
+                    if vehicle.authenticated_frames > authenticated:
+                        endpoint.follow(sender)  # replies go to whoever holds the key
+                    if replies:
+                        endpoint.send(replies)
+                continue
+            for chunk in endpoint.poll():
+                replies = vehicle.receive(chunk, self.clock())
                 if replies:
-                    self.endpoints[i].send(replies)
+                    endpoint.send(replies)
 
     def send_telemetry(self, time_boot_ms: int) -> None:
         now = self.clock()

@@ -14,7 +14,10 @@ Public API
 ``send(packets, *, coalesce=False) -> int`` (datagrams sent; each packet is a datagram unless
 ``coalesce``; OS errors such as "connection refused" while the agent is not up yet are
 counted in ``send_errors``, never raised), ``poll(max_datagrams=1024) -> list[bytes]``
-(non-blocking; every datagram waiting now, oldest first), ``fileno()`` (for selectors),
+(non-blocking; every datagram waiting now, oldest first), ``poll_from(max_datagrams=1024)
+-> list[(bytes, sender)]`` (the same, but never follows the sender: with MAVLink signing the
+caller ``follow(sender)``s only a sender whose frame was authenticated, so an unsigned
+datagram cannot redirect the vehicle's stream), ``fileno()`` (for selectors),
 ``close()`` (idempotent; also a context manager). Counters: ``datagrams_sent``,
 ``datagrams_received``, ``send_errors``, ``receive_errors``, ``peer_changes``.
 """
@@ -101,6 +104,28 @@ class VehicleEndpoint:
                     self.peer_changes += 1
             out.append(data)
         return out
+
+    def poll_from(self, max_datagrams: int = 1024) -> list[tuple[bytes, tuple[str, int]]]:
+        """Like ``poll`` with each datagram's sender, and the peer left alone."""
+        out: list[tuple[bytes, tuple[str, int]]] = []
+        while len(out) < max_datagrams:
+            try:
+                data, sender = self._sock.recvfrom(_MAX_DATAGRAM)
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError:
+                self.receive_errors += 1
+                break
+            self.datagrams_received += 1
+            out.append((data, (str(sender[0]), int(sender[1]))))
+        return out
+
+    def follow(self, sender: tuple[str, int]) -> None:
+        """Send to ``sender`` from now on."""
+        peer = (str(sender[0]), int(sender[1]))
+        if peer != self._peer:
+            self._peer = peer
+            self.peer_changes += 1
 
     def close(self) -> None:
         if not self._closed:

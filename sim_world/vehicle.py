@@ -20,7 +20,8 @@ Public API
 ``sim_world.mavlink_endpoint``) is re-exported here.
 
 ``EmulatedVehicle(drone_id, flavour, position_w, origin_w, *, u_max_m_s=3.0,
-setpoint_timeout_s=None, takeoff_required=None, datagram_framing=True)``
+setpoint_timeout_s=None, takeoff_required=None, datagram_framing=True, signing_key=None,
+signing_clock=time.time)``
     ``setpoint_timeout_s``: setpoint-loss failsafe delay, default 0.5 s for px4
     (``COM_OF_LOSS_T``) and 3.0 s for ardupilot (``GUID_TIMEOUT``); also readable and
     settable over MAVLink as that parameter. ``takeoff_required``: whether setpoints need a
@@ -30,6 +31,15 @@ setpoint_timeout_s=None, takeoff_required=None, datagram_framing=True)``
     incomplete packet left at its end are counted as a truncated frame and dropped (they can
     never complete a packet); with False the input is a byte stream (serial/TCP) and a packet
     may span calls.
+    ``signing_key``: the 32-byte MAVLink 2 signing secret (``swarm.mavlink_signing``; None:
+    off). With it, every frame the vehicle sends is signed (pymavlink's ``sign_packet``,
+    link id 0) and only correctly signed frames are accepted (pymavlink's
+    ``check_signature``: right key, signing timestamp newer than the last of that stream);
+    the rest are dropped unanswered and counted in ``rejections`` as ``unsigned``,
+    ``bad_signature`` or ``stale_signature`` (a replay). ``signing_clock``: seconds since
+    the Unix epoch, read only for the signing timestamp, which MAVLink keeps on the wall
+    clock whatever ``now_s`` is (refreshed by ``heartbeat()``). Both setpoint fast paths
+    are off while signing.
 
 ``receive(data, now_s) -> list[bytes]``
     Parse any bytes (garbage, truncated, several packets), apply what they command and return
@@ -69,7 +79,9 @@ name of the current mode, e.g. "OFFBOARD", "LOITER", "POSCTL", "GUIDED", "BRAKE"
 ``accepting_setpoints``, ``awaited_stamp``,
 ``setpoints_streaming(now_s)``, ``setpoint_timeout_s``, ``u_max_m_s``; counters
 ``rejected_frames``, ``rejections`` (reason → count), ``accepted_setpoints``,
-``ignored_setpoints``, ``nonfinite_setpoints``, ``failsafe_events``, ``ignored_messages``.
+``ignored_setpoints``, ``nonfinite_setpoints``, ``failsafe_events``, ``ignored_messages``;
+``signing`` (bool) and ``authenticated_frames`` (frames accepted with a good signature: the
+caller follows a new peer address only when this grows, see ``sim_world.fleet``).
 
 Behaviour (SPEC §12, PX4 / ArduCopter conventions)
 --------------------------------------------------
@@ -108,7 +120,9 @@ Behaviour (SPEC §12, PX4 / ArduCopter conventions)
 from __future__ import annotations
 
 import math
+import time
 from collections import Counter, deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Literal
 
@@ -120,6 +134,7 @@ from sim_world.kinematics import clamp_velocity
 from sim_world.mavlink_endpoint import VehicleEndpoint
 from swarm import frames
 from swarm.mavlink_parse import LOCAL_POSITION_NED, SET_POSITION_TARGET_LOCAL_NED, parse_bytes
+from swarm.mavlink_signing import enable_signing, refresh_signing_timestamp
 
 Array = NDArray[np.float64]
 Flavour = Literal["px4", "ardupilot"]
@@ -127,6 +142,7 @@ Flavour = Literal["px4", "ardupilot"]
 __all__ = ["AUTOPILOT_COMPONENT_ID", "EmulatedVehicle", "Flavour", "VehicleEndpoint"]
 
 AUTOPILOT_COMPONENT_ID = 1
+_SIGNING_LINK_ID = 0  # the autopilot's MAVLink channel 0
 
 # --- modes -----------------------------------------------------------------------------------
 # PX4 custom_mode: main mode in bits 16-23, sub mode in bits 24-31 (px4_custom_mode.h).
@@ -238,6 +254,8 @@ class EmulatedVehicle:
         setpoint_timeout_s: float | None = None,
         takeoff_required: bool | None = None,
         datagram_framing: bool = True,
+        signing_key: bytes | None = None,
+        signing_clock: Callable[[], float] = time.time,
     ) -> None:
         if flavour not in ("px4", "ardupilot"):
             raise ValueError(f"flavour must be 'px4' or 'ardupilot', got {flavour!r}")
@@ -284,6 +302,14 @@ class EmulatedVehicle:
         self._out = _Collector()
         self._tx = mavlink2.MAVLink(self._out, srcSystem=self._sysid,
                                     srcComponent=AUTOPILOT_COMPONENT_ID)
+        self._signing_clock = signing_clock
+        self._signing = signing_key is not None
+        if signing_key is not None:
+            # One signing state for both directions, as one pymavlink MAVLink object has: a
+            # received timestamp also moves the one we send with (check_signature does so).
+            self._rx.signing = self._tx.signing
+            enable_signing(self._tx, signing_key, link_id=_SIGNING_LINK_ID,
+                           unix_s=signing_clock())
 
         self.rejections: Counter[str] = Counter()
         self.accepted_setpoints = 0
@@ -362,6 +388,14 @@ class EmulatedVehicle:
     def rejected_frames(self) -> int:
         return sum(self.rejections.values())
 
+    @property
+    def signing(self) -> bool:
+        return self._signing
+
+    @property
+    def authenticated_frames(self) -> int:
+        return int(self._rx.signing.goodsig_count)
+
     def setpoints_streaming(self, now_s: float) -> bool:
         """At least STREAM_MIN_COUNT valid setpoints arrived in the last STREAM_WINDOW_S."""
         recent = [t for t in self._arrivals if now_s - STREAM_WINDOW_S <= t <= now_s]
@@ -396,6 +430,8 @@ class EmulatedVehicle:
 
     # ---------------------------------------------------------------- outgoing
     def heartbeat(self) -> bytes:
+        if self._signing:  # once a second, as autopilots refresh it from their clock
+            refresh_signing_timestamp(self._tx, self._signing_clock())
         (packet,) = self._emit([self._heartbeat_msg()])
         return packet
 
@@ -414,8 +450,8 @@ class EmulatedVehicle:
     # ---------------------------------------------------------------- incoming
     def receive(self, data: bytes, now_s: float) -> list[bytes]:
         replies: list[Any] = []
-        setpoint = SET_POSITION_TARGET_LOCAL_NED.message(data) if self._datagram_framing \
-            else None
+        setpoint = SET_POSITION_TARGET_LOCAL_NED.message(data) \
+            if self._datagram_framing and not self._signing else None  # unsigned frames only
         messages = [setpoint] if setpoint is not None else parse_bytes(
             self._rx, data, self.rejections, datagram=self._datagram_framing)
         for msg in messages:

@@ -45,6 +45,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         config = load_scenario(args.config, None)
     except ConfigError as err:
         return fail(PROG, f"config error: {err}")
+    try:
+        signing_key = config.vehicles.signing_key()
+    except ConfigError as err:
+        return fail(PROG, f"config error: {err}")
     terminate_on_sigterm()
     seed_value = config.scenario.seed if args.seed is None else args.seed
     started = time.monotonic()
@@ -55,12 +59,12 @@ def main(argv: Sequence[str] | None = None) -> int:
             config.vehicles.flavour, host=args.mavlink_host, base_port=args.mavlink_base,
             u_max_m_s=config.control.u_max_m_s,
             setpoint_timeout_s=config.vehicles.failsafe_timeout_s,
-            clock=lambda: time.monotonic() - started)
+            clock=lambda: time.monotonic() - started, signing_key=signing_key)
     except OSError as err:
         return fail(PROG, f"cannot open the vehicles' sockets: {err}", 1)
     print(f"sim-vehicles: {len(fleet)} {config.vehicles.flavour} vehicles sending to "
-          f"{args.mavlink_host}:{args.mavlink_base}..{args.mavlink_base + len(fleet) - 1}",
-          flush=True)
+          f"{args.mavlink_host}:{args.mavlink_base}..{args.mavlink_base + len(fleet) - 1}"
+          f"{', MAVLink 2 signing on' if signing_key is not None else ''}", flush=True)
     try:
         serve_forever(fleet, config.scenario.dt_s, started)
     except KeyboardInterrupt:

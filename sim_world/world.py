@@ -28,6 +28,7 @@ from sim_world.fleet import VehicleFleet
 from swarm.config import ScenarioConfig
 from swarm.rate import RateLimiter, freeze_heap
 from swarm.reference import STREAM_CAMERA, initial_drone_positions, stream
+from swarm.security import WORLD_ROLE, router_access_control
 from swarm.transport import (
     Keys,
     LatestValues,
@@ -98,15 +99,20 @@ class World:
         self.beacons: LatestValues[BeaconWire] = LatestValues()
         self.fleet: VehicleFleet | None = None
         self._subscribers = []
-        self.session = open_session(zenoh_config(mode="router", listen=options.listen,
-                                                 connect=options.connect))
+        security = cfg.security
+        self.session = open_session(zenoh_config(
+            mode="router", listen=options.listen, connect=options.connect,
+            tls=security.identity(WORLD_ROLE),
+            access_control=router_access_control(
+                self.keys.prefix, cfg.swarm.graph.neighbours) if security.enabled else None))
         try:
             if options.vehicles == "sim":
                 self.fleet = VehicleFleet(
                     self.positions, [cfg.vehicles.origin_w(i) for i in range(self.n)],
                     cfg.vehicles.flavour, host=options.mavlink_host,
                     base_port=options.mavlink_base, u_max_m_s=cfg.control.u_max_m_s,
-                    setpoint_timeout_s=cfg.vehicles.failsafe_timeout_s, clock=self.now_s)
+                    setpoint_timeout_s=cfg.vehicles.failsafe_timeout_s, clock=self.now_s,
+                    signing_key=cfg.vehicles.signing_key())
             else:
                 # Not direct: this process hosts the router, whose threads must never wait
                 # for the GIL.
@@ -280,7 +286,9 @@ class World:
                 f"vehicles {opts.vehicles} ({opts.config.vehicles.flavour}), zenoh "
                 f"{', '.join(opts.listen)}"
                 + (f", MAVLink to {opts.mavlink_host}:{opts.mavlink_base}.."
-                   f"{opts.mavlink_base + self.n - 1}" if opts.vehicles == "sim" else ""))
+                   f"{opts.mavlink_base + self.n - 1}" if opts.vehicles == "sim" else "")
+                + (", MAVLink 2 signing on" if self.fleet is not None
+                   and opts.config.vehicles.signing_key_file else ""))
             freeze_heap()  # set up: collect now, not between "every drone ready" and step 0
             self.wait_for_mission_start()
             log("world: every drone ready; mission starts")

@@ -25,6 +25,7 @@ from swarm.cli_common import (  # noqa: E402
     terminate_on_sigterm,
 )
 from swarm.mavlink_link import LinkError  # noqa: E402
+from swarm.transport import check_tls_endpoints, local_endpoint  # noqa: E402
 
 PROG = "swarm-agent"
 
@@ -38,7 +39,8 @@ def build_parser() -> OneLineParser:
     parser.add_argument("--mavlink", default=None, metavar="URL",
                         help="pymavlink connection string (default udpin:127.0.0.1:<14540+I>)")
     parser.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
-                        help="Zenoh endpoint of the world's router (default tcp/127.0.0.1:7447)")
+                        help="Zenoh endpoint of the world's router (default tcp/127.0.0.1:7447; "
+                             "tls/... with [security])")
     parser.add_argument("--listen", action="append", default=[], metavar="ENDPOINT")
     add_run_arguments(parser, run_id_help="the world's --run-id (default: vigil)")
     return parser
@@ -53,12 +55,20 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not 0 <= args.id < config.swarm.n_drones:
         return fail(PROG, f"--id {args.id} is out of range 0..{config.swarm.n_drones - 1} "
                           f"for {config.source}")
+    if config.security.enabled and args.listen:
+        return fail(PROG, "--listen (peer mode) is not available with [security]: agents join "
+                          "the world's router as clients")
+    try:
+        check_tls_endpoints([*args.listen, *(args.connect or [])], tls=config.security.enabled)
+    except ValueError as err:
+        return fail(PROG, str(err))
     terminate_on_sigterm()
     options = AgentOptions(
         config=config, drone_id=args.id,
         seed=config.scenario.seed if args.seed is None else args.seed,
         run_id=args.run_id, mavlink_url=args.mavlink or f"udpin:127.0.0.1:{14540 + args.id}",
-        connect=tuple(args.connect or ["tcp/127.0.0.1:7447"]), listen=tuple(args.listen),
+        connect=tuple(args.connect or [local_endpoint(7447, tls=config.security.enabled)]),
+        listen=tuple(args.listen),
         mode=args.mode, log=lambda line: print(line, flush=True))
     process = None
     try:
@@ -68,6 +78,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_INTERRUPTED
     except LinkError as err:
         return fail(PROG, str(err), 1)
+    except ConfigError as err:  # the signing key file, read again when the link opens
+        return fail(PROG, f"config error: {err}")
     except OSError as err:
         return fail(PROG, f"drone {args.id}: {err}", 1)
     finally:

@@ -25,6 +25,7 @@ from swarm.core.agent import ConsensusMessage, DroneAgent
 from swarm.mavlink_link import AutopilotLink, LinkError
 from swarm.rate import RateLimiter, freeze_heap
 from swarm.reference import build_agent
+from swarm.security import agent_role
 from swarm.transport import (
     Keys,
     LatestValues,
@@ -40,7 +41,6 @@ from swarm.wire import (
     BeaconWire,
     CameraFrameWire,
     ClockWire,
-    TelemetryWire,
     WireCodec,
     WireError,
 )
@@ -128,18 +128,25 @@ class AgentProcess:
         self._pub_telemetry = declare_publisher(self.session, self.keys.telemetry(self.id),
                                                 block=True)
         self.link = AutopilotLink(options.mavlink_url, self.id, cfg.vehicles.flavour,
-                                  cfg.vehicles.origin_w(self.id), log=options.log)
+                                  cfg.vehicles.origin_w(self.id), log=options.log,
+                                  signing_key=cfg.vehicles.signing_key())
 
     def _open_session(self):
         """Join the world's router, waiting for it if the world is not up yet."""
         opts = self.options
         mode = "peer" if opts.listen else "client"
+        security = opts.config.security
+        if security.enabled and opts.listen:
+            # Links between peers would bypass the router's access control.
+            raise LinkError(f"drone {self.id}: --listen (peer mode) is not available with "
+                            "[security]: agents join the world's router as clients")
+        tls = security.identity(agent_role(self.id))
         deadline = time.monotonic() + opts.config.runtime.start_timeout_s
         announced = False
         while True:
             try:
                 return open_session(zenoh_config(mode=mode, listen=opts.listen,
-                                                 connect=opts.connect))
+                                                 connect=opts.connect, tls=tls))
             except TransportError as err:
                 if time.monotonic() > deadline:
                     raise LinkError(
@@ -205,8 +212,13 @@ class AgentProcess:
 
     def _publish(self, publisher, message) -> None:
         """Encode (validated: peers would reject what fails) and send; count failures."""
+        self._send(publisher, self.codec.encode, message)
+
+    def _send(self, publisher, encode: Callable[..., bytes], *args, **kwargs) -> None:
+        """``encode(*args, **kwargs)`` (one of the codec's checked encoders) and send; count
+        failures."""
         try:
-            payload = self.codec.encode(message)
+            payload = encode(*args, **kwargs)
         except WireError as err:
             self.rejections.reject("outgoing", err.reason)
             return
@@ -214,7 +226,7 @@ class AgentProcess:
 
     def _publish_consensus(self, msg: ConsensusMessage | None) -> None:
         if msg is not None:
-            self._publish(self._pub_consensus, self.codec.consensus_to_wire(msg))
+            self._send(self._pub_consensus, self.codec.encode_consensus, msg)
 
     def _fresh_inbox(self, rnd: int) -> dict[int, ConsensusMessage]:
         """Realtime: each neighbour's newest message of this round, if fresh enough."""
@@ -258,9 +270,9 @@ class AgentProcess:
         msg = agent.begin_step(step, position, detections, communicated)
         # Consensus first: the neighbours wait for it before anything else of this step.
         self._publish_consensus(msg)
-        self._publish(self._pub_beacon, BeaconWire.build(
-            sender=self.id, step=step, time_s=step * self.options.config.scenario.dt_s,
-            position_m=position, velocity_m_s=self._flying, sample_age_s=sample_age_s))
+        self._send(self._pub_beacon, self.codec.encode_beacon, self.id, step,
+                   step * self.options.config.scenario.dt_s, position,
+                   velocity_m_s=self._flying, sample_age_s=sample_age_s)
         for rnd in range(agent.n_rounds):
             if self._lockstep:
                 inbox = self._wait_steps(self.consensus_steps, step, rnd, self.neighbours,
@@ -280,15 +292,16 @@ class AgentProcess:
         stamp = frame.vehicle_time_ms if frame is not None else 0
         self.link.send_velocity(result.velocity, stamp)
         self._flying = result.velocity
-        self._publish(self._pub_telemetry, TelemetryWire.from_diagnostics(
-            result.diagnostics, position=position, qp_fallbacks=agent.qp_fallbacks,
+        self._send(
+            self._pub_telemetry, self.codec.encode_telemetry,
+            result.diagnostics, position, qp_fallbacks=agent.qp_fallbacks,
             rejected_messages=agent.rejected_inputs + self.rejections.total()
             + self.link.rejected_frames,
             missing_neighbour_messages=agent.missing_neighbour_messages,
             stale_neighbour_messages=self.stale_messages, late_steps=self.late_steps,
             steps=self.steps_run,
             neighbour_age_ms=self.neighbour_age_ms,
-            mavlink_state=f"{'armed' if self.link.armed else 'disarmed'} {self.link.mode}"))
+            mavlink_state=f"{'armed' if self.link.armed else 'disarmed'} {self.link.mode}")
         return result.velocity
 
     # -- phases ------------------------------------------------------------------------------

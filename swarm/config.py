@@ -37,6 +37,8 @@ from swarm.core.params import (
     require_finite,
     require_finite_positive,
 )
+from swarm.mavlink_signing import SigningKeyError, read_signing_key
+from swarm.security import OBSERVER_ROLE, SecurityError, TlsIdentity, check_tls_dir
 
 Vector3 = tuple[float, float, float]
 
@@ -153,6 +155,10 @@ class VehiclesSection:
     flavour: Flavour = "px4"  # handshake and failsafe rules: "px4" or "ardupilot"
     origin_offsets_m: tuple[Vector3, ...] = ()  # local-NED origin of each vehicle in W [m]
     setpoint_timeout_s: float = 0.0  # setpoint loss → hold after this [s]; 0 = flavour default
+    # MAVLink 2 signing between each agent and its vehicle: a file holding the 32-byte key as
+    # 64 hex digits (swarm.mavlink_signing), relative to the config file; "" = no signing.
+    # Only the path is kept here (recordings never hold the key).
+    signing_key_file: str = ""
 
     def __post_init__(self) -> None:
         require(self.flavour in ("px4", "ardupilot"), "flavour", "must be 'px4' or 'ardupilot'",
@@ -172,6 +178,16 @@ class VehiclesSection:
     def failsafe_timeout_s(self) -> float:
         return self.setpoint_timeout_s or DEFAULT_SETPOINT_TIMEOUT_S[self.flavour]
 
+    def signing_key(self) -> bytes | None:
+        """The MAVLink signing key read from ``signing_key_file`` now (None: signing off);
+        ConfigError (one line, never the file's content) when the file is unusable."""
+        if not self.signing_key_file:
+            return None
+        try:
+            return read_signing_key(self.signing_key_file)
+        except SigningKeyError as err:
+            raise ConfigError(f"vehicles.signing_key_file: {err}") from None
+
 
 @dataclass(frozen=True)
 class RuntimeSection:
@@ -188,6 +204,34 @@ class RuntimeSection:
 
 
 @dataclass(frozen=True)
+class SecuritySection:
+    """Zenoh TLS with mutual authentication and the router's access control
+    (``swarm.security`` describes the directory's layout and the rules)."""
+
+    # The directory of ca.pem, world.pem/.key, observer.pem/.key and agent-<i>.pem/.key,
+    # relative to the config file; "" = off (plain TCP on loopback).
+    tls_dir: str = ""
+
+    @property
+    def enabled(self) -> bool:
+        return bool(self.tls_dir)
+
+    def identity(self, role: str = OBSERVER_ROLE) -> TlsIdentity | None:
+        """The CA and ``role``'s certificate and key (``swarm.security.agent_role(i)``,
+        "world", "observer"); None when security is off."""
+        return TlsIdentity.of(self.tls_dir, role) if self.tls_dir else None
+
+    def check(self, n_drones: int) -> None:
+        """ConfigError (one line) unless every file of the layout is there."""
+        if not self.tls_dir:
+            return
+        try:
+            check_tls_dir(self.tls_dir, n_drones)
+        except SecurityError as err:
+            raise ConfigError(f"security.tls_dir: {err}") from None
+
+
+@dataclass(frozen=True)
 class ScenarioConfig:
     scenario: ScenarioSection
     swarm: SwarmSection
@@ -200,6 +244,7 @@ class ScenarioConfig:
     checks: ChecksSection = field(default_factory=ChecksSection)
     vehicles: VehiclesSection = field(default_factory=VehiclesSection)
     runtime: RuntimeSection = field(default_factory=RuntimeSection)
+    security: SecuritySection = field(default_factory=SecuritySection)
     source: str = field(default="<memory>", compare=False)
 
     def __post_init__(self) -> None:
@@ -366,7 +411,31 @@ def load_config(path: str | Path) -> ScenarioConfig:
         raise ConfigError(f"{path}: not valid TOML: {err}") from None
     except UnicodeDecodeError:
         raise ConfigError(f"{path}: not a UTF-8 text file") from None
+    _resolve_signing_key_file(data, path.parent)
+    _resolve_path(data, "security", "tls_dir", path.parent)
     try:
-        return config_from_dict(data, source=str(path))
+        config = config_from_dict(data, source=str(path))
+        config.vehicles.signing_key()  # every entry point refuses a bad key file at start-up
+        config.security.check(config.swarm.n_drones)
     except ConfigError as err:
         raise ConfigError(f"{path}: {err}") from None
+    return config
+
+
+def _resolve_signing_key_file(data: dict[str, object], base: Path) -> None:
+    """Make ``vehicles.signing_key_file`` absolute, relative to the config file's directory:
+    every process, whatever its working directory, then reads the same file."""
+    vehicles = data.get("vehicles")
+    if isinstance(vehicles, dict):
+        name = vehicles.get("signing_key_file")
+        if isinstance(name, str) and name:
+            vehicles["signing_key_file"] = str((base / Path(name).expanduser()).absolute())
+
+
+def _resolve_path(data: dict[str, object], section: str, key: str, base: Path) -> None:
+    """Make ``section.key`` (a path) absolute, relative to the config file's directory."""
+    table = data.get(section)
+    if isinstance(table, dict):
+        name = table.get(key)
+        if isinstance(name, str) and name:
+            table[key] = str((base / Path(name).expanduser()).absolute())

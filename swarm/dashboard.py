@@ -554,6 +554,7 @@ def watch(connect_endpoint: str, run_id: str, config: ScenarioConfig, *,
     "unknown" if the world's clock never arrived). Raises ``TransportError`` when the router
     cannot be reached within ``connect_timeout_s`` (the world may still be starting).
     """
+    from swarm.security import OBSERVER_ROLE
     from swarm.transport import (
         Keys,
         LatestValues,
@@ -574,7 +575,8 @@ def watch(connect_endpoint: str, run_id: str, config: ScenarioConfig, *,
     dashboard = Dashboard(config, console, headless=headless, settings=settings,
                           title=f"{config.scenario.name} ({run_id})")
     session = open_session(zenoh_config(mode="client", connect=[connect_endpoint],
-                                        connect_timeout_s=connect_timeout_s))
+                                        connect_timeout_s=connect_timeout_s,
+                                        tls=config.security.identity(OBSERVER_ROLE)))
     state = "unknown"
     try:
         subscribers = [  # held: a subscriber lives as long as its handle
@@ -614,7 +616,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         run_id,
         terminate_on_sigterm,
     )
-    from swarm.transport import TransportError
+    from swarm.transport import TransportError, check_tls_endpoints
 
     prog = "swarm-dashboard"
     parser = OneLineParser(prog=prog, description="Watch a running Vigil swarm.")
@@ -631,6 +633,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         config = load_scenario(args.config, args.duration)
     except ConfigError as err:
         return fail(prog, f"config error: {err}")
+    try:
+        check_tls_endpoints([args.connect], tls=config.security.enabled)
+    except ValueError as err:
+        return fail(prog, str(err))
     terminate_on_sigterm()
     try:
         state = watch(args.connect, args.run_id, config, headless=args.headless)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import fcntl
 import os
 import secrets
 import shutil
@@ -26,6 +27,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import IO
 
 import zenoh
 
@@ -33,11 +35,13 @@ from swarm.collector import TelemetryCollector
 from swarm.config import ScenarioConfig
 from swarm.recording import Recorder, RecordingError, RecordingMetadata
 from swarm.reference import RunRecord
+from swarm.security import OBSERVER_ROLE
 from swarm.transport import (
     Keys,
     LatestValues,
     RejectionCounter,
     TransportError,
+    local_endpoint,
     open_session,
     subscribe,
     zenoh_config,
@@ -45,6 +49,7 @@ from swarm.transport import (
 from swarm.wire import BeaconWire, CameraFrameWire, ClockWire, TelemetryWire, TruthWire, WireCodec
 
 STOP_GRACE_S = 4.0  # SIGTERM → SIGKILL; the whole stop stays under 5 s
+CLEAN_EXIT_GRACE_S = 2.0  # a child's exit 0 waits this long for the world's "done" to arrive
 SUPERVISE_PERIOD_S = 0.1
 LOG_TAIL_LINES = 12
 PR_SET_PDEATHSIG = 1
@@ -142,6 +147,40 @@ def choose_mavlink_base(requested: int, count: int,
     raise MissionError("no free block of UDP ports for the MAVLink links")
 
 
+def reserve_mavlink_base(requested: int, count: int, skip: frozenset[int] = frozenset()
+                         ) -> tuple[int, IO[bytes]]:
+    """``choose_mavlink_base``, plus an exclusive lock on the block until the returned file
+    is closed (the kernel drops it if this process dies).
+
+    The world and agents bind the ports only later, so two launchers started together would
+    both see the same block free: the lock (``<tmp>/vigil-mavlink-<base>.lock``) makes the
+    second one take the next block, or fail at once if that base was requested.
+    """
+    lock_dir = Path(tempfile.gettempdir())
+    base = requested
+    candidates = [requested] if requested else range(14540, 60000, 100)
+    for base in candidates:
+        if not requested and not udp_ports_free(base, count):
+            continue
+        handle = open(lock_dir / f"vigil-mavlink-{base}.lock", "ab")  # noqa: SIM115 - held
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            handle.close()
+            if requested:
+                raise MissionError(f"UDP ports {base}..{base + count - 1} are reserved by "
+                                   f"another launch-swarm; pick another --mavlink-base") from None
+            continue
+        if not requested:
+            return base, handle
+        try:
+            return choose_mavlink_base(requested, count, skip), handle
+        except MissionError:
+            handle.close()
+            raise
+    raise MissionError("no free block of UDP ports for the MAVLink links")
+
+
 @dataclass
 class Child:
     name: str
@@ -175,6 +214,7 @@ class SwarmLauncher:
         self.children: list[Child] = []
         self.stop_requested = threading.Event()
         self._state_changed = threading.Event()  # the world's clock changed state
+        self._clean_exits: dict[str, float] = {}  # child name → when its exit 0 was first seen
         self.clock: LatestValues[ClockWire] = LatestValues()
         n_state = 6 if cfg.estimation.model == "double_integrator" else 3
         self.codec = WireCodec(self.n, len(cfg.targets), n_state)
@@ -184,9 +224,9 @@ class SwarmLauncher:
         self.log_dir = options.log_dir or Path(tempfile.mkdtemp(prefix=f"vigil-{self.run_id}-"))
         self.log_dir.mkdir(parents=True, exist_ok=True)
         self.zenoh_port = options.zenoh_port or free_tcp_port()
-        self.endpoint = f"tcp/127.0.0.1:{self.zenoh_port}"
-        self.mavlink_base = choose_mavlink_base(options.mavlink_base, self.n,
-                                                frozenset(options.mavlink_urls))
+        self.endpoint = local_endpoint(self.zenoh_port, tls=cfg.security.enabled)
+        self.mavlink_base, self._port_lock = reserve_mavlink_base(
+            options.mavlink_base, self.n, frozenset(options.mavlink_urls))
         self.session: zenoh.Session | None = None
         self._subscribers: list = []
         self.recorder: Recorder | None = None
@@ -259,12 +299,23 @@ class SwarmLauncher:
                 os.killpg(child.process.pid, signal.SIGKILL)
 
     def _dead_child(self) -> Child | None:
-        """A child that ended before the mission did, or ended badly after it."""
+        """A child that ended badly, or ended cleanly but the mission did not end with it.
+
+        An agent exits 0 only after it has seen the world's "done" clock, which may reach it
+        before it reaches us: a clean exit counts as a failure only if "done" does not follow
+        within ``CLEAN_EXIT_GRACE_S``.
+        """
         done = self._mission_state() == "done"
+        now = time.monotonic()
         for child in self.children:
             code = child.process.poll()
-            if code is not None and not (done and code == 0):
-                return child
+            if code is None or (done and code == 0):
+                continue
+            if code == 0:
+                first_seen = self._clean_exits.setdefault(child.name, now)
+                if now - first_seen < CLEAN_EXIT_GRACE_S:
+                    continue
+            return child
         return None
 
     def _failure(self, child: Child) -> MissionError:
@@ -284,7 +335,9 @@ class SwarmLauncher:
                 if child.process.poll() is not None:
                     raise self._failure(child)
             try:
-                self.session = open_session(zenoh_config(mode="client", connect=[self.endpoint]))
+                self.session = open_session(zenoh_config(
+                    mode="client", connect=[self.endpoint],
+                    tls=self.options.config.security.identity(OBSERVER_ROLE)))
                 break
             except TransportError as err:
                 if time.monotonic() > deadline:
@@ -435,6 +488,7 @@ class SwarmLauncher:
         self._leave_zenoh()
         self._close_recorder()
         self.stop_children()
+        self._port_lock.close()  # the children that used the ports are gone
 
     def _leave_zenoh(self) -> None:
         for sub in self._subscribers:

@@ -32,7 +32,7 @@ step stamp).
 ``LinkError(RuntimeError)``: one-line message saying what failed and what to check.
 
 ``AutopilotLink(url, drone_id, flavour, origin_w, *, log=print, source_system=None,
-clock=time.monotonic)``
+clock=time.monotonic, signing_key=None)``
     ``wait_heartbeat(timeout_s)``; ``handshake(timeout_s=20.0, retries=5,
     takeoff_altitude_m=None, *, ack_timeout_s=1.0)``; ``keepalive(now_s=None)``;
     ``latest_position() -> PositionSample | None``; ``wait_position(time_boot_ms, timeout_s)
@@ -43,6 +43,15 @@ clock=time.monotonic)``
     e.g. "OFFBOARD", "GUIDED"; "UNKNOWN" before one), ``custom_mode``, ``autopilot``,
     ``last_heartbeat_s``, ``rejected_frames``, ``rejections``, ``foreign_frames``.
     Times (``now_s``, ``received_s``, ``last_heartbeat_s``) are on ``clock``.
+
+MAVLink 2 signing (``signing_key``: the 32-byte secret, see ``swarm.mavlink_signing``; None:
+off): pymavlink's own ``setup_signing`` on the connection, link id 1. Everything sent is
+signed (setpoints and heartbeats leave the fast path); frames from the vehicle that are
+unsigned or wrongly signed, or whose signing timestamp is not newer than the last (replay),
+are dropped and counted in ``rejected_frames`` (over UDP as ``unsigned``, ``bad_signature``
+or ``stale_signature``; stream links count them as ``bad_data``). The signing timestamp
+follows the wall clock (refreshed with the 1 Hz companion heartbeat). ``signing``
+(property) says whether it is on; the key is never logged.
 
 ``wait_heartbeat`` asks the vehicle for a HEARTBEAT (MAV_CMD_REQUEST_MESSAGE, every 0.25 s)
 as soon as any frame of it arrives, rather than waiting up to a second for the 1 Hz one.
@@ -80,6 +89,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from swarm import frames
 from swarm.mavlink_parse import LOCAL_POSITION_NED, SET_POSITION_TARGET_LOCAL_NED, parse_bytes
+from swarm.mavlink_signing import KEY_BYTES, refresh_signing_timestamp
 
 Array = NDArray[np.float64]
 Flavour = Literal["px4", "ardupilot"]
@@ -105,6 +115,8 @@ _HEARTBEAT_REQUEST_PERIOD_S = 0.25
 _MAV_CMD_REQUEST_MESSAGE = 512
 _MAX_STAMPED_SAMPLES = 512
 _MAX_MESSAGES_PER_DRAIN = 100_000
+_SIGNING_LINK_ID = 1  # any constant: the receiver's stream key also holds our system id
+_SIGNATURE_REJECTIONS = ("unsigned", "bad_signature", "stale_signature")
 _AUTOPILOT_NAMES = {mavlink2.MAV_AUTOPILOT_PX4: "PX4",
                     mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA: "ArduPilot"}
 _EXPECTED_AUTOPILOT = {"px4": mavlink2.MAV_AUTOPILOT_PX4,
@@ -147,6 +159,7 @@ class AutopilotLink:
         log: Callable[[str], None] = print,
         source_system: int | None = None,
         clock: Callable[[], float] = time.monotonic,
+        signing_key: bytes | None = None,
     ) -> None:
         if flavour not in ("px4", "ardupilot"):
             raise ValueError(f"flavour must be 'px4' or 'ardupilot', got {flavour!r}")
@@ -177,6 +190,15 @@ class AutopilotLink:
             self._conn.close()
             raise LinkError(f"drone {self._drone_id}: pymavlink did not select MAVLink 2 for "
                             f"{url} (MAVLINK20={os.environ.get('MAVLINK20')!r})")
+        self._signing = signing_key is not None
+        if signing_key is not None:
+            if len(signing_key) != KEY_BYTES:
+                self._conn.close()
+                raise ValueError(f"signing_key must have {KEY_BYTES} bytes, "
+                                 f"got {len(signing_key)}")
+            # pymavlink's own signing: every frame sent is signed, no unsigned one accepted.
+            self._conn.setup_signing(bytes(signing_key), sign_outgoing=True,
+                                     allow_unsigned_callback=None, link_id=_SIGNING_LINK_ID)
         self._closed = False
 
         self._heartbeat: Any = None
@@ -251,6 +273,10 @@ class AutopilotLink:
     @property
     def rejected_frames(self) -> int:
         return sum(self.rejections.values())
+
+    @property
+    def signing(self) -> bool:
+        return self._signing
 
     # ---------------------------------------------------------------- reading
     def poll(self) -> None:
@@ -329,6 +355,9 @@ class AutopilotLink:
             raise ValueError(f"retries must be >= 1, got {retries}")
         deadline = self._clock() + timeout_s
         me = f"drone {self._drone_id}"
+        if self._signing:
+            self._log(f"{me}: MAVLink 2 signing on: unsigned or wrongly signed frames from "
+                      f"the vehicle are dropped")
         self._log(f"{me}: waiting for HEARTBEAT from system {self._sysid} on {self._url}")
         self.wait_heartbeat(max(0.0, deadline - self._clock()))
         self._log(f"{me}: HEARTBEAT from system {self._sysid} "
@@ -402,6 +431,12 @@ class AutopilotLink:
 
     def _no_heartbeat_message(self, timeout_s: float) -> str:
         text = f"no HEARTBEAT from system {self._sysid} on {self._url} within {timeout_s:g} s"
+        refused = sum(self.rejections[reason] for reason in _SIGNATURE_REJECTIONS)
+        if refused:
+            how = ", ".join(f"{self.rejections[r]} {r.replace('_', ' ')}"
+                            for r in _SIGNATURE_REJECTIONS if self.rejections[r])
+            return (f"{text}: {refused} frame(s) dropped by MAVLink signing ({how}): does the "
+                    f"vehicle sign with the same key (vehicles.signing_key_file)?")
         if self._other_systems:
             heard = ", ".join(str(s) for s in sorted(self._other_systems))
             return f"{text}: heard system(s) {heard} instead: check --id and the port"
@@ -517,6 +552,8 @@ class AutopilotLink:
         if self._last_companion_hb_s is None \
                 or now - self._last_companion_hb_s >= _COMPANION_HEARTBEAT_PERIOD_S:
             self._last_companion_hb_s = now
+            if self._signing:
+                refresh_signing_timestamp(mav)
             self._conn.mav.heartbeat_send(mavlink2.MAV_TYPE_ONBOARD_CONTROLLER,
                                           mavlink2.MAV_AUTOPILOT_INVALID, 0, 0,
                                           mavlink2.MAV_STATE_ACTIVE)
@@ -566,7 +603,7 @@ class AutopilotLink:
                 return
             if not data:
                 return
-            fast = LOCAL_POSITION_NED.unpack(data)
+            fast = None if self._signing else LOCAL_POSITION_NED.unpack(data)  # unsigned only
             if fast is not None and fast[0] == self._sysid and fast[1] == AUTOPILOT_COMPONENT_ID:
                 self._vehicle_heard = True
                 self._on_local_position(*fast[2])  # the 50 Hz sample: no message object

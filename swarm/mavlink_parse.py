@@ -15,6 +15,16 @@ byte-by-byte parser and per-message objects (about ten times cheaper, which matt
 It takes only exactly one unsigned MAVLink 2 frame of its message with a valid checksum
 (``unpack`` returns None for anything else, and the caller hands those bytes to
 ``parse_bytes``), so bad frames are counted exactly as before.
+
+MAVLink 2 signing (``swarm.mavlink_signing``): with a secret key on the parser, pymavlink
+refuses unsigned, wrongly signed and replayed frames; ``parse_bytes`` counts them as
+``unsigned``, ``bad_signature`` or ``stale_signature`` (timestamp not newer than the
+stream's last one, pymavlink's replay rule). The fast path never applies then: ``pack``
+leaves signing to pymavlink and callers must not ``unpack`` on a signed link (it would take
+an unsigned frame). One repair: pymavlink's ``check_signature`` stores a frame's timestamp
+for its stream *before* comparing the signature, so one forged frame with a far-future
+timestamp would make every genuine frame of that stream look replayed; ``parse_bytes``
+undoes that store when the signature is wrong (the C library checks the signature first).
 """
 
 from __future__ import annotations
@@ -41,10 +51,14 @@ def reset_parser(parser: mavlink2.MAVLink) -> None:
 def parse_bytes(parser: mavlink2.MAVLink, data: bytes, rejections: Counter[str], *,
                 datagram: bool) -> list[Any]:
     """The complete, known messages in ``data``; everything else counted in ``rejections``
-    (``bad_data``, ``unknown_message``, ``truncated``, ``parser_error:<type>``).
+    (``bad_data``, ``unknown_message``, ``truncated``, ``parser_error:<type>``; with signing
+    also ``unsigned``, ``bad_signature``, ``stale_signature``).
     ``datagram``: ``data`` is one whole UDP datagram (a leftover is a truncated frame)."""
     try:
-        messages = parser.parse_buffer(bytes(data)) or []
+        if parser.signing.secret_key is None:
+            messages = parser.parse_buffer(bytes(data)) or []
+        else:
+            messages = _parse_signed(parser, bytes(data), rejections)
     except Exception as exc:  # pymavlink should not raise with robust parsing; be safe
         rejections[f"parser_error:{type(exc).__name__}"] += 1
         reset_parser(parser)
@@ -62,6 +76,33 @@ def parse_bytes(parser: mavlink2.MAVLink, data: bytes, rejections: Counter[str],
         rejections["truncated"] += 1
         reset_parser(parser)
     return out
+
+
+def _parse_signed(parser: mavlink2.MAVLink, data: bytes,
+                  rejections: Counter[str]) -> list[Any]:
+    """``parse_buffer`` one frame at a time (as it does itself), counting the frames
+    pymavlink refuses for their signature and undoing its premature timestamp store."""
+    signing = parser.signing
+    out: list[Any] = []
+    chunk = data
+    while True:
+        before = dict(signing.stream_timestamps)  # one entry per peer stream: tiny
+        msg = parser.parse_char(chunk)
+        chunk = b""
+        if msg is None:
+            return out
+        if msg.get_type() != "BAD_DATA" or msg.reason != "Invalid signature":
+            out.append(msg)
+            continue
+        frame = msg.data
+        if not (frame[0] == _MAGIC_V2 and frame[2] & mavlink2.MAVLINK_IFLAG_SIGNED):
+            rejections["unsigned"] += 1
+        elif signing.stream_timestamps != before:  # the timestamp passed, the signature not
+            signing.stream_timestamps.clear()
+            signing.stream_timestamps.update(before)
+            rejections["bad_signature"] += 1
+        else:
+            rejections["stale_signature"] += 1
 
 
 def _checksum(frame_after_magic: bytes | bytearray, crc_extra: int) -> int:

@@ -4,7 +4,9 @@ stores that turn callback deliveries into what an agent step needs.
 - ``zenoh_config`` builds a session config with explicit endpoints only: no multicast scouting
   and no default listener (zenoh's own default listens on ``tcp/[::]:<port>`` on every
   interface and scouts on UDP multicast 224.0.0.224:7446). A swarm started with loopback
-  endpoints therefore creates no traffic outside 127.0.0.0/8.
+  endpoints therefore creates no traffic outside 127.0.0.0/8. With a ``TlsIdentity``
+  (``swarm.security``, the config's ``[security]``) every link is mutual TLS (``tls/...``
+  endpoints only), and a router can be given an ``access_control`` block to enforce.
 - ``Keys`` names every key expression under ``vigil/<run_id>/``; different run ids never match.
 - ``subscribe`` declares a callback subscriber that decodes each payload with a ``WireCodec``
   decoder; a ``WireError`` (or anything unexpected) is counted in a ``RejectionCounter`` and the
@@ -32,13 +34,14 @@ from typing import Any, Final, Generic, Literal, TypeVar
 
 import zenoh
 
+from swarm.security import TlsIdentity
 from swarm.wire import WireError
 
 T = TypeVar("T")
 
 Mode = Literal["peer", "client", "router"]
 MODES: Final = ("peer", "client", "router")
-PROTOCOLS: Final = ("tcp", "udp")
+PROTOCOLS: Final = ("tcp", "udp", "tls")
 KEY_ROOT: Final = "vigil"
 
 _RUN_ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
@@ -57,7 +60,8 @@ class TransportError(RuntimeError):
 
 def parse_endpoint(endpoint: str, *, role: Literal["listen", "connect"] = "connect"
                    ) -> tuple[str, str, int]:
-    """Split ``"<tcp|udp>/<host>:<port>"`` into (protocol, host, port), or raise ``ValueError``.
+    """Split ``"<tcp|udp|tls>/<host>:<port>"`` into (protocol, host, port), or raise
+    ``ValueError``.
 
     Hosts are IPv4 addresses, bracketed IPv6 addresses (``tcp/[::1]:7447``) or host names. Port
     0 (any free port) is allowed for ``listen`` only. Zenoh itself accepts malformed strings at
@@ -67,7 +71,7 @@ def parse_endpoint(endpoint: str, *, role: Literal["listen", "connect"] = "conne
         raise ValueError(f"zenoh {role} endpoint must be a string like 'tcp/127.0.0.1:7447', "
                          f"got {type(endpoint).__name__}")
     shown = endpoint if len(endpoint) <= 80 else endpoint[:77] + "..."
-    expected = "expected '<tcp|udp>/<host>:<port>', e.g. 'tcp/127.0.0.1:7447'"
+    expected = "expected '<tcp|udp|tls>/<host>:<port>', e.g. 'tcp/127.0.0.1:7447'"
     proto, slash, rest = endpoint.partition("/")
     if not slash or proto not in PROTOCOLS:
         raise ValueError(f"zenoh {role} endpoint {shown!r}: {expected}")
@@ -107,6 +111,20 @@ def is_loopback_endpoint(endpoint: str) -> bool:
         return False
 
 
+def local_endpoint(port: int, *, tls: bool = False) -> str:
+    """``tcp/127.0.0.1:<port>``, or ``tls/...`` when the swarm runs with ``[security]``."""
+    return f"{'tls' if tls else 'tcp'}/127.0.0.1:{port}"
+
+
+def check_tls_endpoints(endpoints: Iterable[str], *, tls: bool) -> None:
+    """``ValueError`` unless every endpoint is ``tls/...`` with TLS on, and none is without."""
+    for endpoint in endpoints:
+        if endpoint.startswith("tls/") != tls:
+            raise ValueError(f"zenoh endpoint {endpoint[:80]!r}: " + (
+                "plain, but [security] is on: use tls/<host>:<port>" if tls
+                else "tls needs certificates: set [security] tls_dir in the config"))
+
+
 def zenoh_config(
     *,
     mode: Mode = "peer",
@@ -114,6 +132,8 @@ def zenoh_config(
     connect: Sequence[str] = (),
     connect_timeout_s: float | None = None,
     shared_memory: bool = False,
+    tls: TlsIdentity | None = None,
+    access_control: dict[str, Any] | None = None,
 ) -> zenoh.Config:
     """A Zenoh session config with explicit endpoints only.
 
@@ -129,6 +149,10 @@ def zenoh_config(
       opens anyway and keeps retrying in the background).
     - ``shared_memory`` is off by default: payloads here are small, and a SIGKILLed process
       must not leave segments behind in /dev/shm.
+    - ``tls``: mutual TLS with this identity (``swarm.security``); every endpoint must then be
+      ``tls/...``, and without it none may be.
+    - ``access_control``: a zenoh ``access_control`` block (``security.router_access_control``)
+      that this session enforces on the messages it exchanges with the others.
     """
     if mode not in MODES:
         raise ValueError(f"zenoh mode must be one of {MODES}, got {mode!r}")
@@ -140,6 +164,7 @@ def zenoh_config(
         parse_endpoint(endpoint, role="listen")
     for endpoint in connect:
         parse_endpoint(endpoint, role="connect")
+    check_tls_endpoints([*listen, *connect], tls=tls is not None)
     if connect_timeout_s is not None and not (isinstance(connect_timeout_s, int | float)
                                               and 0 < connect_timeout_s <= 3600):
         raise ValueError(f"connect_timeout_s must be in (0, 3600] s, got {connect_timeout_s!r}")
@@ -164,6 +189,10 @@ def zenoh_config(
         # messages were lost, ~10 % of the truth toward a recording launcher.
         "transport/link/tx/queue/size/data": TX_DATA_QUEUE_BATCHES,
     }
+    if tls is not None:
+        settings.update(tls.zenoh_settings())
+    if access_control is not None:
+        settings["access_control"] = access_control
     if connect_timeout_s is not None:
         settings["connect/timeout_ms"] = max(1, round(connect_timeout_s * 1000))
         settings["connect/exit_on_failure"] = True

@@ -21,9 +21,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from swarm import launcher as launcher_module
 from swarm.checks import check_invariants
 from swarm.config import load_config
-from swarm.launcher import LaunchOptions, SwarmLauncher, choose_mavlink_base
+from swarm.launcher import Child, LaunchOptions, SwarmLauncher, choose_mavlink_base
 from swarm.reference import run_reference
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -185,6 +186,52 @@ def test_a_dying_agent_is_reported_with_exit_code_and_log_lines() -> None:
             os.killpg(process.pid, signal.SIGKILL)
         for pid in processes_of(run_id):
             os.kill(pid, signal.SIGKILL)
+
+
+def test_a_clean_exit_waits_for_the_worlds_done_before_it_counts_as_a_failure(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """An agent exits 0 only once it has seen "done", which may reach it before it reaches
+    the launcher: exit 0 is not a failure while "done" may still arrive, nor after it did;
+    exit 0 with no "done" within the grace period is, and so is any other exit code."""
+    config = load_config(CONFIGS / "case1.toml")
+    launcher = SwarmLauncher(LaunchOptions(config=config, config_path=str(CONFIGS / "case1.toml"),
+                                           seed=0, log_dir=tmp_path), log=lambda _line: None)
+    state = ["running"]
+    monkeypatch.setattr(launcher, "_mission_state", lambda: state[0])
+    clean = subprocess.Popen([sys.executable, "-c", "pass"])
+    clean.wait()
+    launcher.children.append(Child("agent0", clean, tmp_path / "agent0.log"))
+    assert launcher._dead_child() is None  # within the grace period
+    state[0] = "done"
+    assert launcher._dead_child() is None
+    state[0] = "running"
+    monkeypatch.setattr(launcher_module, "CLEAN_EXIT_GRACE_S", 0.0)
+    assert launcher._dead_child() is launcher.children[0]  # "done" never came
+    failed = subprocess.Popen([sys.executable, "-c", "raise SystemExit(3)"])
+    failed.wait()
+    launcher.children[:] = [Child("agent1", failed, tmp_path / "agent1.log")]
+    monkeypatch.setattr(launcher_module, "CLEAN_EXIT_GRACE_S", 60.0)
+    state[0] = "done"
+    assert launcher._dead_child() is launcher.children[0]
+    launcher.close()
+
+
+def test_launchers_started_together_reserve_different_mavlink_blocks() -> None:
+    """The ports are bound by the children only later: the reservation lock keeps a second
+    launcher off a block the first one chose, and a requested base that is reserved is a
+    clear error."""
+    first_base, first_lock = launcher_module.reserve_mavlink_base(0, 6)
+    try:
+        second_base, second_lock = launcher_module.reserve_mavlink_base(0, 6)
+        second_lock.close()
+        assert second_base != first_base
+        with pytest.raises(launcher_module.MissionError, match="reserved by another"):
+            launcher_module.reserve_mavlink_base(first_base, 6)
+    finally:
+        first_lock.close()
+    again, lock = launcher_module.reserve_mavlink_base(first_base, 6)  # released: free again
+    lock.close()
+    assert again == first_base
 
 
 # -- command lines ---------------------------------------------------------------------------

@@ -178,7 +178,7 @@ def test_every_message_round_trips_bit_exact(name: str) -> None:
     assert CODEC.encode(decoded) == payload  # re-encoding gives the same bytes: every bit kept
     assert decoded.version == WIRE_VERSION
     for field, array in decoded.arrays().items():
-        assert same_bits(array, getattr(MESSAGES[name], field).to_array())
+        assert same_bits(array, MESSAGES[name].arrays()[field])
 
 
 def test_helpers_give_numpy_back() -> None:
@@ -206,12 +206,20 @@ def with_nan(array: F64Array, value: float = np.nan) -> F64Array:
     return F64Array.from_array(a)
 
 
+def consensus_with_nan(wire: ConsensusWire, field: str, value: float = np.nan) -> ConsensusWire:
+    """``wire`` with the last value of one of its packed arrays replaced."""
+    message = CODEC.consensus_from_wire(wire)
+    getattr(message, field).flat[-1] = value
+    return consensus_to_wire(message)
+
+
 @pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
 def test_non_finite_values_are_rejected(bad: float) -> None:
     cons = MESSAGES["consensus"]
     cases = [
-        ("consensus", msgspec.structs.replace(cons, gramian=with_nan(cons.gramian, bad))),
-        ("consensus", msgspec.structs.replace(cons, information=with_nan(cons.information, bad))),
+        ("consensus", consensus_with_nan(cons, "gramian", bad)),
+        ("consensus", consensus_with_nan(cons, "information", bad)),
+        ("consensus", consensus_with_nan(MESSAGES["consensus_round"], "information_vector", bad)),
         ("beacon", msgspec.structs.replace(MESSAGES["beacon"], position_m=(0.0, bad, 1.0))),
         ("beacon", msgspec.structs.replace(MESSAGES["beacon"], time_s=bad)),
         ("camera", msgspec.structs.replace(MESSAGES["camera"],
@@ -258,15 +266,15 @@ def test_wrong_message_kind_is_rejected() -> None:
 
 def test_wrong_shapes_and_lengths_are_rejected() -> None:
     cons = MESSAGES["consensus"]
-    bad_shape = F64Array((M, NS, NS + 1), bytes(8 * M * NS * (NS + 1)))
-    assert "shape" in reason_of(CODEC.decode_consensus,
-                                raw(msgspec.structs.replace(cons, information=bad_shape)))
-    short = F64Array((M, NS), bytes(8 * M * NS - 1))
-    assert "bytes" in reason_of(CODEC.decode_consensus,
-                                raw(msgspec.structs.replace(cons, information_vector=short)))
-    huge = F64Array((1 << 20, 1 << 20, 1 << 20), b"")
-    assert "shape" in reason_of(CODEC.decode_consensus,
-                                raw(msgspec.structs.replace(cons, information=huge)))
+    # A consensus message packs its arrays in one block: its sizes and byte count are checked.
+    bad_shape = msgspec.structs.replace(cons, n_state=NS + 1)
+    assert "shape" in reason_of(CODEC.decode_consensus, raw(bad_shape))
+    short = msgspec.structs.replace(cons, data=cons.data[:-1])
+    assert "bytes" in reason_of(CODEC.decode_consensus, raw(short))
+    longer = msgspec.structs.replace(cons, data=cons.data + bytes(8))
+    assert "bytes" in reason_of(CODEC.decode_consensus, raw(longer))
+    huge = msgspec.structs.replace(cons, n_targets=1 << 20, data=b"")
+    assert "shape" in reason_of(CODEC.decode_consensus, raw(huge))
     # The same bytes are wrong for a swarm of another size.
     other = WireCodec(N, M + 1, NS)
     assert "shape" in reason_of(other.decode_consensus, PAYLOADS["consensus"])
@@ -283,9 +291,10 @@ def test_ids_steps_and_rounds_are_range_checked() -> None:
         (CODEC.decode_consensus, msgspec.structs.replace(cons, step=-1), ">= 0"),
         (CODEC.decode_consensus, msgspec.structs.replace(MESSAGES["consensus_round"], round=3),
          "round 3 out of range"),
-        (CODEC.decode_consensus, msgspec.structs.replace(cons, gramian=None), "gramian missing"),
         (CODEC.decode_consensus, msgspec.structs.replace(
-            MESSAGES["consensus_round"], weight_mean=cons.weight_mean), "must not carry"),
+            cons, data=MESSAGES["consensus_round"].data), "gramian missing"),
+        (CODEC.decode_consensus, msgspec.structs.replace(
+            MESSAGES["consensus_round"], data=cons.data), "must not carry"),
         (CODEC.decode_beacon, msgspec.structs.replace(MESSAGES["beacon"], sender=99), "sender"),
         (CODEC.decode_camera, msgspec.structs.replace(cam, drone=N), "drone"),
         (CODEC.decode_camera, msgspec.structs.replace(

@@ -302,3 +302,81 @@ def test_infeasible_solve_does_not_poison_the_reused_solver() -> None:
     reference = brute_force_optimum(instance, relaxed=False)
     assert reference is not None and solution.found
     np.testing.assert_allclose(solution.velocity, reference[0], atol=VELOCITY_ATOL)
+
+
+def _workspace_inputs(instance: Instance) -> tuple[tuple[float, float, float], list[float],
+                                                   list[float], list[float]]:
+    """``LocalQpWorkspace.solve`` arguments for an instance: u columns x, y, z of every row
+    (localization, weight-sum, collision), their bounds, the weights."""
+    rows = np.vstack((instance.localization_rows, instance.weight_rows,
+                      instance.collision_rows))
+    lower = np.concatenate((instance.localization_lower, instance.weight_lower,
+                            instance.collision_lower))
+    nominal = (float(instance.nominal[0]), float(instance.nominal[1]),
+               float(instance.nominal[2]))
+    return nominal, rows.T.reshape(-1).tolist(), lower.tolist(), instance.weights.tolist()
+
+
+def _nominal_is_feasible(instance: Instance) -> bool:
+    rows = np.vstack((instance.localization_rows, instance.weight_rows,
+                      instance.collision_rows))
+    lower = np.concatenate((instance.localization_lower, instance.weight_lower,
+                            instance.collision_lower))
+    return bool(np.all(rows @ instance.nominal >= lower)
+                and np.all(np.abs(instance.nominal) <= U_MAX))
+
+
+@pytest.mark.parametrize("relaxed", [True, False], ids=["relaxed", "hard"])
+@pytest.mark.parametrize("m_targets", [1, 2, 3])
+def test_workspace_sequence_matches_the_brute_force_optimum(m_targets: int,
+                                                             relaxed: bool) -> None:
+    """The agent's per-step path (one ``LocalQpWorkspace`` set up once and updated with each
+    new instance) finds the brute-force optimum on a sequence that mixes instances whose u_d
+    is feasible (answered without PIQP) and instances that need the solver: skipping PIQP
+    must not leave its data stale for the next solve."""
+    rng = np.random.default_rng(100 + 10 * m_targets + relaxed)
+    workspace = qp_module.LocalQpWorkspace(m_targets, N_DRONES - 1, relaxed=relaxed,
+                                           slack_weight=SLACK_WEIGHT,
+                                           weight_floor=WEIGHT_FLOOR, u_max=U_MAX)
+    statuses = []
+    for k in range(24):
+        instance = random_instance(rng, m_targets, hard_feasible=not relaxed)
+        if k % 3 == 1:  # make u_d feasible: loosen every soft row, pull u_d into the box
+            instance.nominal = rng.uniform(-0.5, 0.5, 3)
+            instance.localization_lower = instance.localization_rows @ instance.nominal - 0.1
+            instance.weight_lower = instance.weight_rows @ instance.nominal - 0.1
+            active = np.any(instance.collision_rows != 0.0, axis=1)
+            if np.any(instance.collision_rows[active] @ instance.nominal
+                      < instance.collision_lower[active]):
+                instance.collision_rows[active] *= 0.0
+                instance.collision_lower[active] = INACTIVE_ROW_LOWER
+        solution = workspace.solve(*_workspace_inputs(instance))
+        statuses.append(solution.status)
+        assert solution.found, solution.status
+        assert solution.max_violation <= 1e-6
+        reference = brute_force_optimum(instance, relaxed=relaxed)
+        assert reference is not None
+        u_star, objective_star = reference
+        np.testing.assert_allclose(solution.velocity, u_star, rtol=0, atol=VELOCITY_ATOL)
+        assert instance.spec_objective(solution.z) == pytest.approx(
+            objective_star, rel=OBJECTIVE_RTOL, abs=OBJECTIVE_ATOL)
+        if _nominal_is_feasible(instance):
+            assert solution.status == qp_module.NOMINAL_FEASIBLE
+            assert solution.iterations == 0
+            np.testing.assert_array_equal(solution.velocity, instance.nominal)
+            np.testing.assert_array_equal(solution.z[3:], 0.0)
+        else:
+            assert solution.status == "PIQP_SOLVED"
+    assert qp_module.NOMINAL_FEASIBLE in statuses and "PIQP_SOLVED" in statuses
+
+
+def test_workspace_sends_nan_nominal_to_the_solver_not_the_shortcut() -> None:
+    """A NaN u_d is never 'feasible': the shortcut must not return it as the optimum."""
+    instance = random_instance(np.random.default_rng(7), 1, hard_feasible=True)
+    workspace = qp_module.LocalQpWorkspace(1, N_DRONES - 1, relaxed=True,
+                                           slack_weight=SLACK_WEIGHT,
+                                           weight_floor=WEIGHT_FLOOR, u_max=U_MAX)
+    _, columns, lower, weights = _workspace_inputs(instance)
+    solution = workspace.solve((float("nan"), 0.0, 0.0), columns, lower, weights)
+    assert solution.status != qp_module.NOMINAL_FEASIBLE
+    assert not solution.found  # the agent then falls back (zero velocity), never flies NaN
