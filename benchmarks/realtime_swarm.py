@@ -13,9 +13,10 @@ Per run (``swarm_probe``):
   over the whole mission and after each agent's first second (its start-up transient);
 - step latency: the agents' ``step_us`` from telemetry (compute time of a step, barrier QP
   active), median and p99;
-- neighbour-data age: ``counters.neighbour_age_ms`` from telemetry — the age of the freshest
-  neighbour consensus message when a step uses it, counted from its arrival at the receiver
-  (so without the Zenoh hop itself), median and p99;
+- neighbour-data age (end to end): ``counters.neighbour_age_ms`` from telemetry — the age of
+  the freshest neighbour consensus message when a step uses it, counted from the neighbour's
+  put (its Zenoh timestamp), so the hop through the router and the wait are both in it;
+  median and p99;
 - CPU per agent process (and the world's, and their total) over the mission window, in cores;
 - the SPEC invariants and the final estimation errors, to see that the swarm still works.
 

@@ -34,6 +34,7 @@ from swarm.transport import (
     TransportError,
     declare_publisher,
     open_session,
+    put_stamped,
     subscribe,
     zenoh_config,
 )
@@ -100,6 +101,9 @@ class AgentProcess:
         self._flying = np.zeros(3)  # the velocity setpoint last sent (what the vehicle flies)
         self.stale_messages = 0
         self.neighbour_age_ms = float("nan")
+        # When each neighbour's newest consensus message of each round left it (its Zenoh
+        # timestamp, Unix s): the reported neighbour age includes the hop, not only the wait.
+        self._consensus_sent: dict[tuple[int, int], float] = {}
 
         self.session = self._open_session()
         # Direct callbacks (on zenoh's receiving thread): every step waits on these, and each
@@ -114,7 +118,8 @@ class AgentProcess:
                       self._on_clock, self.rejections, "clock", direct=True),
         ]
         subs += [subscribe(self.session, self.keys.consensus(j), self.codec.decode_consensus,
-                           self._on_consensus, self.rejections, "consensus", direct=True)
+                           self._on_consensus, self.rejections, "consensus", direct=True,
+                           on_sent_time=self._on_consensus_sent)
                  for j in sorted(self.neighbours)]
         self._subscribers = subs
         self._lockstep = lockstep
@@ -182,6 +187,10 @@ class AgentProcess:
         self.consensus_steps.put(msg.step, msg.round, msg.sender, msg)
         self.consensus_latest.put((msg.sender, msg.round), msg)
 
+    def _on_consensus_sent(self, msg: ConsensusMessage, sent_unix_s: float) -> None:
+        if msg.sender in self.neighbours:
+            self._consensus_sent[(msg.sender, msg.round)] = sent_unix_s
+
     def _on_beacon(self, _key: str, beacon: BeaconWire) -> None:
         if beacon.sender == self.id:
             return
@@ -225,14 +234,21 @@ class AgentProcess:
         publisher.put(payload)
 
     def _publish_consensus(self, msg: ConsensusMessage | None) -> None:
-        if msg is not None:
-            self._send(self._pub_consensus, self.codec.encode_consensus, msg)
+        if msg is None:
+            return
+        try:
+            payload = self.codec.encode_consensus(msg)
+        except WireError as err:
+            self.rejections.reject("outgoing", err.reason)
+            return
+        put_stamped(self.session, self._pub_consensus, payload)
 
     def _fresh_inbox(self, rnd: int) -> dict[int, ConsensusMessage]:
         """Realtime: each neighbour's newest message of this round, if fresh enough."""
         stale_after = self.options.config.runtime.stale_timeout_s
         inbox: dict[int, ConsensusMessage] = {}
         ages = []
+        now_unix = time.time()
         for j in self.neighbours:
             latest = self.consensus_latest.get((j, rnd))
             if latest is None:
@@ -242,7 +258,10 @@ class AgentProcess:
                 self.stale_messages += 1
                 continue
             inbox[j] = msg
-            ages.append(age)
+            # From the neighbour's put to now (the hop included); without a timestamp, from
+            # its arrival. A skewed clock never makes an age negative.
+            sent = self._consensus_sent.get((j, rnd))
+            ages.append(max(now_unix - sent, age) if sent is not None else age)
         self.neighbour_age_ms = 1000.0 * min(ages) if ages else float("nan")
         return inbox
 

@@ -212,6 +212,13 @@ def open_session(config: zenoh.Config) -> zenoh.Session:
                              ) from None
 
 
+def put_stamped(session: zenoh.Session, publisher: zenoh.Publisher, payload: bytes) -> None:
+    """``publisher.put(payload)`` with a Zenoh timestamp of now (the session's hybrid logical
+    clock, which follows the wall clock): receivers learn when the data left
+    (``subscribe(..., on_sent_time=...)``)."""
+    publisher.put(payload, timestamp=session.new_timestamp())
+
+
 def declare_publisher(session: zenoh.Session, key: str, *, block: bool = True,
                       express: bool = False) -> zenoh.Publisher:
     """A publisher for one key.
@@ -538,6 +545,7 @@ def subscribe(
     max_payload_bytes: int = 1 << 20,
     direct: bool = False,
     remote_only: bool = False,
+    on_sent_time: Callable[[T, float], None] | None = None,
 ) -> zenoh.Subscriber:
     """Declare a callback subscriber on ``key`` (wildcards allowed).
 
@@ -553,6 +561,10 @@ def subscribe(
     the GIL), so keep it short, and never use it in a process that hosts a router.
     ``remote_only``: leave out what this session publishes itself (e.g. an agent's own beacon
     on ``agent/*/beacon``).
+    ``on_sent_time(value, unix_s)``: called before ``on_value`` for a sample that carries a
+    Zenoh timestamp (``put_stamped``), with its time — the sender's clock at the put, so the
+    receiver sees the age of the data including the hop (exact on one host; across hosts as
+    good as the clocks' synchronisation).
     """
 
     def callback(sample: zenoh.Sample) -> None:
@@ -570,6 +582,8 @@ def subscribe(
             rejections.unexpected(kind, f"decoder raised {type(exc).__name__}: {exc}")
             return
         try:
+            if on_sent_time is not None and (stamp := sample.timestamp) is not None:
+                on_sent_time(value, stamp.get_time_as_ntp64().as_secs_f64())
             on_value(str(sample.key_expr), value)
         except BaseException as exc:
             rejections.unexpected(kind, f"handler raised {type(exc).__name__}: {exc}")

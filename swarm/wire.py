@@ -330,7 +330,9 @@ class TelemetryCounters(msgspec.Struct, frozen=True, array_like=True,
     stale_neighbour_messages: NonNegativeInt = 0
     late_steps: NonNegativeInt = 0
     steps: NonNegativeInt = 0  # steps run so far (late_steps / steps is the late rate)
-    neighbour_age_ms: float | None = None  # age of the freshest neighbour message; None: none yet
+    # Age of the freshest neighbour consensus message a step used, from the neighbour's put
+    # (Zenoh timestamp; the hop included) to its use; None: none yet (realtime only).
+    neighbour_age_ms: float | None = None
     mavlink_state: Label = ""
 
 

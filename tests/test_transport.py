@@ -35,6 +35,7 @@ from swarm.transport import (
     is_loopback_endpoint,
     open_session,
     parse_endpoint,
+    put_stamped,
     subscribe,
     zenoh_config,
 )
@@ -529,6 +530,63 @@ def test_direct_remote_only_subscription_skips_its_own_session(spawn) -> None:
         assert received.wait_for({4}, DEADLINE_S, min_seq=1)
     assert received.get(1) is None  # our own beacons never came back
     assert threads == {"_DummyThread"}  # zenoh's own thread, not a Python-made one
+
+
+def test_stamped_puts_tell_the_receiver_when_the_data_left() -> None:
+    """``put_stamped`` carries the sender's time of the put; ``on_sent_time`` gets it before
+    ``on_value`` (between the put and the arrival); an unstamped put calls only
+    ``on_value``."""
+    port = free_port()
+    keys = Keys("stamp")
+    events: queue.Queue = queue.Queue()
+
+    def on_value(_key: str, beacon) -> None:
+        events.put(("value", beacon.step, time.time()))
+
+    def on_sent(beacon, unix_s: float) -> None:
+        events.put(("sent", beacon.step, unix_s))
+
+    # Peers (a router would stamp unstamped samples itself, with its own clock).
+    with session(zenoh_config(mode="peer", listen=[endpoint(port)])) as hub, \
+            session(zenoh_config(mode="peer", connect=[endpoint(port)])) as client:
+        subscribe(hub, keys.all_beacons, CODEC.decode_beacon, on_value, RejectionCounter(),
+                  "beacon", on_sent_time=on_sent)
+        publisher = declare_publisher(client, keys.beacon(2))
+        step = 0
+
+        def put() -> None:
+            nonlocal step
+            step += 1
+            payload = CODEC.encode(BeaconWire.build(2, step, 0.0, [0, 0, 1.0]))
+            events.put(("put", step, time.time()))
+            put_stamped(client, publisher, payload)
+
+        repeat_until(put, lambda wait_s: any(
+            e[0] == "value" for e in iter_queue(events, wait_s)) or None)
+        put()
+        stamped = step
+        publisher.put(CODEC.encode(BeaconWire.build(2, step + 1, 0.0, [0, 0, 1.0])))  # unstamped
+        seen: list[tuple[str, int, float]] = []
+        while ("value", stamped + 1) not in [(kind, k) for kind, k, _t in seen]:
+            event = events.get(timeout=DEADLINE_S)
+            if event[1] >= stamped:  # warm-up puts may still be arriving
+                seen.append(event)
+    kinds = [(kind, k) for kind, k, _t in seen]
+    assert kinds == [("put", stamped), ("sent", stamped), ("value", stamped),
+                     ("value", stamped + 1)], kinds
+    put_s, sent_s, arrived_s = seen[0][2], seen[1][2], seen[2][2]
+    assert put_s - 0.005 <= sent_s <= arrived_s + 0.005
+
+
+def iter_queue(events: queue.Queue, wait_s: float) -> list:
+    """What arrives on ``events`` within ``wait_s`` (at least one get, then no waiting)."""
+    try:
+        out = [events.get(timeout=wait_s)]
+    except queue.Empty:
+        return []
+    while not events.empty():
+        out.append(events.get_nowait())
+    return out
 
 
 def test_handler_and_decoder_exceptions_never_reach_zenoh(spawn) -> None:
