@@ -95,7 +95,8 @@ def tables(result: dict[str, Any]) -> list[Table]:
          "max final err m", "violations"],
         caption=(f"median (min–max) over {result['repeats']} runs; late: agents' counters; "
                  "step µs: telemetry step_us (QP active); neighbour age: freshest neighbour "
-                 "message at use, since its arrival;\nCPU in cores over the mission window"))
+                 "message at use, from the neighbour's put (hop included);\nCPU in cores over "
+                 "the mission window"))
     for res in result["results"]:
         s = res["summary"]
         table.add_row(str(res["n_drones"]), fmt_spread(s["late_fraction"], 2, scale=100.0),

@@ -18,7 +18,7 @@ Besides the launcher's own record and counters, a run measures, from outside the
   streaming (``AGENT_PHASES``); launch → every drone streaming is the first "running" clock
   message after ``SwarmLauncher.run`` was called;
 - telemetry: every agent's ``step_us``, ``counters.neighbour_age_ms`` (realtime: age of
-  the freshest neighbour message when used, since its arrival at the receiver) and its
+  the freshest neighbour message when used, from the neighbour's put) and its
   running late/step counters.
 
 A mission the launcher reports as failed keeps its figures when the failure is an agent
