@@ -14,27 +14,20 @@ the same window, in cores (1.0 = one CPU busy).
 
 from __future__ import annotations
 
-import argparse
-import sys
-from pathlib import Path
 from typing import Any
 
 from common import (
     PROFILES,
-    RESULTS,
     Profile,
-    SectionClock,
-    console,
     fmt,
     fmt_spread,
-    machine_info,
     new_table,
     over_runs,
-    write_json,
+    report_section,
+    section_parser,
 )
 from rich.table import Table
-from swarm_configs import load_scaled
-from swarm_probe import THREAD_GROUPS, attempt_swarm
+from swarm_probe import THREAD_GROUPS, swarm_section
 
 
 def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
@@ -71,18 +64,8 @@ def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def run(profile: Profile) -> dict[str, Any]:
-    clock = SectionClock()
-    results = []
-    for n in profile.swarm_sizes:
-        path, config = load_scaled(n)
-        config = config.with_duration(profile.lockstep_duration_s)
-        runs = [attempt_swarm(path, config, "lockstep")
-                for _ in range(profile.lockstep_repeats)]
-        results.append({"n_drones": n, "config": str(path), "runs": runs,
-                        "summary": summarise(runs)})
-    return {"section": "lockstep", "profile": profile.name,
-            "duration_s": profile.lockstep_duration_s, "repeats": profile.lockstep_repeats,
-            "results": results, **clock.done()}
+    return swarm_section("lockstep", profile.name, profile.swarm_sizes, "lockstep",
+                         profile.lockstep_duration_s, profile.lockstep_repeats, summarise)
 
 
 def tables(result: dict[str, Any]) -> list[Table]:
@@ -133,20 +116,9 @@ def _violations(summary: dict[str, Any]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--profile", choices=sorted(PROFILES), default="full")
-    parser.add_argument("--out", type=Path, default=RESULTS / "lockstep.json")
+    parser = section_parser(__doc__, "lockstep.json")
     args = parser.parse_args(argv)
-    result = run(PROFILES[args.profile])
-    out = console()
-    for table in tables(result):
-        out.print(table)
-    result["command"] = " ".join(["python", "benchmarks/bench_lockstep.py",
-                                  *(argv or sys.argv[1:])])
-    result["machine"] = machine_info()
-    write_json(args.out, result)
-    out.print(f"wrote {args.out}")
-    return 0
+    return report_section(run(PROFILES[args.profile]), tables, "bench_lockstep.py", argv, args.out)
 
 
 if __name__ == "__main__":

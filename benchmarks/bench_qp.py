@@ -26,14 +26,11 @@ agree for the comparison to be honest).
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import dataclasses
 import gc
-import sys
 import time
 from collections.abc import Callable, Iterator
-from pathlib import Path
 from typing import Any
 
 import cvxpy as cp
@@ -41,18 +38,16 @@ import numpy as np
 from common import (
     CONFIGS,
     PROFILES,
-    RESULTS,
     Profile,
     SectionClock,
-    console,
     fmt,
     fmt_spread,
-    machine_info,
     new_table,
     progress,
+    report_section,
+    section_parser,
     spread,
     stats,
-    write_json,
 )
 from cvxpy_qp import ParametrizedQp, QpData, solve_rebuilt
 from rich.table import Table
@@ -288,19 +283,9 @@ def tables(result: dict[str, Any]) -> list[Table]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--profile", choices=sorted(PROFILES), default="full")
-    parser.add_argument("--out", type=Path, default=RESULTS / "qp.json", help="JSON output")
+    parser = section_parser(__doc__, "qp.json")
     args = parser.parse_args(argv)
-    result = run(PROFILES[args.profile])
-    out = console()
-    for table in tables(result):
-        out.print(table)
-    result["command"] = " ".join(["python", "benchmarks/bench_qp.py", *(argv or sys.argv[1:])])
-    result["machine"] = machine_info()
-    write_json(args.out, result)
-    out.print(f"wrote {args.out}")
-    return 0
+    return report_section(run(PROFILES[args.profile]), tables, "bench_qp.py", argv, args.out)
 
 
 if __name__ == "__main__":

@@ -19,30 +19,26 @@
 
 from __future__ import annotations
 
-import argparse
 import os
 import subprocess
 import sys
 import tempfile
 import time
 from collections import defaultdict
-from pathlib import Path
 from typing import Any
 
 from common import (
     PROFILES,
-    RESULTS,
     ROOT,
     Profile,
     SectionClock,
-    console,
     fmt,
     fmt_spread,
-    machine_info,
     new_table,
     over_runs,
+    report_section,
+    section_parser,
     spread,
-    write_json,
 )
 from rich.table import Table
 from swarm_configs import load_scaled
@@ -218,20 +214,9 @@ def tables(result: dict[str, Any]) -> list[Table]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--profile", choices=sorted(PROFILES), default="full")
-    parser.add_argument("--out", type=Path, default=RESULTS / "startup.json")
+    parser = section_parser(__doc__, "startup.json")
     args = parser.parse_args(argv)
-    result = run(PROFILES[args.profile])
-    out = console()
-    for table in tables(result):
-        out.print(table)
-    result["command"] = " ".join(["python", "benchmarks/bench_startup.py",
-                                  *(argv or sys.argv[1:])])
-    result["machine"] = machine_info()
-    write_json(args.out, result)
-    out.print(f"wrote {args.out}")
-    return 0
+    return report_section(run(PROFILES[args.profile]), tables, "bench_startup.py", argv, args.out)
 
 
 if __name__ == "__main__":

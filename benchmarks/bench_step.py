@@ -33,32 +33,27 @@ Per run: median and p99 of each; tables show the median over the repeats and its
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import dataclasses
 import gc
-import sys
 import time
 from collections.abc import Callable, Iterator
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 from common import (
     CONFIGS,
     PROFILES,
-    RESULTS,
     Profile,
     SectionClock,
-    console,
     fmt,
     fmt_spread,
-    machine_info,
     new_table,
     progress,
+    report_section,
+    section_parser,
     spread,
     stats,
-    write_json,
 )
 from cvxpy_qp import CvxpyRebuiltWorkspace
 from rich.table import Table
@@ -417,26 +412,16 @@ def tables(result: dict[str, Any]) -> list[Table]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = section_parser(__doc__, "step.json")
     parser.add_argument("--duration", type=float, default=None, help="simulated s per run")
     parser.add_argument("--repeats", type=int, default=None, help="runs per scenario")
-    parser.add_argument("--profile", choices=sorted(PROFILES), default="full")
-    parser.add_argument("--out", type=Path, default=RESULTS / "step.json", help="JSON output")
     args = parser.parse_args(argv)
     profile = PROFILES[args.profile]
     if args.duration is not None:
         profile = dataclasses.replace(profile, step_duration_s=args.duration)
     if args.repeats is not None:
         profile = dataclasses.replace(profile, step_repeats=args.repeats)
-    result = run(profile)
-    out = console()
-    for table in tables(result):
-        out.print(table)
-    result["command"] = " ".join(["python", "benchmarks/bench_step.py", *(argv or sys.argv[1:])])
-    result["machine"] = machine_info()
-    write_json(args.out, result)
-    out.print(f"wrote {args.out}")
-    return 0
+    return report_section(run(profile), tables, "bench_step.py", argv, args.out)
 
 
 if __name__ == "__main__":

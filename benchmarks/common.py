@@ -7,6 +7,7 @@ list[rich.table.Table]``; ``run_all.py`` strings them together.
 
 from __future__ import annotations
 
+import argparse
 import hashlib
 import json
 import os
@@ -267,3 +268,29 @@ def _json_default(value: object) -> object:
     if isinstance(value, Path):
         return str(value)
     raise TypeError(f"not JSON serializable: {type(value).__name__}")
+
+
+# -- the command line of one section -------------------------------------------------------------
+
+
+def section_parser(doc: str, out_name: str) -> argparse.ArgumentParser:
+    """``--profile`` and ``--out`` (default ``results/<out_name>``), the options every section
+    script has; a script adds its own."""
+    parser = argparse.ArgumentParser(description=doc.splitlines()[0])
+    parser.add_argument("--profile", choices=sorted(PROFILES), default="full")
+    parser.add_argument("--out", type=Path, default=RESULTS / out_name, help="JSON output")
+    return parser
+
+
+def report_section(result: dict, tables: Callable[[dict], list[Table]], script: str,
+                   argv: Sequence[str] | None, out_path: Path) -> int:
+    """Print a section's tables, then write its result with the command line and the
+    machine to ``out_path``; exit code 0."""
+    out = console()
+    for table in tables(result):
+        out.print(table)
+    result["command"] = " ".join(["python", f"benchmarks/{script}", *(argv or sys.argv[1:])])
+    result["machine"] = machine_info()
+    write_json(out_path, result)
+    out.print(f"wrote {out_path}")
+    return 0

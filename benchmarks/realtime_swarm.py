@@ -25,27 +25,20 @@ A timing figure depends on the machine and its load: it is measured here, not as
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
-import sys
-from pathlib import Path
 from typing import Any
 
 from common import (
     PROFILES,
-    RESULTS,
     Profile,
-    SectionClock,
-    console,
     fmt_spread,
-    machine_info,
     new_table,
     over_runs,
-    write_json,
+    report_section,
+    section_parser,
 )
 from rich.table import Table
-from swarm_configs import load_scaled
-from swarm_probe import attempt_swarm
+from swarm_probe import swarm_section
 
 
 def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
@@ -73,18 +66,8 @@ def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def run(profile: Profile) -> dict[str, Any]:
-    clock = SectionClock()
-    results = []
-    for n in profile.swarm_sizes:
-        path, config = load_scaled(n)
-        config = config.with_duration(profile.realtime_duration_s)
-        runs = [attempt_swarm(path, config, "realtime")
-                for _ in range(profile.realtime_repeats)]
-        results.append({"n_drones": n, "config": str(path), "runs": runs,
-                        "summary": summarise(runs)})
-    return {"section": "realtime", "profile": profile.name,
-            "duration_s": profile.realtime_duration_s, "repeats": profile.realtime_repeats,
-            "results": results, **clock.done()}
+    return swarm_section("realtime", profile.name, profile.swarm_sizes, "realtime",
+                         profile.realtime_duration_s, profile.realtime_repeats, summarise)
 
 
 def tables(result: dict[str, Any]) -> list[Table]:
@@ -120,12 +103,10 @@ def _violations(summary: dict[str, Any]) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--profile", choices=sorted(PROFILES), default="full")
+    parser = section_parser(__doc__, "realtime.json")
     parser.add_argument("--sizes", default=None, help="comma-separated N, e.g. 6,12,24")
     parser.add_argument("--duration", type=float, default=None, help="simulated s per run")
     parser.add_argument("--repeats", type=int, default=None)
-    parser.add_argument("--out", type=Path, default=RESULTS / "realtime.json")
     args = parser.parse_args(argv)
     profile = PROFILES[args.profile]
     if args.sizes:
@@ -135,16 +116,7 @@ def main(argv: list[str] | None = None) -> int:
         profile = dataclasses.replace(profile, realtime_duration_s=args.duration)
     if args.repeats is not None:
         profile = dataclasses.replace(profile, realtime_repeats=args.repeats)
-    result = run(profile)
-    out = console()
-    for table in tables(result):
-        out.print(table)
-    result["command"] = " ".join(["python", "benchmarks/realtime_swarm.py",
-                                  *(argv or sys.argv[1:])])
-    result["machine"] = machine_info()
-    write_json(args.out, result)
-    out.print(f"wrote {args.out}")
-    return 0
+    return report_section(run(profile), tables, "realtime_swarm.py", argv, args.out)
 
 
 if __name__ == "__main__":

@@ -35,12 +35,13 @@ import random
 import re
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from common import load_average, progress, stats
+from common import SectionClock, load_average, progress, stats
+from swarm_configs import load_scaled
 
 from swarm.checks import check_invariants, summarize_targets
 from swarm.launcher import Child, LaunchOptions, MissionError, SwarmLauncher, udp_ports_free
@@ -440,3 +441,21 @@ def _summarise(config: Any, mode: str, launcher: SwarmLauncher, tap: ClockTap,
                                    if age is not None]),
         "telemetry_messages": len(telemetry),
     }
+
+
+def swarm_section(section: str, profile_name: str, sizes: Sequence[int], mode: str,
+                  duration_s: float, repeats: int,
+                  summarise: Callable[[list[dict[str, Any]]], dict[str, Any]]
+                  ) -> dict[str, Any]:
+    """``repeats`` process swarms of Case 2 scaled to each N in ``sizes`` (``swarm_configs``)
+    in ``mode``, ``duration_s`` simulated each: every run's figures and their summary."""
+    clock = SectionClock()
+    results = []
+    for n in sizes:
+        path, config = load_scaled(n)
+        config = config.with_duration(duration_s)
+        runs = [attempt_swarm(path, config, mode) for _ in range(repeats)]
+        results.append({"n_drones": n, "config": str(path), "runs": runs,
+                        "summary": summarise(runs)})
+    return {"section": section, "profile": profile_name, "duration_s": duration_s,
+            "repeats": repeats, "results": results, **clock.done()}
