@@ -120,7 +120,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_INTERRUPTED
     if args.inprocess:
         return print_summary(record, console)
-    return print_summary(record, console, args.mode, counters)
+    code = print_summary(record, console, args.mode, counters)
+    if launcher.recording_problem is not None:  # the run is fine, its record is not whole
+        print(f"{PROG}: recording incomplete: {launcher.recording_problem}", file=sys.stderr)
+        return EXIT_FAILED
+    return code
 
 
 def print_process_counters(collector: TelemetryCollector, console: Console) -> None:

@@ -230,6 +230,7 @@ class SwarmLauncher:
         self.session: zenoh.Session | None = None
         self._subscribers: list = []
         self.recorder: Recorder | None = None
+        self.recording_problem: str | None = None  # the recording is incomplete, and why
         self.telemetry_listeners: tuple[TelemetryListener, ...] = ()
 
     # -- children ---------------------------------------------------------------------------
@@ -479,6 +480,9 @@ class SwarmLauncher:
             return
         recorder.close()
         problem = f"; {recorder.dropped} not written: {recorder.error}" if recorder.error else ""
+        if recorder.error:
+            self.recording_problem = (f"{recorder.path}: {recorder.dropped} messages not "
+                                      f"written: {recorder.error}")
         self.log(f"launch-swarm: recorded {recorder.written} messages to {recorder.path}"
                  f"{problem}")
 

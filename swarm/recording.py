@@ -25,10 +25,12 @@ partial last record) up to the cut, and says so (``truncated``).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import queue
 import re
+import shutil
 import subprocess
 import sys
 import threading
@@ -402,6 +404,18 @@ def record_directory(text: str) -> Path:
 _STOP: Final = object()
 
 
+# What a recording takes on disk per drone and simulated second, with room to spare: Case 2
+# (6 drones, 2 targets) writes ~160 kB per simulated second, i.e. ~27 kB per drone.
+RECORDING_BYTES_PER_DRONE_SECOND: Final = 40_000
+
+
+def estimated_recording_bytes(cfg: ScenarioConfig) -> int:
+    """Disk space a recording of ``cfg`` needs, generously (checked before a run starts)."""
+    n_targets = len(cfg.targets)
+    per_drone_s = RECORDING_BYTES_PER_DRONE_SECOND * max(1.0, n_targets / 2)
+    return int(per_drone_s * cfg.swarm.n_drones * cfg.scenario.duration_s) + 1_000_000
+
+
 class Recorder:
     """Writes one run to ``directory/run.mcap``; ``put`` is safe from any thread.
 
@@ -415,13 +429,24 @@ class Recorder:
         self.path = Path(directory) / RECORDING_FILE
         self.metadata = metadata
         self.flush_period_s = flush_period_s
+        cfg = metadata.config
         try:
             self.path.parent.mkdir(parents=True, exist_ok=True)
+            free = shutil.disk_usage(self.path.parent).free
+        except OSError as err:
+            raise RecordingError(f"cannot record to {self.path}: {err.strerror or err}"
+                                 ) from None
+        needed = estimated_recording_bytes(cfg)
+        if free < needed:  # say so now, not minutes into the mission
+            raise RecordingError(
+                f"cannot record to {self.path}: {free / 1e6:.1f} MB free, a "
+                f"{cfg.scenario.duration_s:g} s run of {cfg.swarm.n_drones} drones needs "
+                f"about {needed / 1e6:.1f} MB")
+        try:
             self._file: IO[bytes] = self.path.open("wb")
         except OSError as err:
             raise RecordingError(f"cannot record to {self.path}: {err.strerror or err}"
                                  ) from None
-        cfg = metadata.config
         self._dt_ns = round(cfg.scenario.dt_s * 1e9)
         self._channels: dict[str, int] = {}
         self._sequence: dict[int, int] = {}
@@ -433,7 +458,8 @@ class Recorder:
             self._writer.add_metadata(METADATA_NAME, metadata.to_mcap())
             self._writer.flush()
         except OSError as err:
-            self._file.close()
+            with contextlib.suppress(OSError):  # closing flushes again, into the same error
+                self._file.close()
             raise RecordingError(f"cannot record to {self.path}: {err.strerror or err}"
                                  ) from None
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()

@@ -151,12 +151,16 @@ def run_reference(config: ScenarioConfig, seed: int | None = None,
     if record_dir is None:
         return _run(config, seed, on_step, None)
     # Imported here: swarm.recording builds on RunRecord, defined in this module.
-    from swarm.recording import Recorder, RecordingMetadata
+    from swarm.recording import Recorder, RecordingError, RecordingMetadata
 
     metadata = RecordingMetadata.for_run(config, seed, "inprocess", run_id="inprocess",
                                          config_path=config.source)
     with Recorder(record_dir, metadata) as recorder:
-        return _run(config, seed, on_step, recorder)
+        record = _run(config, seed, on_step, recorder)
+    if recorder.error:  # e.g. the disk filled up during the run: never a silent gap
+        raise RecordingError(f"{recorder.path}: {recorder.dropped} messages not written: "
+                             f"{recorder.error}")
+    return record
 
 
 def _record_step(recorder: Recorder, agents: list[DroneAgent], step: int, time_s: float,

@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import os
@@ -451,3 +452,60 @@ def test_bad_inputs_give_one_line_recording_errors(tmp_path: Path) -> None:
             read_recording(path)
         text = str(caught.value)
         assert message in text and str(path) in text and "\n" not in text
+
+
+# -- a full disk ------------------------------------------------------------------------------
+
+
+@contextlib.contextmanager
+def small_filesystem(where: Path, size: str):
+    """A tmpfs of ``size`` mounted at ``where`` (root only: skipped elsewhere)."""
+    where.mkdir()
+    mounted = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(where)],
+                             capture_output=True, text=True)
+    if mounted.returncode != 0:
+        pytest.skip(f"cannot mount a small tmpfs here ({mounted.stderr.strip() or 'not root'})")
+    try:
+        yield where
+    finally:
+        subprocess.run(["umount", "-l", str(where)], check=False)
+
+
+def test_a_full_disk_at_start_is_one_clear_error(tmp_path: Path) -> None:
+    with small_filesystem(tmp_path / "fs", "16k") as fs:
+        (fs / "filler").write_bytes(b"\0" * 16 * 1024)  # tmpfs rounds to pages: may not all fit
+        with pytest.raises(RecordingError) as info:
+            Recorder(fs / "run", small_metadata())
+    message = str(info.value)
+    assert "\n" not in message and str(fs / "run") in message
+    assert "MB free" in message or "No space left" in message
+
+
+def test_too_little_space_for_the_whole_run_is_refused_before_it_starts(
+        tmp_path: Path) -> None:
+    config = load_config(CONFIGS / "case2.toml")  # 50 s of 6 drones: several MB
+    with small_filesystem(tmp_path / "fs", "1m") as fs:
+        with pytest.raises(RecordingError, match=r"MB free, a 50 s run of 6 drones needs "
+                                                 r"about \d+\.\d MB"):
+            run_reference(config, seed=0, record_dir=fs / "run")
+        assert not (fs / "run" / "run.mcap").exists()  # refused before anything was written
+
+
+def test_a_disk_that_fills_during_the_run_is_an_error_not_a_silent_gap(tmp_path: Path) -> None:
+    """The recorder stops writing at the first failed write, the run finishes, and then the
+    run fails with the count of messages that are not on disk."""
+    config = load_config(CONFIGS / "case1.toml").with_duration(1.5)
+    with small_filesystem(tmp_path / "fs", "4m") as fs:
+        filled = []
+
+        def fill_the_disk(step: int, *_args: Any) -> None:
+            if step == 20 and not filled:
+                with contextlib.suppress(OSError), (fs / "filler").open("wb") as handle:
+                    while True:  # to the last byte
+                        handle.write(b"\0" * 65536)
+                filled.append(step)
+
+        with pytest.raises(RecordingError, match=r"messages not written: write failed: .*No "
+                                                 r"space left"):
+            run_reference(config, seed=0, on_step=fill_the_disk, record_dir=fs / "run")
+        assert filled == [20]
