@@ -402,6 +402,44 @@ def test_a_stopped_launcher_leaves_a_readable_recording(tmp_path: Path, signum: 
             os.kill(pid, signal.SIGKILL)
 
 
+def test_a_killed_world_ends_the_mission_with_a_complete_recording(tmp_path: Path) -> None:
+    """kill -9 of the world in the middle of a realtime run: the launcher says so (exit 1,
+    the world's signal), finishes the file (not truncated), with the messages up to the kill
+    in it, and leaves no process behind."""
+    run_id = f"recworld{os.getpid()}"
+    directory = tmp_path / "rec"
+    output = tmp_path / "launcher.log"
+    with output.open("wb") as sink:
+        process = subprocess.Popen(
+            [sys.executable, "-m", "swarm.cli", str(CASE1), "--mode", "realtime", "--headless",
+             "--record", str(directory), "--run-id", run_id, "--log-dir", str(tmp_path / "logs")],
+            cwd=ROOT, stdout=sink, stderr=subprocess.STDOUT, start_new_session=True)
+    try:
+        poll(lambda: read_recording(directory).sim_time_s >= KILL_AFTER_SIM_S
+             or process.poll() is not None, 90.0, f"{KILL_AFTER_SIM_S} s of sim time on disk",
+             period_s=0.25)
+        assert process.poll() is None, f"the launcher ended early:\n{output.read_text()}"
+        world = next(pid for pid in processes_of(run_id)
+                     if b"sim_world.cli" in Path(f"/proc/{pid}/cmdline").read_bytes())
+        killed_ns = time.time_ns()
+        os.kill(world, signal.SIGKILL)
+        code = process.wait(timeout=20)
+        text = output.read_text()
+        assert code == 1, text
+        assert "world" in text and "signal 9" in text, text
+        recording = read_recording(directory)
+        assert not recording.truncated  # the launcher closed the file properly
+        assert recording.record.n_steps >= KILL_AFTER_SIM_S / 0.02
+        assert recording.last_publish_time_ns >= killed_ns - DURABILITY_S * 1e9
+        poll(lambda: not processes_of(run_id), 5.0, "every child of the launcher gone:",
+             on_timeout=lambda: describe(processes_of(run_id)))
+    finally:
+        if process.poll() is None:
+            process.kill()
+        for pid in processes_of(run_id):
+            os.kill(pid, signal.SIGKILL)
+
+
 def test_a_file_cut_anywhere_reads_up_to_the_cut(
         inprocess_recording: tuple[RunRecord, Path], tmp_path: Path) -> None:
     _, directory = inprocess_recording
