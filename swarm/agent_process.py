@@ -228,25 +228,25 @@ class AgentProcess:
         """Encode (validated: peers would reject what fails) and send; count failures."""
         self._send(publisher, self.codec.encode, message)
 
-    def _send(self, publisher, encode: Callable[..., bytes], *args, **kwargs) -> None:
-        """``encode(*args, **kwargs)`` (one of the codec's checked encoders) and send; count
-        failures."""
+    def _encode(self, encode: Callable[..., bytes], *args, **kwargs) -> bytes | None:
+        """``encode(*args, **kwargs)`` (one of the codec's checked encoders); None, counted,
+        if it refuses the message."""
         try:
-            payload = encode(*args, **kwargs)
+            return encode(*args, **kwargs)
         except WireError as err:
             self.rejections.reject("outgoing", err.reason)
-            return
-        publisher.put(payload)
+            return None
+
+    def _send(self, publisher, encode: Callable[..., bytes], *args, **kwargs) -> None:
+        """Encode with ``encode`` and send; count failures."""
+        payload = self._encode(encode, *args, **kwargs)
+        if payload is not None:
+            publisher.put(payload)
 
     def _publish_consensus(self, msg: ConsensusMessage | None) -> None:
-        if msg is None:
-            return
-        try:
-            payload = self.codec.encode_consensus(msg)
-        except WireError as err:
-            self.rejections.reject("outgoing", err.reason)
-            return
-        put_stamped(self.session, self._pub_consensus, payload)
+        payload = None if msg is None else self._encode(self.codec.encode_consensus, msg)
+        if payload is not None:
+            put_stamped(self.session, self._pub_consensus, payload)
 
     def _fresh_inbox(self, rnd: int) -> dict[int, ConsensusMessage]:
         """Realtime: each neighbour's newest message of this round, if fresh enough."""

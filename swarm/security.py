@@ -91,7 +91,8 @@ class TlsIdentity:
 
 def _check_file(path: Path, marker: bytes, what: str) -> None:
     try:
-        head = path.read_bytes()[:1 << 16]
+        with path.open("rb") as handle:
+            head = handle.read(1 << 16)  # a PEM marker is near the start; never a huge file
     except FileNotFoundError:
         raise SecurityError(f"{path}: no such file ({what})") from None
     except IsADirectoryError:

@@ -361,11 +361,11 @@ def describe(pids: list[int]) -> str:
     return "; ".join(lines)
 
 
-@pytest.mark.parametrize("signum", [signal.SIGKILL, signal.SIGTERM], ids=["kill-9", "sigterm"])
-def test_a_stopped_launcher_leaves_a_readable_recording(tmp_path: Path, signum: int) -> None:
-    """kill -9: the file is cut short but holds everything up to at most 1 s before the kill.
-    SIGTERM: the launcher finishes the file (summary, footer) on its way out."""
-    run_id = f"rec{signum}x{os.getpid()}"
+@contextlib.contextmanager
+def recording_launcher(tmp_path: Path, run_id: str):
+    """A realtime Case 1 launch-swarm recording to ``tmp_path/rec``, yielded as
+    (process, recording directory, output file) once KILL_AFTER_SIM_S of sim time is on disk;
+    afterwards nothing of the run is left running."""
     directory = tmp_path / "rec"
     output = tmp_path / "launcher.log"
     with output.open("wb") as sink:
@@ -379,6 +379,20 @@ def test_a_stopped_launcher_leaves_a_readable_recording(tmp_path: Path, signum: 
              or process.poll() is not None, 90.0, f"{KILL_AFTER_SIM_S} s of sim time on disk",
              period_s=0.25)
         assert process.poll() is None, f"the launcher ended early:\n{output.read_text()}"
+        yield process, directory, output
+    finally:
+        if process.poll() is None:
+            process.kill()
+        for pid in processes_of(run_id):
+            os.kill(pid, signal.SIGKILL)
+
+
+@pytest.mark.parametrize("signum", [signal.SIGKILL, signal.SIGTERM], ids=["kill-9", "sigterm"])
+def test_a_stopped_launcher_leaves_a_readable_recording(tmp_path: Path, signum: int) -> None:
+    """kill -9: the file is cut short but holds everything up to at most 1 s before the kill.
+    SIGTERM: the launcher finishes the file (summary, footer) on its way out."""
+    run_id = f"rec{signum}x{os.getpid()}"
+    with recording_launcher(tmp_path, run_id) as (process, directory, _output):
         assert len(processes_of(run_id)) == 8  # launcher, world, six agents
         sent_ns = time.time_ns()
         process.send_signal(signum)
@@ -395,11 +409,6 @@ def test_a_stopped_launcher_leaves_a_readable_recording(tmp_path: Path, signum: 
             assert (code, recording.truncated) == (130, False)
         poll(lambda: not processes_of(run_id), 5.0, "every child of the launcher gone:",
              on_timeout=lambda: describe(processes_of(run_id)))
-    finally:
-        if process.poll() is None:
-            process.kill()
-        for pid in processes_of(run_id):
-            os.kill(pid, signal.SIGKILL)
 
 
 def test_a_killed_world_ends_the_mission_with_a_complete_recording(tmp_path: Path) -> None:
@@ -407,18 +416,7 @@ def test_a_killed_world_ends_the_mission_with_a_complete_recording(tmp_path: Pat
     the world's signal), finishes the file (not truncated), with the messages up to the kill
     in it, and leaves no process behind."""
     run_id = f"recworld{os.getpid()}"
-    directory = tmp_path / "rec"
-    output = tmp_path / "launcher.log"
-    with output.open("wb") as sink:
-        process = subprocess.Popen(
-            [sys.executable, "-m", "swarm.cli", str(CASE1), "--mode", "realtime", "--headless",
-             "--record", str(directory), "--run-id", run_id, "--log-dir", str(tmp_path / "logs")],
-            cwd=ROOT, stdout=sink, stderr=subprocess.STDOUT, start_new_session=True)
-    try:
-        poll(lambda: read_recording(directory).sim_time_s >= KILL_AFTER_SIM_S
-             or process.poll() is not None, 90.0, f"{KILL_AFTER_SIM_S} s of sim time on disk",
-             period_s=0.25)
-        assert process.poll() is None, f"the launcher ended early:\n{output.read_text()}"
+    with recording_launcher(tmp_path, run_id) as (process, directory, output):
         world = next(pid for pid in processes_of(run_id)
                      if b"sim_world.cli" in Path(f"/proc/{pid}/cmdline").read_bytes())
         killed_ns = time.time_ns()
@@ -433,11 +431,6 @@ def test_a_killed_world_ends_the_mission_with_a_complete_recording(tmp_path: Pat
         assert recording.last_publish_time_ns >= killed_ns - DURABILITY_S * 1e9
         poll(lambda: not processes_of(run_id), 5.0, "every child of the launcher gone:",
              on_timeout=lambda: describe(processes_of(run_id)))
-    finally:
-        if process.poll() is None:
-            process.kill()
-        for pid in processes_of(run_id):
-            os.kill(pid, signal.SIGKILL)
 
 
 def test_a_file_cut_anywhere_reads_up_to_the_cut(
