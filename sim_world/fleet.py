@@ -6,7 +6,11 @@ autopilots flying at 50 Hz, a stand-in for N SITL instances when the world runs 
 
 With a MAVLink signing key every vehicle signs and checks signatures, and its endpoint
 follows a new sender only once one of its frames passed the signature check: an unsigned or
-forged datagram is dropped unanswered and cannot redirect the vehicle's telemetry.
+forged datagram is dropped unanswered and cannot redirect the vehicle's telemetry. Without
+signing the endpoint follows a new sender (a relay such as MAVProxy) only once the vehicle
+took one of its frames (valid checksum, a message it handles, sane values): junk that merely
+starts like MAVLink (0xFD) is counted and dropped and never takes the stream away from the
+agent, and neither does a valid frame it ignores (another GCS's heartbeat).
 """
 
 from __future__ import annotations
@@ -56,6 +60,10 @@ class VehicleFleet:
                  host: str, base_port: int, u_max_m_s: float, setpoint_timeout_s: float,
                  clock: Callable[[], float], signing_key: bytes | None = None) -> None:
         self.clock = clock  # the fleet's notion of "now" [s] (wall, or a lockstep sim clock)
+        # ``clock`` is the wall clock: each frame is handled at its datagram's arrival time,
+        # so a stall of the serving loop never fails a vehicle safe whose setpoints came in
+        # time. Off while ``clock`` is a lockstep sim clock, where waiting is not time.
+        self.arrival_times = True
         self.vehicles: list[EmulatedVehicle] = []
         self.endpoints: list[VehicleEndpoint] = []
         self.selector = selectors.DefaultSelector()
@@ -68,7 +76,7 @@ class VehicleFleet:
                     setpoint_timeout_s=setpoint_timeout_s, signing_key=signing_key))
                 endpoint = VehicleEndpoint((hosts[i], base_port + i),
                                            bind_address=bind_address_for(hosts[i]),
-                                           follow_sender=signing_key is None)
+                                           follow_sender=False)  # service() decides
                 self.endpoints.append(endpoint)
                 self.selector.register(endpoint.fileno(), selectors.EVENT_READ, i)
         except OSError:
@@ -92,17 +100,16 @@ class VehicleFleet:
         for key, _ in self.selector.select(timeout=max(timeout_s, 0.0)):
             i = key.data
             vehicle, endpoint = self.vehicles[i], self.endpoints[i]
-            if vehicle.signing:
-                for chunk, sender in endpoint.poll_from():
-                    authenticated = vehicle.authenticated_frames
-                    replies = vehicle.receive(chunk, self.clock())
-                    if vehicle.authenticated_frames > authenticated:
-                        endpoint.follow(sender)  # replies go to whoever holds the key
-                    if replies:
-                        endpoint.send(replies)
-                continue
-            for chunk in endpoint.poll():
-                replies = vehicle.receive(chunk, self.clock())
+            for chunk, sender, age in endpoint.poll_from():
+                taken = vehicle.authenticated_frames if vehicle.signing \
+                    else vehicle.accepted_frames
+                replies = vehicle.receive(chunk, self.clock() - (age if self.arrival_times
+                                                                 else 0.0))
+                # Replies go to whoever holds the key (signing), else to whoever sent a frame
+                # the vehicle took: junk, however MAVLink-like, never redirects the stream.
+                if (vehicle.authenticated_frames if vehicle.signing
+                        else vehicle.accepted_frames) > taken:
+                    endpoint.follow(sender)
                 if replies:
                     endpoint.send(replies)
 

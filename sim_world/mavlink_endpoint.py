@@ -15,9 +15,10 @@ Public API
 ``coalesce``; OS errors such as "connection refused" while the agent is not up yet are
 counted in ``send_errors``, never raised), ``poll(max_datagrams=1024) -> list[bytes]``
 (non-blocking; every datagram waiting now, oldest first), ``poll_from(max_datagrams=1024)
--> list[(bytes, sender)]`` (the same, but never follows the sender: with MAVLink signing the
-caller ``follow(sender)``s only a sender whose frame was authenticated, so an unsigned
-datagram cannot redirect the vehicle's stream), ``fileno()`` (for selectors),
+-> list[(bytes, sender, age_s)]`` (the same, but never follows the sender: the caller
+``follow(sender)``s only a sender whose frame the vehicle took, so junk cannot redirect the
+vehicle's stream; ``age_s``: how long ago the kernel received the datagram, from its
+SO_TIMESTAMPNS stamp, 0 where there is none), ``fileno()`` (for selectors),
 ``close()`` (idempotent; also a context manager). Counters: ``datagrams_sent``,
 ``datagrams_received``, ``send_errors``, ``receive_errors``, ``peer_changes``.
 """
@@ -25,6 +26,9 @@ datagram cannot redirect the vehicle's stream), ``fileno()`` (for selectors),
 from __future__ import annotations
 
 import socket
+import struct
+import sys
+import time
 from collections.abc import Iterable
 from types import TracebackType
 
@@ -32,6 +36,13 @@ __all__ = ["VehicleEndpoint"]
 
 _MAX_DATAGRAM = 65535
 _MAVLINK_MAGIC = (0xFD, 0xFE)  # MAVLink 2, MAVLink 1 start-of-frame markers
+# Linux: each datagram's arrival time (CLOCK_REALTIME) as a struct timespec in its ancillary
+# data. Elsewhere datagrams have no stamp and count as just arrived.
+# Python does not name the option; 35 is its number in Linux's generic ABI (x86, arm, ...).
+_SO_TIMESTAMPNS = getattr(socket, "SO_TIMESTAMPNS",
+                          35 if sys.platform.startswith("linux") else None)
+_TIMESPEC = struct.Struct("@ll")  # struct timespec: tv_sec, tv_nsec
+_ANCILLARY_BYTES = socket.CMSG_SPACE(_TIMESPEC.size) if hasattr(socket, "CMSG_SPACE") else 0
 
 
 class VehicleEndpoint:
@@ -48,6 +59,8 @@ class VehicleEndpoint:
         try:
             self._sock.setblocking(False)
             self._sock.bind(bind_address)
+            if _SO_TIMESTAMPNS is not None:
+                self._sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
         except OSError:
             self._sock.close()
             raise
@@ -105,19 +118,31 @@ class VehicleEndpoint:
             out.append(data)
         return out
 
-    def poll_from(self, max_datagrams: int = 1024) -> list[tuple[bytes, tuple[str, int]]]:
-        """Like ``poll`` with each datagram's sender, and the peer left alone."""
-        out: list[tuple[bytes, tuple[str, int]]] = []
+    def poll_from(self, max_datagrams: int = 1024
+                  ) -> list[tuple[bytes, tuple[str, int], float]]:
+        """Like ``poll`` with each datagram's sender and age [s], and the peer left alone.
+
+        The age lets a caller that was held up (a stall of its loop) handle each datagram at
+        the time it arrived: an autopilot's failsafe timer sees the setpoint stream as the
+        vehicle would have, not as late as the emulator got round to reading it."""
+        out: list[tuple[bytes, tuple[str, int], float]] = []
         while len(out) < max_datagrams:
             try:
-                data, sender = self._sock.recvfrom(_MAX_DATAGRAM)
+                data, ancillary, _flags, sender = self._sock.recvmsg(_MAX_DATAGRAM,
+                                                                    _ANCILLARY_BYTES)
             except (BlockingIOError, InterruptedError):
                 break
             except OSError:
                 self.receive_errors += 1
                 break
             self.datagrams_received += 1
-            out.append((data, (str(sender[0]), int(sender[1]))))
+            age = 0.0
+            for level, kind, payload in ancillary:
+                if (level == socket.SOL_SOCKET and kind == _SO_TIMESTAMPNS
+                        and len(payload) >= _TIMESPEC.size):
+                    seconds, nanoseconds = _TIMESPEC.unpack_from(payload)
+                    age = max(time.time() - (seconds + 1e-9 * nanoseconds), 0.0)
+            out.append((data, (str(sender[0]), int(sender[1])), age))
         return out
 
     def follow(self, sender: tuple[str, int]) -> None:

@@ -45,12 +45,15 @@ signing_clock=time.time)``
     Parse any bytes (garbage, truncated, several packets), apply what they command and return
     the reply packets (COMMAND_ACK, PARAM_VALUE, AUTOPILOT_VERSION, ...; plus an immediate
     HEARTBEAT after a change of mode or arming). Never raises on bad input: each dropped frame
-    is counted in ``rejected_frames`` (reasons in ``rejections``).
+    (and an empty datagram) is counted in ``rejected_frames`` (reasons in ``rejections``);
+    each frame a handler took (not rejected, not ignored) is counted in ``accepted_frames``
+    (``sim_world.fleet`` follows a new sender only when this grows: neither junk nor a stray
+    valid frame the vehicle has no use for, e.g. a GCS heartbeat, redirects its stream).
 ``commanded_velocity_w(now_s) -> ndarray``
     Velocity the vehicle applies now, in W: ``clamp_velocity(frames.velocity_over_link(u),
-    u_max)`` of the last accepted setpoint ``u`` (bit-exact; a non-finite setpoint means
-    hold), or zero when disarmed, outside the setpoint mode (px4 OFFBOARD, ardupilot
-    GUIDED), on the ground (ardupilot before takeoff), before any setpoint, or in failsafe.
+    u_max)`` of the last accepted setpoint ``u`` (bit-exact), or zero when disarmed, outside
+    the setpoint mode (px4 OFFBOARD, ardupilot GUIDED), on the ground (ardupilot before
+    takeoff), before any setpoint, or in failsafe.
 ``begin_step(time_boot_ms)`` / ``setpoint_stamped(time_boot_ms=None) -> ndarray | None``
     Lockstep: ``begin_step`` forgets earlier stamped setpoints and records the awaited stamp
     (``awaited_stamp``); ``setpoint_stamped`` returns the applied velocity
@@ -94,10 +97,11 @@ Behaviour (SPEC §12, PX4 / ArduCopter conventions)
 * Setpoints: SET_POSITION_TARGET_LOCAL_NED, MAV_FRAME_LOCAL_NED, position and acceleration
   ignored, velocity used, no force bit: type_mask 0x0DC7 (also 0x01C7, 0x05C7, 0x09C7 — the
   yaw / yaw-rate bits are free since attitude is not modelled; MAVSDK sends 0x09C7). Any
-  other frame or mask is rejected. target_system must be this vehicle or 0, target_component
-  1 or 0. px4 stores every valid setpoint (they are the offboard "proof of life") and applies
-  it while armed in OFFBOARD; ardupilot ignores (counts in ``ignored_setpoints``) setpoints
-  unless GUIDED, armed and airborne.
+  other frame or mask is rejected, and so is a setpoint with a non-finite velocity (counted
+  as ``nonfinite_setpoint``: never applied, never a proof of life). target_system must be
+  this vehicle or 0, target_component 1 or 0. px4 stores every valid setpoint (they are the
+  offboard "proof of life") and applies it while armed in OFFBOARD; ardupilot ignores
+  (counts in ``ignored_setpoints``) setpoints unless GUIDED, armed and airborne.
 * px4: DO_SET_MODE/SET_MODE to OFFBOARD is TEMPORARILY_REJECTED unless setpoints are
   streaming (≥ 2 received in the last 0.5 s). No setpoint for ``setpoint_timeout_s`` while in
   OFFBOARD → failsafe: mode becomes AUTO.LOITER (hold) and is reported so; leaving it takes a
@@ -315,6 +319,7 @@ class EmulatedVehicle:
         self.accepted_setpoints = 0
         self.ignored_setpoints = 0
         self.nonfinite_setpoints = 0
+        self.accepted_frames = 0
         self.failsafe_events = 0
         self.ignored_messages = 0
 
@@ -450,15 +455,21 @@ class EmulatedVehicle:
     # ---------------------------------------------------------------- incoming
     def receive(self, data: bytes, now_s: float) -> list[bytes]:
         replies: list[Any] = []
+        if not data and self._datagram_framing:
+            self._reject("empty_datagram")  # holds no frame at all: still a rejected input
+            return []
         setpoint = SET_POSITION_TARGET_LOCAL_NED.message(data) \
             if self._datagram_framing and not self._signing else None  # unsigned frames only
         messages = [setpoint] if setpoint is not None else parse_bytes(
             self._rx, data, self.rejections, datagram=self._datagram_framing)
         for msg in messages:
+            rejected, ignored = self.rejected_frames, self.ignored_messages
             try:
                 replies.extend(self._handle(msg, now_s))
             except Exception as exc:  # a malformed field value must never escape
                 self._reject(f"handler_error:{type(exc).__name__}")
+            if (self.rejected_frames, self.ignored_messages) == (rejected, ignored):
+                self.accepted_frames += 1
         return self._emit(replies)
 
     # ================================================================ internals
@@ -512,16 +523,19 @@ class EmulatedVehicle:
                 or mask & _FORCE_SET):
             self._reject("setpoint_type_mask")
             return []
+        if not _finite(msg.vx, msg.vy, msg.vz):
+            # Dropped at the boundary like any malformed frame: not applied, not stamped, no
+            # proof of life; the vehicle keeps flying what it flew (or fails safe on silence).
+            self.nonfinite_setpoints += 1
+            self._reject("nonfinite_setpoint")
+            return []
         self._update(now_s)
         self._arrivals.append(now_s)
         if self._flavour == "ardupilot" and not (self.in_setpoint_mode and self._armed
                                                  and not self._landed):
             self.ignored_setpoints += 1  # ArduPilot silently ignores these
         else:
-            ned = np.array([msg.vx, msg.vy, msg.vz], dtype=np.float64)
-            if not np.all(np.isfinite(ned)):
-                self.nonfinite_setpoints += 1  # applied as "hold" by clamp_velocity
-            self._setpoint_ned = ned
+            self._setpoint_ned = np.array([msg.vx, msg.vy, msg.vz], dtype=np.float64)
             self._last_setpoint_s = now_s
             self.accepted_setpoints += 1
             if self._flavour == "ardupilot":

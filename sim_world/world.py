@@ -98,6 +98,7 @@ class World:
         self.positions = initial_drone_positions(cfg, options.seed)
         self.beacons: LatestValues[BeaconWire] = LatestValues()
         self.fleet: VehicleFleet | None = None
+        self._failsafes_reported = [0] * self.n
         self._subscribers = []
         security = cfg.security
         self.session = open_session(zenoh_config(
@@ -153,7 +154,7 @@ class World:
         self._last_clock_s = time.monotonic()
         self._pub_clock.put(self.codec.encode(ClockWire(
             step=step, time_s=step * self.dt_s, state=state, mode=self.options.mode,
-            detail=detail)))
+            detail=detail, rejected_inputs=self.rejected_total())))
 
     def publish_running(self, step: int) -> None:
         """``running`` at step 0 (the mission starts), then every CLOCK_PERIOD_S."""
@@ -233,6 +234,7 @@ class World:
         assert fleet is not None
         start_ms = self.boot_ms() + MISSION_TIME_OFFSET_MS
         start_s = self.now_s()  # the failsafe clock continues from wall time, without a jump
+        fleet.arrival_times = False  # sim time from here: waiting for a setpoint is not time
         timeout = self.options.config.runtime.lockstep_timeout_s
         for k in range(self.options.config.n_steps):
             stamp = start_ms + k * self.dt_ms
@@ -266,6 +268,7 @@ class World:
             if self.fleet is None:
                 self._external_positions()
             else:
+                self._wait(0.0)  # telemetry reports the failsafe state: setpoints count first
                 self.fleet.send_telemetry(self.boot_ms())
             self.publish_step(k, self.boot_ms())
             self.publish_running(k)
@@ -275,8 +278,27 @@ class World:
                 self._wait(remaining)
             limiter.sleep()
             if self.fleet is not None:
-                self.fleet.fly(self.dt_s)
-                self.positions[:] = self.fleet.positions_w
+                self.move_vehicles(k)
+
+    def move_vehicles(self, step: int) -> None:
+        """Realtime tick: move every vehicle for ΔT with what it applies now. Drain first:
+        after a stall of this loop (a loaded machine), setpoints that came meanwhile must
+        count before any failsafe timer is evaluated."""
+        assert self.fleet is not None
+        self._wait(0.0)
+        self.fleet.fly(self.dt_s)
+        self.positions[:] = self.fleet.positions_w
+        self._report_failsafes(step)
+
+    def _report_failsafes(self, step: int) -> None:
+        """Log each vehicle that has just failed safe (setpoint loss: it holds)."""
+        assert self.fleet is not None
+        for i, vehicle in enumerate(self.fleet.vehicles):
+            if vehicle.failsafe_events > self._failsafes_reported[i]:
+                self._failsafes_reported[i] = vehicle.failsafe_events
+                self.options.log(
+                    f"world: step {step}: drone {i}'s vehicle failed safe (no setpoint for "
+                    f"{vehicle.setpoint_timeout_s:g} s): holding, mode {vehicle.mode}")
 
     def run(self) -> int:
         opts = self.options

@@ -21,11 +21,13 @@ from swarm.cli_common import (  # noqa: E402
     OneLineParser,
     add_run_arguments,
     fail,
+    fraction,
     load_scenario,
+    step_count,
     terminate_on_sigterm,
 )
 from swarm.mavlink_link import LinkError  # noqa: E402
-from swarm.transport import check_tls_endpoints, local_endpoint  # noqa: E402
+from swarm.transport import LinkFaults, check_tls_endpoints, local_endpoint  # noqa: E402
 
 PROG = "swarm-agent"
 
@@ -43,6 +45,12 @@ def build_parser() -> OneLineParser:
                              "tls/... with [security])")
     parser.add_argument("--listen", action="append", default=[], metavar="ENDPOINT")
     add_run_arguments(parser, run_id_help="the world's --run-id (default: vigil)")
+    faults = parser.add_argument_group(
+        "fault injection (tests; realtime only; off by default)")
+    faults.add_argument("--drop-consensus", type=fraction, default=0.0, metavar="P",
+                        help="lose each outgoing consensus message with probability P")
+    faults.add_argument("--delay-consensus", type=step_count, default=0, metavar="K",
+                        help="send each outgoing consensus message K steps late")
     return parser
 
 
@@ -62,6 +70,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         check_tls_endpoints([*args.listen, *(args.connect or [])], tls=config.security.enabled)
     except ValueError as err:
         return fail(PROG, str(err))
+    faults = LinkFaults(drop_rate=args.drop_consensus, delay_steps=args.delay_consensus,
+                        seed=(args.seed or 0) * 1000 + args.id)
+    if faults.active and args.mode != "realtime":
+        return fail(PROG, "--drop-consensus and --delay-consensus need --mode realtime (in "
+                          "lockstep a lost message stalls every neighbour)")
     terminate_on_sigterm()
     options = AgentOptions(
         config=config, drone_id=args.id,
@@ -69,7 +82,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         run_id=args.run_id, mavlink_url=args.mavlink or f"udpin:127.0.0.1:{14540 + args.id}",
         connect=tuple(args.connect or [local_endpoint(7447, tls=config.security.enabled)]),
         listen=tuple(args.listen),
-        mode=args.mode, log=lambda line: print(line, flush=True))
+        mode=args.mode, log=lambda line: print(line, flush=True), consensus_faults=faults)
     process = None
     try:
         process = AgentProcess(options)

@@ -9,10 +9,18 @@ autopilot, its own consensus messages, beacon and telemetry. It never reads ``wo
 that frame's ``vehicle_time_ms``, every neighbour's round messages and every beacon of step k
 — deterministic. ``realtime``: a 50 Hz loop with the latest of everything; neighbour data
 older than ``runtime.stale_timeout_s`` is left out of the consensus sums and counted.
+
+Realtime membership: the swarm is the own drone and every drone whose beacon was heard within
+``runtime.member_timeout_s``; its size is the N of the formulas (``DroneAgent.
+set_swarm_size``), so a drone that is lost (its process killed, its link gone) leaves every
+survivor's consensus and a restarted one rejoins. A lost drone's vehicle holds where its last
+beacon put it, so it stays in the collision rows there (moving on with its last velocity for
+at most the vehicle's setpoint-loss failsafe time).
 """
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -27,8 +35,10 @@ from swarm.rate import RateLimiter, freeze_heap
 from swarm.reference import build_agent
 from swarm.security import agent_role
 from swarm.transport import (
+    FaultyPublisher,
     Keys,
     LatestValues,
+    LinkFaults,
     RejectionCounter,
     StepMailbox,
     TransportError,
@@ -70,6 +80,8 @@ class AgentOptions:
     listen: tuple[str, ...] = ()
     mode: Mode = "lockstep"
     log: Callable[[str], None] = field(default=print)
+    # Test option (realtime): lose or delay this drone's outgoing consensus messages.
+    consensus_faults: LinkFaults = field(default_factory=LinkFaults)
 
 
 class AgentProcess:
@@ -101,6 +113,8 @@ class AgentProcess:
         self._flying = np.zeros(3)  # the velocity setpoint last sent (what the vehicle flies)
         self.stale_messages = 0
         self.neighbour_age_ms = float("nan")
+        self.members = frozenset(range(self.n))  # realtime: drones heard recently, self included
+        self._first_step_s: float | None = None
         # When each neighbour's newest consensus message of each round left it (its Zenoh
         # timestamp, Unix s): the reported neighbour age includes the hop, not only the wait.
         self._consensus_sent: dict[tuple[int, int], float] = {}
@@ -134,6 +148,12 @@ class AgentProcess:
         # a blocked put waits only while a link's queue is full, i.e. well under a step.
         self._pub_consensus = declare_publisher(self.session, self.keys.consensus(self.id),
                                                 block=lockstep)
+        faults = options.consensus_faults
+        if faults.active and lockstep:
+            raise LinkError(f"drone {self.id}: consensus fault injection needs realtime mode "
+                            "(in lockstep a lost message stalls every neighbour)")
+        self._faulty = (FaultyPublisher(self.session, self._pub_consensus, faults)
+                        if faults.active else None)
         self._pub_beacon = declare_publisher(self.session, self.keys.beacon(self.id), block=True)
         self._pub_telemetry = declare_publisher(self.session, self.keys.telemetry(self.id),
                                                 block=True)
@@ -185,9 +205,12 @@ class AgentProcess:
         self.camera_steps.put(frame.step, 0, 0, frame)
         self.camera_latest.put(0, frame)
 
-    def _on_consensus(self, _key: str, msg: ConsensusMessage) -> None:
+    def _on_consensus(self, key: str, msg: ConsensusMessage) -> None:
         if msg.sender not in self.neighbours:
             self.rejections.reject("consensus", f"message from non-neighbour {msg.sender}")
+            return
+        if self.keys.source_id(key) != msg.sender:  # j's data on another drone's key
+            self.rejections.reject("consensus", f"sender {msg.sender} on {key}")
             return
         self.consensus_steps.put(msg.step, msg.round, msg.sender, msg)
         self.consensus_latest.put((msg.sender, msg.round), msg)
@@ -196,8 +219,12 @@ class AgentProcess:
         if msg.sender in self.neighbours:
             self._consensus_sent[(msg.sender, msg.round)] = sent_unix_s
 
-    def _on_beacon(self, _key: str, beacon: BeaconWire) -> None:
-        if beacon.sender == self.id:
+    def _on_beacon(self, key: str, beacon: BeaconWire) -> None:
+        # Our own beacons never come back (remote only): one with our id is another process
+        # claiming to be this drone, or a replay.
+        if beacon.sender == self.id or self.keys.source_id(key) != beacon.sender:
+            self.rejections.reject("beacon", f"sender {beacon.sender} on {key} (drone "
+                                             f"{self.id})")
             return
         self.beacon_steps.put(beacon.step, 0, beacon.sender, beacon)
         self.beacon_latest.put(beacon.sender, beacon)
@@ -245,7 +272,11 @@ class AgentProcess:
 
     def _publish_consensus(self, msg: ConsensusMessage | None) -> None:
         payload = None if msg is None else self._encode(self.codec.encode_consensus, msg)
-        if payload is not None:
+        if payload is None:
+            return
+        if self._faulty is not None:
+            self._faulty.put(payload)
+        else:
             put_stamped(self.session, self._pub_consensus, payload)
 
     def _fresh_inbox(self, rnd: int) -> dict[int, ConsensusMessage]:
@@ -270,16 +301,48 @@ class AgentProcess:
         self.neighbour_age_ms = 1000.0 * min(ages) if ages else float("nan")
         return inbox
 
+    def _follow_membership(self, step: int) -> None:
+        """Realtime: N = the own drone and the drones heard within ``member_timeout_s``.
+
+        The mission starts once every vehicle is ready, which most agents learn before their
+        first beacon goes out: a drone not heard at all yet counts as present until
+        ``member_timeout_s`` after our first step."""
+        timeout = self.options.config.runtime.member_timeout_s
+        now = time.monotonic()
+        if self._first_step_s is None:
+            self._first_step_s = now
+        heard = set(self.beacon_latest.fresh(timeout))
+        if now - self._first_step_s <= timeout:
+            heard |= {j for j in self.others if self.beacon_latest.get(j) is None}
+        members = frozenset(heard) | {self.id}
+        if members == self.members:
+            return
+        left, joined = sorted(self.members - members), sorted(members - self.members)
+        self.members = members
+        self.agent.set_swarm_size(len(members))
+        changes = []
+        if left:
+            changes.append(f"drones {left} not heard for "
+                           f"{self.options.config.runtime.member_timeout_s} s left")
+        if joined:
+            changes.append(f"drones {joined} joined")
+        self.options.log(f"drone {self.id}: step {step}: {'; '.join(changes)}: swarm of "
+                         f"{len(members)} now")
+
     def _realtime_beacons(self, own_sample_age_s: float) -> dict[int, np.ndarray]:
-        """Realtime: the other drones' fresh beacons, each position carried forward to the
+        """Realtime: the other drones' latest beacons, each position carried forward to the
         instant of our own position sample (p_j + v_j·a_j − v_i·a_i, a = age of the sample):
         the collision rows see the relative position as it is, not as it was up to a step
-        ago. Lockstep needs none of it: every position there belongs to the same step."""
-        stale_after = self.options.config.runtime.stale_timeout_s
+        ago. Lockstep needs none of it: every position there belongs to the same step.
+
+        A beacon older than the stale timeout belongs to a drone that is late or lost; its
+        vehicle flies the last setpoint until its failsafe holds it, so it is carried forward
+        for at most that long and kept there: nobody flies into a hovering drone."""
+        hold_after = self.options.config.vehicles.failsafe_timeout_s
         own_shift = own_sample_age_s * self._flying
         out: dict[int, np.ndarray] = {}
-        for j, (beacon, age) in self.beacon_latest.fresh_with_ages(stale_after).items():
-            lead = beacon.sample_age_s + age
+        for j, (beacon, age) in self.beacon_latest.fresh_with_ages(math.inf).items():
+            lead = min(beacon.sample_age_s + age, hold_after)
             out[j] = (np.asarray(beacon.position_m, dtype=float)
                       + lead * np.asarray(beacon.velocity_m_s, dtype=float) - own_shift)
         return out
@@ -289,6 +352,10 @@ class AgentProcess:
         """One step of the core, with the exchange done the way the mode wants
         (``sample_age_s``: how old ``position`` is, realtime only)."""
         agent = self.agent
+        if not self._lockstep:
+            self._follow_membership(step)
+        if self._faulty is not None:
+            self._faulty.advance(step)
         detections = frame.detection_list() if frame is not None else []
         communicated = frame.target_velocity_array() if frame is not None else None
         msg = agent.begin_step(step, position, detections, communicated)
@@ -324,7 +391,7 @@ class AgentProcess:
             missing_neighbour_messages=agent.missing_neighbour_messages,
             stale_neighbour_messages=self.stale_messages, late_steps=self.late_steps,
             steps=self.steps_run,
-            neighbour_age_ms=self.neighbour_age_ms,
+            neighbour_age_ms=self.neighbour_age_ms, swarm_size=agent.swarm_size,
             mavlink_state=f"{'armed' if self.link.armed else 'disarmed'} {self.link.mode}")
         return result.velocity
 
@@ -388,6 +455,16 @@ class AgentProcess:
                 self.late_steps += 1
 
     def run(self) -> int:
+        try:
+            return self._run()
+        finally:
+            if self._faulty is not None:
+                f = self._faulty
+                self.options.log(
+                    f"drone {self.id}: injected consensus faults: {f.dropped} messages lost, "
+                    f"{f.delayed} delayed {f.faults.delay_steps} steps, of {f.offered}")
+
+    def _run(self) -> int:
         log = self.options.log
         try:
             self.start()

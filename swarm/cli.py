@@ -1,8 +1,9 @@
 """``launch-swarm``: run a scenario — as a process swarm, or in-process — and summarize it.
 
 Exit codes: 0 mission completed with every SPEC invariant within tolerance, 1 an invariant
-was violated or the mission failed (a process died, the world aborted), 2 bad command line or
-config (one line on stderr, no traceback), 130 interrupted (Ctrl-C or SIGTERM).
+was violated or the mission failed (a process died, the world aborted) or, in realtime, went
+on after losing an agent, 2 bad command line or config (one line on stderr, no traceback),
+130 interrupted (Ctrl-C or SIGTERM).
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from swarm.cli_common import (
     load_scenario,
     port,
     positive_float,
+    restart_count,
     run_id,
     seed,
     terminate_on_sigterm,
@@ -62,6 +64,12 @@ def build_parser() -> OneLineParser:
                         help="Zenoh key prefix vigil/<run-id>/ (default: random)")
     parser.add_argument("--log-dir", default=None, metavar="DIR",
                         help="where each process writes its log (default: a temp dir)")
+    parser.add_argument("--agent-restarts", type=restart_count, default=0, metavar="N",
+                        help="realtime: restart an agent that dies during the mission (same "
+                             "id; it rejoins the swarm) up to N times (default 0: the mission "
+                             "goes on without it)")
+    parser.add_argument("--agent-restart-delay", type=positive_float, default=2.0, metavar="S",
+                        help="seconds between an agent's loss and its restart (default 2)")
     parser.add_argument("--record", type=record_directory, default=None, metavar="DIR",
                         help="write DIR/run.mcap as the run goes: telemetry, beacons, "
                              "detections and truth with their sim time, and the resolved "
@@ -87,6 +95,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ConfigError as err:
         return fail(PROG, f"config error: {err}")
     seed_value = config.scenario.seed if args.seed is None else args.seed
+    if args.agent_restarts and (args.inprocess or args.mode != "realtime"):
+        return fail(PROG, "--agent-restarts needs --mode realtime (in lockstep every drone "
+                          "waits for every other one)")
     terminate_on_sigterm()
     try:
         if args.inprocess:
@@ -98,7 +109,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             options = LaunchOptions(
                 config=config, config_path=str(Path(args.config).resolve()), seed=seed_value,
                 mode=args.mode, run_id=args.run_id or "", mavlink_base=args.mavlink_base,
-                log_dir=Path(args.log_dir) if args.log_dir else None, record_dir=args.record)
+                log_dir=Path(args.log_dir) if args.log_dir else None, record_dir=args.record,
+                agent_restarts=args.agent_restarts,
+                agent_restart_delay_s=args.agent_restart_delay)
             launcher = SwarmLauncher(options, log=lambda line: console.print(
                 line, highlight=False, markup=False))
             with Dashboard(config, console, headless=args.headless,
@@ -123,6 +136,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     code = print_summary(record, console, args.mode, counters)
     if launcher.recording_problem is not None:  # the run is fine, its record is not whole
         print(f"{PROG}: recording incomplete: {launcher.recording_problem}", file=sys.stderr)
+        return EXIT_FAILED
+    if launcher.agent_losses:  # the mission went on, degraded: not a clean run
+        lost = ", ".join(f"drone {loss.drone} at {loss.time_s:.1f} s ({loss.how}"
+                         f"{', restarted' if loss.restarted else ''})"
+                         for loss in launcher.agent_losses)
+        print(f"{PROG}: the mission went on after losing agents: {lost}", file=sys.stderr)
         return EXIT_FAILED
     return code
 

@@ -54,6 +54,25 @@ def seed(text: str) -> int:
     return _int_in(text, 0, 2**63 - 1, "an integer", "[0, 2^63)")
 
 
+def fraction(text: str) -> float:
+    """A probability in [0, 1)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (math.isfinite(value) and 0.0 <= value < 1.0):
+        raise argparse.ArgumentTypeError(f"must be in [0, 1), got {text!r}")
+    return value
+
+
+def step_count(text: str) -> int:
+    return _int_in(text, 0, 1000, "an integer", "[0, 1000]")
+
+
+def restart_count(text: str) -> int:
+    return _int_in(text, 0, 100, "an integer", "[0, 100]")
+
+
 def port(text: str) -> int:
     return _int_in(text, 1, 65535, "a port number", "[1, 65535]")
 

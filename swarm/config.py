@@ -196,9 +196,16 @@ class RuntimeSection:
     stale_timeout_s: float = 0.1  # realtime: neighbour data older than this is left out [s]
     lockstep_timeout_s: float = 20.0  # lockstep: a peer silent this long aborts the mission [s]
     start_timeout_s: float = 60.0  # every drone armed and streaming within this [s]
+    # realtime: a drone not heard (no beacon) this long leaves the membership whose size is
+    # the N of the formulas; heard again, it rejoins [s]
+    member_timeout_s: float = 1.0
 
     def __post_init__(self) -> None:
         require_finite_positive("stale_timeout_s", self.stale_timeout_s)
+        require_finite_positive("member_timeout_s", self.member_timeout_s)
+        # Shorter, a drone whose data is merely late would leave and rejoin the membership.
+        require(self.member_timeout_s >= self.stale_timeout_s, "member_timeout_s",
+                f"must be >= stale_timeout_s ({self.stale_timeout_s})", self.member_timeout_s)
         require_finite_positive("lockstep_timeout_s", self.lockstep_timeout_s)
         require_finite_positive("start_timeout_s", self.start_timeout_s)
 

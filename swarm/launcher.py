@@ -16,6 +16,7 @@ import ctypes
 import fcntl
 import os
 import secrets
+import shlex
 import shutil
 import signal
 import socket
@@ -77,6 +78,17 @@ class LaunchOptions:
     external_vehicles: bool = False
     # Record telemetry, beacons, detections and truth to record_dir/run.mcap (swarm.recording).
     record_dir: Path | None = None
+    # Realtime: an agent that dies during the mission is restarted with the same id (it
+    # rejoins the swarm) this many times at most, each restart this long after the loss.
+    agent_restarts: int = 0
+    agent_restart_delay_s: float = 2.0
+
+    def __post_init__(self) -> None:
+        if self.agent_restarts < 0 or not self.agent_restart_delay_s >= 0:
+            raise ValueError("agent_restarts and agent_restart_delay_s must be >= 0")
+        if self.agent_restarts and self.mode != "realtime":
+            raise ValueError("restarting agents needs realtime mode: in lockstep every drone "
+                             "waits for every other one")
 
 
 def _die_with_parent() -> None:
@@ -186,6 +198,8 @@ class Child:
     name: str
     process: subprocess.Popen
     log_path: Path
+    drone: int | None = None  # the drone an agent flies
+    lost: bool = False  # an agent that died during a realtime mission, already reported
 
     def tail(self, lines: int = LOG_TAIL_LINES) -> list[str]:
         try:
@@ -193,6 +207,16 @@ class Child:
         except OSError:
             return []
         return [line for line in text.splitlines() if line.strip()][-lines:]
+
+
+@dataclass(frozen=True)
+class AgentLoss:
+    """An agent process that died during a realtime mission (the mission went on)."""
+
+    drone: int
+    time_s: float  # mission time when the launcher noticed
+    how: str  # "signal 9", "exit code 1"
+    restarted: bool = False
 
 
 ProgressCallback = Callable[[int, "TelemetryCollector"], None]
@@ -232,10 +256,13 @@ class SwarmLauncher:
         self.recorder: Recorder | None = None
         self.recording_problem: str | None = None  # the recording is incomplete, and why
         self.telemetry_listeners: tuple[TelemetryListener, ...] = ()
+        self.agent_losses: list[AgentLoss] = []
+        self._restarts_due: dict[int, float] = {}  # drone → monotonic time of its restart
+        self._restarts_done: dict[int, int] = {}
 
     # -- children ---------------------------------------------------------------------------
 
-    def _spawn(self, name: str, argv: list[str]) -> Child:
+    def _spawn(self, name: str, argv: list[str], drone: int | None = None) -> Child:
         log_path = self.log_dir / f"{name}.log"
         handle = log_path.open("wb")
         env = dict(os.environ, PYTHONUNBUFFERED="1")
@@ -249,7 +276,7 @@ class SwarmLauncher:
             preexec_fn=_die_with_parent_batch if self.options.mode == "lockstep"
             else _die_with_parent)
         handle.close()
-        child = Child(name, process, log_path)
+        child = Child(name, process, log_path, drone)
         self.children.append(child)
         return child
 
@@ -277,7 +304,9 @@ class SwarmLauncher:
         argv = [sys.executable, "-m", "swarm.agent_cli", "--id", str(drone_id),
                 "--config", common[0], *common[1:], "--connect", self.endpoint,
                 "--mavlink", url, *opts.extra_agent_args.get(drone_id, [])]
-        return self._spawn(f"agent{drone_id}", argv)
+        restarts = self._restarts_done.get(drone_id, 0)
+        name = f"agent{drone_id}" + (f".restart{restarts}" if restarts else "")
+        return self._spawn(name, argv, drone_id)
 
     def stop_children(self) -> None:
         """SIGTERM every process group, SIGKILL what is left after the grace period."""
@@ -310,7 +339,7 @@ class SwarmLauncher:
         now = time.monotonic()
         for child in self.children:
             code = child.process.poll()
-            if code is None or (done and code == 0):
+            if code is None or (done and code == 0) or child.lost:
                 continue
             if code == 0:
                 first_seen = self._clean_exits.setdefault(child.name, now)
@@ -320,11 +349,51 @@ class SwarmLauncher:
         return None
 
     def _failure(self, child: Child) -> MissionError:
+        return MissionError(self._ending(child))
+
+    @staticmethod
+    def _how(child: Child) -> str:
         code = child.process.returncode
-        how = f"signal {-code}" if code is not None and code < 0 else f"exit code {code}"
+        return f"signal {-code}" if code is not None and code < 0 else f"exit code {code}"
+
+    def _ending(self, child: Child) -> str:
         tail = "\n    ".join(child.tail())
-        return MissionError(f"{child.name} (pid {child.process.pid}) ended with {how}; last "
-                             f"lines of {child.log_path}:\n    {tail}")
+        return (f"{child.name} (pid {child.process.pid}) ended with {self._how(child)}; last "
+                f"lines of {child.log_path}:\n    {tail}")
+
+    def _survivable(self, child: Child) -> bool:
+        """Realtime, mission running: a lost agent leaves the swarm, which goes on without it
+        (its vehicle holds, the others' membership drops it). Not in lockstep, where every
+        drone waits for every other one, nor before the mission starts, nor the last one."""
+        alive = [c for c in self.children
+                 if c.drone is not None and c is not child and c.process.poll() is None]
+        return (self.options.mode == "realtime" and child.drone is not None
+                and self._mission_state() == "running" and bool(alive))
+
+    def _lose_agent(self, child: Child) -> None:
+        """Report a lost agent, and restart it later if restarts are left."""
+        assert child.drone is not None
+        child.lost = True
+        drone = child.drone
+        time_s = max(self.collector.last_truth_step, 0) * self.options.config.scenario.dt_s
+        restart = self._restarts_done.get(drone, 0) < self.options.agent_restarts
+        self.agent_losses.append(AgentLoss(drone, time_s, self._how(child), restart))
+        then = (f"restarting it in {self.options.agent_restart_delay_s:g} s" if restart else
+                "restart it by hand with: " + shlex.join(map(str, child.process.args)))
+        self.log(f"launch-swarm: drone {drone} lost at t = {time_s:.2f} s: "
+                 f"{self._ending(child)}\n  the mission goes on without it; {then}")
+        if restart:
+            self._restarts_due[drone] = time.monotonic() + self.options.agent_restart_delay_s
+
+    def _restart_due_agents(self) -> None:
+        now = time.monotonic()
+        for drone, due in list(self._restarts_due.items()):
+            if now >= due:
+                del self._restarts_due[drone]
+                self._restarts_done[drone] = self._restarts_done.get(drone, 0) + 1
+                child = self.start_agent(drone)
+                self.log(f"launch-swarm: drone {drone} restarted (pid {child.process.pid}, "
+                         f"log {child.log_path})")
 
     # -- zenoh --------------------------------------------------------------------------------
 
@@ -425,8 +494,13 @@ class SwarmLauncher:
                 if self.stop_requested.is_set():
                     raise KeyboardInterrupt
                 dead = self._dead_child()
-                if dead is not None:
-                    raise self._failure(dead)
+                while dead is not None:
+                    if not self._survivable(dead):
+                        raise self._failure(dead)
+                    self._lose_agent(dead)
+                    dead = self._dead_child()
+                if self._mission_state() == "running":
+                    self._restart_due_agents()
                 state = self._mission_state()
                 if state == "running" and not announced:
                     announced = True

@@ -16,10 +16,16 @@ Reading drains the socket completely and keeps only the newest sample (a queue o
 samples is the classic bug). Bad bytes never raise: BAD_DATA (garbage, bad CRC, bad length)
 and unknown message ids are counted in ``rejected_frames`` (reasons in ``rejections``);
 frames from other systems (another vehicle, a GCS, MAVProxy's own heartbeat) are ignored and
-counted in ``foreign_frames``. The per-step messages (LOCAL_POSITION_NED in, the velocity
-setpoint out) take ``swarm.mavlink_parse``'s fast path over UDP: same bytes, no
-pymavlink message objects (so pymavlink's own bookkeeping, e.g. ``messages`` and packet-loss
-counts, does not see those samples).
+counted in ``foreign_frames``. Over ``udpin`` the vehicle's address is pinned at its first
+valid frame and replies go there only; datagrams from any other address are dropped unread
+and counted as ``foreign_address``: a stray or forged sender can neither redirect nor copy
+the setpoints (a vehicle that comes back from another address needs a new link; PX4 SITL
+and the emulated vehicles keep theirs). NaN/inf positions are dropped as
+``nonfinite_position``.
+The per-step messages (LOCAL_POSITION_NED in, the velocity setpoint out) take
+``swarm.mavlink_parse``'s fast path over UDP: same bytes, no pymavlink message objects (so
+pymavlink's own bookkeeping, e.g. ``messages`` and packet-loss counts, does not see those
+samples).
 
 Public API
 ----------
@@ -71,6 +77,7 @@ whole handshake exceeds ``timeout_s``.
 from __future__ import annotations
 
 import contextlib
+import errno
 import math
 import os
 import select
@@ -115,6 +122,7 @@ _HEARTBEAT_REQUEST_PERIOD_S = 0.25
 _MAV_CMD_REQUEST_MESSAGE = 512
 _MAX_STAMPED_SAMPLES = 512
 _MAX_MESSAGES_PER_DRAIN = 100_000
+_MAX_DATAGRAM = 65535
 _SIGNING_LINK_ID = 1  # any constant: the receiver's stream key also holds our system id
 _SIGNATURE_REJECTIONS = ("unsigned", "bad_signature", "stale_signature")
 _AUTOPILOT_NAMES = {mavlink2.MAV_AUTOPILOT_PX4: "PX4",
@@ -205,6 +213,8 @@ class AutopilotLink:
         self._mode_name: str | None = None  # mode_string_v10 of _heartbeat, computed once
         self._last_heartbeat_s: float | None = None
         self._vehicle_heard = False  # any valid frame from the autopilot (its address known)
+        self._autopilot_frames = 0  # valid frames from the autopilot taken so far
+        self._peer: tuple[str, int] | None = None  # udpin: the vehicle's pinned address
         self._last_heartbeat_request_s: float | None = None
         self._other_systems: set[int] = set()
         self._acks: dict[int, int] = {}
@@ -328,7 +338,7 @@ class AutopilotLink:
     # ---------------------------------------------------------------- sending
     def send_velocity(self, velocity_w: ArrayLike, time_boot_ms: int) -> None:
         """One velocity setpoint (W, m/s) stamped ``time_boot_ms`` (uint32). Values beyond
-        the float32 range go out as ±inf, which a vehicle treats as non-finite (hold)."""
+        the float32 range go out as ±inf, which a vehicle drops as non-finite."""
         stamp = int(time_boot_ms)
         if not 0 <= stamp <= 0xFFFFFFFF:
             raise ValueError(f"time_boot_ms must fit in uint32, got {time_boot_ms}")
@@ -594,7 +604,9 @@ class AutopilotLink:
     def _drain_datagrams(self) -> None:
         """UDP, one datagram at a time (pymavlink's own recv_msg would keep a truncated
         frame as the start of a stream; ``parse_bytes`` counts and drops it)."""
-        mav = self._conn.mav
+        if getattr(self._conn, "udp_server", False):
+            self._drain_udpin()
+            return
         for _ in range(_MAX_MESSAGES_PER_DRAIN):
             try:
                 data = self._conn.recv()  # one datagram, "" when none is waiting
@@ -603,13 +615,54 @@ class AutopilotLink:
                 return
             if not data:
                 return
-            fast = None if self._signing else LOCAL_POSITION_NED.unpack(data)  # unsigned only
-            if fast is not None and fast[0] == self._sysid and fast[1] == AUTOPILOT_COMPONENT_ID:
-                self._vehicle_heard = True
-                self._on_local_position(*fast[2])  # the 50 Hz sample: no message object
+            self._datagram(data)
+
+    def _drain_udpin(self) -> None:
+        """``udpin``: pymavlink would send to every address that ever sent a datagram here
+        (for 5 s), so one forged datagram would get a copy of every setpoint, and a flood
+        from many ports a flood of copies. Instead the vehicle's address is pinned at its
+        first valid frame (the only address sent to) for good; a datagram from anywhere else
+        is counted as ``foreign_address`` and dropped unread. The pin never moves: a lockstep
+        world may be silent for seconds on a loaded machine, and junk with one valid frame
+        inside must not take the link over then."""
+        conn = self._conn
+        for _ in range(_MAX_MESSAGES_PER_DRAIN):
+            try:
+                data, sender = conn.port.recvfrom(_MAX_DATAGRAM)
+            except (BlockingIOError, InterruptedError):
+                return
+            except OSError as exc:
+                if exc.errno != errno.ECONNREFUSED:  # the ICMP of an earlier send: harmless
+                    self.rejections[f"receive_error:{type(exc).__name__}"] += 1
+                return
+            sender = (str(sender[0]), int(sender[1]))
+            peer = self._peer
+            if peer is not None and sender != peer:
+                self.rejections["foreign_address"] += 1
                 continue
-            for msg in parse_bytes(mav, data, self.rejections, datagram=True):
-                self._handle(msg)
+            if not data:
+                self.rejections["empty_datagram"] += 1
+                continue
+            taken = self._autopilot_frames
+            self._datagram(data)
+            if peer is None and self._autopilot_frames > taken:
+                self._pin(sender)
+
+    def _pin(self, sender: tuple[str, int]) -> None:
+        """Send to ``sender`` (and nobody else) from now on."""
+        self._peer = sender
+        self._conn.clients = {sender}
+        self._conn.clients_last_alive = {sender: time.time()}
+
+    def _datagram(self, data: bytes) -> None:
+        """Everything in one datagram."""
+        fast = None if self._signing else LOCAL_POSITION_NED.unpack(data)  # unsigned only
+        if fast is not None and fast[0] == self._sysid and fast[1] == AUTOPILOT_COMPONENT_ID:
+            self._vehicle_heard = True
+            self._on_local_position(*fast[2])  # the 50 Hz sample: no message object
+            return
+        for msg in parse_bytes(self._conn.mav, data, self.rejections, datagram=True):
+            self._handle(msg)
 
     def _handle(self, msg: Any) -> None:
         try:
@@ -636,6 +689,8 @@ class AutopilotLink:
             self.foreign_frames += 1
             return
         self._vehicle_heard = True
+        if kind != "LOCAL_POSITION_NED":  # a sample counts once it is finite
+            self._autopilot_frames += 1
         if kind == "HEARTBEAT":
             self._heartbeat = msg
             self._mode_name = None
@@ -651,6 +706,7 @@ class AutopilotLink:
         if not all(map(math.isfinite, (x, y, z, vx, vy, vz))):
             self.rejections["nonfinite_position"] += 1
             return
+        self._autopilot_frames += 1
         sample = PositionSample(int(time_boot_ms),
                                 frames.world_from_local_ned((x, y, z), self._origin),
                                 frames.ned_to_enu((vx, vy, vz)), self._clock())

@@ -357,7 +357,7 @@ def schemas(n_targets: int, n_state: int) -> dict[str, dict[str, Any]]:
                                          "missing_neighbour_messages",
                                          "stale_neighbour_messages", "late_steps", "steps")},
             "neighbour_age_ms": {"type": ["number", "null"]},
-            "mavlink_state": {"type": "string"}}),
+            "mavlink_state": {"type": "string"}, "swarm_size": _COUNT}),
     }
     return {
         "telemetry": _object(telemetry, "vigil.Telemetry",

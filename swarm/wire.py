@@ -318,6 +318,9 @@ class ClockWire(_Wire, tag="clock", kw_only=True):
     state: ClockState
     mode: ClockMode
     detail: Text = ""
+    # Malformed inputs the world dropped so far (Zenoh payloads, MAVLink frames at its
+    # vehicles): the world has no telemetry of its own, its clock says it.
+    rejected_inputs: NonNegativeInt = 0
 
 
 class TelemetryCounters(msgspec.Struct, frozen=True, array_like=True,
@@ -334,6 +337,9 @@ class TelemetryCounters(msgspec.Struct, frozen=True, array_like=True,
     # (Zenoh timestamp; the hop included) to its use; None: none yet (realtime only).
     neighbour_age_ms: float | None = None
     mavlink_state: Label = ""
+    # Drones in the live membership this step (the N of the formulas, SPEC §5-§8): the own
+    # drone and every drone heard within ``runtime.member_timeout_s``; 0: not reported.
+    swarm_size: NonNegativeInt = 0
 
 
 class TelemetryWire(_Wire, tag="telemetry", kw_only=True):
@@ -792,15 +798,16 @@ class WireCodec:
         if counters is None and _COUNTER_NAMES.issuperset(fields):
             totals = tuple(map(fields.get, TelemetryCounters.__struct_fields__,
                                _COUNTER_DEFAULTS))
-            *counts, age, label = totals
+            *counts, age, label, size = totals
             if age is not None and age != age:  # NaN: no neighbour message yet
                 age = None
-                totals = (*counts, None, label)
+                totals = (*counts, None, label, size)
         elif not fields and type(counters) is TelemetryCounters:
             totals = msgspec.structs.astuple(counters)
-            *counts, age, label = totals
+            *counts, age, label, size = totals
         else:
             return None
+        counts.append(size)
         if (set(map(type, counts)) != {int} or min(counts) < 0 or type(label) is not str
                 or len(label) > MAX_LABEL_CHARS
                 or (age is not None and not (type(age) is float and age >= 0.0))):
@@ -1039,6 +1046,7 @@ class WireCodec:
         if m.mode not in CLOCK_MODES:
             _fail(f"mode must be one of {CLOCK_MODES}, got {m.mode!r:.40}")
         _check_str("detail", m.detail, MAX_TEXT_CHARS)
+        _check_int("rejected_inputs", m.rejected_inputs)
 
     def _check_telemetry(self, m: TelemetryWire) -> None:
         M = self.n_targets
@@ -1072,7 +1080,7 @@ class WireCodec:
         if not isinstance(c, TelemetryCounters):
             _fail("counters must be TelemetryCounters")
         for name in ("qp_fallbacks", "rejected_messages", "missing_neighbour_messages",
-                     "stale_neighbour_messages", "late_steps", "steps"):
+                     "stale_neighbour_messages", "late_steps", "steps", "swarm_size"):
             _check_int(f"counters.{name}", getattr(c, name))
         if c.neighbour_age_ms is not None:
             _check_float("counters.neighbour_age_ms", c.neighbour_age_ms, non_negative=True)
@@ -1137,7 +1145,8 @@ class WireCodec:
         t = m.time_s
         return (m.version == WIRE_VERSION and m.step >= 0 and t >= 0.0 and t - t == 0.0
                 and m.state in CLOCK_STATES and m.mode in CLOCK_MODES
-                and len(m.detail) <= MAX_TEXT_CHARS)
+                and len(m.detail) <= MAX_TEXT_CHARS and type(m.rejected_inputs) is int
+                and m.rejected_inputs >= 0)
 
     def _quick_telemetry(self, m: TelemetryWire) -> bool:
         c = m.counters
@@ -1148,7 +1157,7 @@ class WireCodec:
             return False
         for k in (m.step, m.qp_iterations, m.missing_neighbour_messages, m.rejected_inputs,
                   c.qp_fallbacks, c.rejected_messages, c.missing_neighbour_messages,
-                  c.stale_neighbour_messages, c.late_steps, c.steps):
+                  c.stale_neighbour_messages, c.late_steps, c.steps, c.swarm_size):
             if type(k) is not int or k < 0:
                 return False
         t, solve, step, p = m.time_s, m.qp_solve_us, m.step_us, m.position_m

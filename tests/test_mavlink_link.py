@@ -7,6 +7,7 @@ answering every datagram at once. Waits are on conditions with deadlines, never 
 
 from __future__ import annotations
 
+import math
 import select
 import socket
 import threading
@@ -22,6 +23,7 @@ from sim_world.mavlink_endpoint import VehicleEndpoint
 from sim_world.vehicle import EmulatedVehicle
 from swarm import frames
 from swarm.mavlink_link import IDLE_STAMP_MS, AutopilotLink, LinkError, PositionSample
+from swarm.mavlink_parse import LOCAL_POSITION_NED
 
 DT = 0.02
 DRONE = 2
@@ -464,3 +466,49 @@ def test_garbage_at_the_agent_port_is_counted_never_raised(pair: Any) -> None:
     assert sample.time_boot_ms == 20
     assert link.rejections["truncated"] >= 1 and link.rejections["bad_data"] >= 1
     assert not any(k.startswith(("handler_error", "receive_error")) for k in link.rejections)
+
+
+# ---------------------------------------------------------------- udpin peer pinning
+def _datagrams(sock: socket.socket, timeout: float = 0.3) -> list[bytes]:
+    """Every datagram ``sock`` receives until it has been quiet for ``timeout``."""
+    got = []
+    while select.select([sock], [], [], timeout)[0]:
+        got.append(sock.recv(65535))
+    return got
+
+
+def test_udpin_pins_the_vehicle_address_and_counts_other_senders() -> None:
+    """pymavlink's udpin sends to every address that ever sent it a datagram: one forged
+    datagram got a copy of every setpoint. The vehicle's address is pinned at its first valid
+    frame, for good; anything from elsewhere (junk, a valid frame of the vehicle's own
+    system, a NaN sample) is counted and dropped unread, however long the vehicle is quiet."""
+    link = make_link("px4", [])
+    vehicle = EmulatedVehicle(DRONE, "px4", START, ORIGIN)
+    endpoint = VehicleEndpoint(("127.0.0.1", link.local_address[1]))
+    forger = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    forger.bind(("127.0.0.1", 0))
+    try:
+        _introduce(link, vehicle, endpoint)
+        forged = [b"", b"\xfd\x05junk", vehicle.telemetry(1234, 1.0)[0],
+                  LOCAL_POSITION_NED.pack(vehicle._tx, 1236, *[math.nan] * 6),
+                  vehicle.heartbeat() + b"junk"]
+        for datagram in forged:
+            forger.sendto(datagram, link.local_address)
+        endpoint.send(vehicle.telemetry(40, 0.04))
+        assert link.wait_position(40, 2.0).time_boot_ms == 40
+        assert link.rejections["foreign_address"] == len(forged) == link.rejected_frames
+        with pytest.raises(LinkError):
+            link.wait_position(1234, 0.05)  # the forged sample never counted
+        link.send_velocity([1.0, 0.0, 0.0], 40)
+        assert _datagrams(forger) == []  # no copy of the setpoint
+        assert any(m.get_type() == "SET_POSITION_TARGET_LOCAL_NED"
+                   for m in _received(endpoint, 1))
+        with VehicleEndpoint(("127.0.0.1", link.local_address[1])) as elsewhere:
+            elsewhere.send(vehicle.telemetry(80, 0.08))  # valid, but from another address
+            with pytest.raises(LinkError):
+                link.wait_position(80, 0.3)
+            assert link.rejections["foreign_address"] == len(forged) + 1
+    finally:
+        forger.close()
+        endpoint.close()
+        link.close()

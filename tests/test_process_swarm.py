@@ -244,6 +244,15 @@ def test_launchers_started_together_reserve_different_mavlink_blocks() -> None:
     ["swarm.agent_cli", "--id", "9", "--config", str(CONFIGS / "case1.toml")],
     ["swarm.agent_cli", "--id", "0"],
     ["swarm.agent_cli", "--id", "0", "--config", str(ROOT / "missing.toml")],
+    # Fault injection is for realtime tests; in lockstep a lost message stalls everyone.
+    ["swarm.agent_cli", "--id", "0", "--config", str(CONFIGS / "case1.toml"),
+     "--drop-consensus", "0.1"],
+    ["swarm.agent_cli", "--id", "0", "--config", str(CONFIGS / "case1.toml"), "--mode",
+     "realtime", "--drop-consensus", "1"],
+    ["swarm.agent_cli", "--id", "0", "--config", str(CONFIGS / "case1.toml"), "--mode",
+     "realtime", "--delay-consensus", "-2"],
+    ["swarm.cli", str(CONFIGS / "case1.toml"), "--agent-restarts", "1"],
+    ["swarm.cli", str(CONFIGS / "case1.toml"), "--mode", "realtime", "--agent-restarts", "x"],
 ])
 def test_process_command_lines_fail_in_one_line(argv: list[str]) -> None:
     result = subprocess.run([sys.executable, "-m", *argv], capture_output=True, text=True,

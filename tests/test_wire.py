@@ -501,6 +501,24 @@ def test_clock_and_camera_types() -> None:
     assert isinstance(CODEC.decode_consensus_wire(PAYLOADS["consensus"]), ConsensusWire)
 
 
+def test_clock_carries_the_worlds_rejection_count() -> None:
+    """A trailing field with a default: a clock without it (an older world) still decodes,
+    as 0; a negative or non-integer count is rejected."""
+    clock = ClockWire(step=3, time_s=0.06, state="running", mode="lockstep",
+                      rejected_inputs=70_123)
+    assert CODEC.decode_clock(CODEC.encode(clock)).rejected_inputs == 70_123
+    older = msgspec.msgpack.encode(["clock", WIRE_VERSION, 3, 0.06, "running", "lockstep", ""])
+    assert CODEC.decode_clock(older).rejected_inputs == 0
+    for bad in (-1, 1.5, True, "7"):
+        payload = msgspec.msgpack.encode(["clock", WIRE_VERSION, 3, 0.06, "running",
+                                          "lockstep", "", bad])
+        with pytest.raises(WireError, match=r"rejected_inputs|Expected `int`"):
+            CODEC.decode_clock(payload)
+    with pytest.raises(WireError, match="rejected_inputs"):
+        CODEC.encode(ClockWire(step=3, time_s=0.06, state="running", mode="lockstep",
+                               rejected_inputs=-1))
+
+
 def test_telemetry_counters_as_keywords() -> None:
     _, diag = real_agent_outputs()
     wire = TelemetryWire.from_diagnostics(diag, [0.0, 0.0, 3.0], qp_fallbacks=1, late_steps=2,

@@ -151,6 +151,9 @@ class DroneAgent:
         m = setup.n_targets
         est, gram, ctrl = setup.estimation, setup.gramian, setup.control
         n = self._n_state = icf.state_dimension(est.model)
+        # N of the formulas: the drones taking part now (``set_swarm_size``); the
+        # N-dependent constants below are rebuilt when it changes.
+        self._swarm_size = setup.n_drones
         self._filter = icf.StackedFilter(icf.transition_matrix(est.model, setup.dt_s),
                                          est.process_noise, setup.n_drones, setup.dt_s)
         guesses = np.asarray(initial_target_guesses, dtype=float).reshape(m, 3)
@@ -208,6 +211,40 @@ class DroneAgent:
     def n_rounds(self) -> int:
         return self.setup.estimation.consensus_rounds
 
+    @property
+    def swarm_size(self) -> int:
+        """N used in the formulas (SPEC §5-§8): the live membership, ``setup.n_drones`` at
+        start."""
+        return self._swarm_size
+
+    def set_swarm_size(self, n_live: int) -> None:
+        """Take N = ``n_live`` drones in the formulas from the next step on: the 1/N and N of
+        the information consensus (2.4-2.9), bN in the Gramian copies (3.29), S_w = N s_w and
+        the 1/N shares of the barrier rows (3.32, 3.34-3.36).
+
+        For a swarm whose membership changes (a drone lost or rejoined). Every member must
+        use the same N: the consensus averages over the drones that exchange data. The PI
+        consensus (3.30) then tracks the average of the members' own inputs whatever states
+        a lost drone left behind: the integral states enter the estimates only through
+        neighbour differences, so their leftover sum does not bias the equilibrium. The
+        collision rows keep their ``setup.n_drones − 1`` slots.
+        """
+        n_live = int(n_live)
+        if not 1 <= n_live <= self.setup.n_drones:
+            raise ValueError(f"drone {self.setup.drone_id}: swarm size must be in "
+                             f"1..{self.setup.n_drones}, got {n_live}")
+        if self._phase != "idle":
+            raise AgentStateError(f"set_swarm_size called in phase {self._phase!r}")
+        if n_live == self._swarm_size:
+            return
+        setup, est, gram = self.setup, self.setup.estimation, self.setup.gramian
+        self._swarm_size = n_live
+        self._filter = icf.StackedFilter(self._filter.transition, est.process_noise, n_live,
+                                         setup.dt_s)
+        self._operator = _consensus_operator(setup.n_targets, setup.dt_s, gram,
+                                             est.info_gain * n_live)
+        self._barrier_constants = (n_live, *self._barrier_constants[1:])
+
     def begin_step(
         self,
         step: int,
@@ -245,7 +282,7 @@ class DroneAgent:
         # V⁰ = W⁻/N + bμ[[Π,0],[0,0]], v⁰ = W⁻x̂⁻/N + bμ[Πp_i; 0] (2.4-2.5, 2.15), stacked.
         packed = np.empty_like(self._icf)
         info = packed[:self._n_info].reshape(m, n, n)
-        np.divide(self._prior_information, setup.n_drones, out=info)
+        np.divide(self._prior_information, self._swarm_size, out=info)
         np.matmul(info, self._prior_state[..., None],
                   out=packed[self._n_info:].reshape(m, n, 1))
         if any(detected):
@@ -320,7 +357,7 @@ class DroneAgent:
             raise AgentStateError(f"finish_step called in phase {self._phase!r}")
         entered = time.perf_counter()
         setup, ctrl = self.setup, self.setup.control
-        m, n, n_drones = setup.n_targets, self._n_state, setup.n_drones
+        m, n, n_drones = setup.n_targets, self._n_state, self._swarm_size
         time_s = self._step * setup.dt_s
         own_id = setup.drone_id
         own = self._own
@@ -582,7 +619,7 @@ class DroneAgent:
         """Velocity parts (column-major: x, y, z coefficients of every row) and lower bounds
         of the QP rows: localization (3.32), weight-sum (3.34-3.36), collision (4.1-4.2,
         inactive slots "0 ≥ −1")."""
-        ctrl, n = self.setup.control, self.setup.n_drones
+        ctrl, n, slots = self.setup.control, self._swarm_size, self.setup.n_drones - 1
         rows = [b[3] for b in barriers] + [t[1] for t in terms]
         lower = [b[4] for b in barriers]
         gamma = ctrl.gamma
@@ -594,7 +631,7 @@ class DroneAgent:
                                ctrl.collision_gain)
         slot = 0
         for j in sorted(beacons):
-            if slot >= n - 1:
+            if slot >= slots:
                 break
             qx, qy, qz = beacons[j]
             ox, oy, oz = px - qx, py - qy, pz - qz
@@ -603,7 +640,7 @@ class DroneAgent:
                 rows.append((2.0 * ox, 2.0 * oy, 2.0 * oz))
                 lower.append(-0.5 * gain * (square - delta * delta))
                 slot += 1
-        for _ in range(slot, n - 1):
+        for _ in range(slot, slots):
             rows.append(_ZERO3)
             lower.append(INACTIVE_ROW_LOWER)
         xs, ys, zs = zip(*rows, strict=True)

@@ -161,3 +161,120 @@ def test_single_integrator_model_with_communicated_velocities() -> None:
     record = run_reference(config, seed=0)
     assert record.estimates.shape[-1] == 3
     assert record.position_errors()[-1].max() < 0.05
+
+
+# -- live membership (N follows the drones taking part) -------------------------------------
+
+
+def lone_case2_agent(n_drones: int) -> DroneAgent:
+    """Drone 0 of Case 2's parameters in an ``n_drones`` swarm, its one neighbour silent."""
+    config = load_config(CONFIGS / "case2.toml")
+    setup = AgentSetup(
+        drone_id=0, n_drones=n_drones, n_targets=2, dt_s=config.scenario.dt_s,
+        neighbour_weights={1: 0.25}, perception=config.perception,
+        estimation=config.estimation, gramian=config.gramian,
+        control=dataclasses.replace(config.control, start_s=0.0))
+    return DroneAgent(setup, np.array([[0.3, 0.1, 0.0], [-0.4, 0.2, 0.0]]))
+
+
+def test_a_swarm_size_set_at_run_time_equals_a_swarm_built_that_size() -> None:
+    """N is every 1/N and N of the formulas: an agent of a 6-drone swarm told N = 4 computes
+    what an agent built for 4 drones computes, step after step (estimates, Gramian copies,
+    λ̄, S_w, the commanded velocity), and differs from one left at N = 6."""
+    shrunk, built, left = lone_case2_agent(6), lone_case2_agent(4), lone_case2_agent(6)
+    shrunk.set_swarm_size(4)
+    assert shrunk.swarm_size == 4 and left.swarm_size == 6
+    rng = np.random.default_rng(3)
+    position = np.array([0.2, -0.3, 3.5])
+    for step in range(120):
+        detections = [Detection(r, rng.normal(0.0, 0.05, 2)) for r in (0, 1)
+                      if rng.random() < 0.8]
+        results = [run_alone(agent, step, position, detections)
+                   for agent in (shrunk, built, left)]
+        a, b, c = (r.diagnostics for r in results)
+        np.testing.assert_allclose(a.estimates, b.estimates, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(shrunk.gramian_copies, built.gramian_copies, atol=1e-12)
+        np.testing.assert_allclose(a.lambda_bar, b.lambda_bar, atol=1e-12)
+        np.testing.assert_allclose(a.weight_sum_estimate, b.weight_sum_estimate, atol=1e-12)
+        np.testing.assert_allclose(a.velocity, b.velocity, atol=1e-6)
+        position = position + 0.02 * a.velocity
+    assert not np.allclose(c.weight_sum_estimate, a.weight_sum_estimate, atol=1e-3)
+    assert not np.allclose(left.gramian_copies, shrunk.gramian_copies, atol=1e-3)
+
+
+def test_swarm_size_is_refused_outside_one_to_n_and_inside_a_step() -> None:
+    agent = lone_case2_agent(6)
+    for bad in (0, 7, -1):
+        with pytest.raises(ValueError, match=r"swarm size must be in 1\.\.6"):
+            agent.set_swarm_size(bad)
+    agent.begin_step(0, np.array([0.0, 0.0, 3.0]), [])
+    with pytest.raises(AgentStateError):
+        agent.set_swarm_size(5)
+    agent.consensus_round({})
+    agent.finish_step({})
+    agent.set_swarm_size(1)
+    assert agent.swarm_size == 1
+
+
+def run_case2_with_a_drone_lost(lost: int, lose_at: int, steps: int, *,
+                                follow_membership: bool) -> tuple[list[DroneAgent], np.ndarray]:
+    """Case 2 in process, drone ``lost`` gone from step ``lose_at`` on (no messages, no
+    beacon); the survivors take N = 5 from then on if ``follow_membership``. Returns the
+    agents and each survivor's weights w_ir of the last step, (N, M) (lost row: NaN)."""
+    from sim_world.camera import detect
+    from sim_world.kinematics import step_drone
+    from swarm.reference import STREAM_CAMERA, initial_drone_positions, stream
+
+    config = load_config(CONFIGS / "case2.toml")
+    n, dt = config.swarm.n_drones, config.scenario.dt_s
+    graph = config.swarm.graph
+    agents = [build_agent(config, 0, i) for i in range(n)]
+    cameras = [stream(0, STREAM_CAMERA, i) for i in range(n)]
+    trajectories = [t.build() for t in config.targets]
+    positions = initial_drone_positions(config, 0)
+    weights = np.full((n, len(trajectories)), np.nan)
+    for k in range(steps):
+        live = [i for i in range(n) if k < lose_at or i != lost]
+        weights[:] = np.nan
+        if follow_membership:
+            for i in live:
+                agents[i].set_swarm_size(len(live))
+        targets = np.array([traj.position(k * dt) for traj in trajectories])
+        messages = {i: agents[i].begin_step(
+            k, positions[i], detect(positions[i], targets, config.camera, cameras[i]))
+            for i in live}
+        for _ in range(agents[0].n_rounds):
+            messages = {i: agents[i].consensus_round(
+                {j: messages[j] for j in graph.neighbours[i] if j in messages}) for i in live}
+        beacons = {i: positions[i] for i in live}
+        for i in live:
+            result = agents[i].finish_step(beacons)
+            weights[i] = result.diagnostics.weights
+            positions[i] = step_drone(positions[i], result.velocity, config.control.u_max_m_s,
+                                      dt)
+    return agents, weights
+
+
+@pytest.mark.slow
+def test_survivors_of_a_lost_drone_agree_on_the_sum_of_their_weights() -> None:
+    """After drone 2 is lost the survivors' dynamic consensus (3.30) with N = 5 estimates the
+    sum of the *survivors'* weights, S_w = Σ_{i alive} w_ir, and their Gramian copies agree;
+    kept at N = 6 the same survivors overestimate it by 6/5. (The consensus tracks a moving
+    sum with a lag: the whole swarm without a loss is within 4.0 % of its true sum here.)"""
+    lost = 2
+    for follow, tolerance in ((True, 0.05), (False, None)):
+        agents, weights = run_case2_with_a_drone_lost(lost, lose_at=250, steps=750,
+                                                      follow_membership=follow)
+        survivors = [a for i, a in enumerate(agents) if i != lost]
+        true_sum = np.nansum(weights, axis=0)
+        estimated = np.array([a.setup.n_drones if not follow else 5 for a in survivors])
+        sums = np.array([n_live * a._cons_array[9 * 2:10 * 2] for n_live, a in
+                         zip(estimated, survivors, strict=True)])
+        relative = np.abs(sums - true_sum) / true_sum
+        if tolerance is not None:
+            assert relative.max() < tolerance, (sums, true_sum)
+            copies = np.array([a.gramian_copies for a in survivors])
+            spread = np.abs(copies - copies.mean(axis=0)).max()
+            assert spread < 0.02 * np.abs(copies).max()
+        else:
+            assert relative.min() > 0.15  # 6/5 − 1 = 0.2, up to the consensus lag

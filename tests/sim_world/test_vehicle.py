@@ -354,13 +354,35 @@ def test_applied_velocity_is_bit_exact_clamped_velocity_over_link(u: np.ndarray,
     assert np.all(np.abs(got) <= 3.0)
 
 
-def test_non_finite_setpoint_means_hold() -> None:
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+@pytest.mark.parametrize("axis", [0, 1, 2])
+def test_non_finite_setpoint_is_rejected_and_counted(bad: float, axis: int) -> None:
+    """Dropped at the boundary: not applied, not stamped (lockstep would integrate it), no
+    proof of life; the vehicle flies on with the last valid setpoint."""
     a = Agent()
     v = px4_offboard_armed(a)
-    v.receive(a.setpoint([1.0, 0.0, 0.0]), 10.01)
-    v.receive(a.setpoint([np.nan, 0.0, 0.0]), 10.02)
-    np.testing.assert_array_equal(v.commanded_velocity_w(10.03), 0.0)
+    v.begin_step(77)
+    v.receive(a.setpoint([1.0, 0.0, 0.0], stamp=76), 10.01)
+    accepted, arrivals = v.accepted_setpoints, v.accepted_frames
+    velocity = [0.5, -0.5, 0.25]
+    velocity[axis] = bad
+    assert v.receive(a.setpoint(velocity, stamp=77), 10.02) == []
+    np.testing.assert_array_equal(v.commanded_velocity_w(10.03), [1.0, 0.0, 0.0])
+    assert v.setpoint_stamped() is None
+    assert v.rejections["nonfinite_setpoint"] == 1 and v.rejected_frames == 1
     assert v.nonfinite_setpoints == 1 and not v.failsafe_active
+    assert (v.accepted_setpoints, v.accepted_frames) == (accepted, arrivals)
+
+
+def test_empty_datagram_is_counted() -> None:
+    v = make("px4")
+    assert v.receive(b"", 1.0) == []
+    assert v.rejections["empty_datagram"] == 1 and v.accepted_frames == 0
+    v.receive(Agent().arm(), 1.0)
+    assert v.accepted_frames == 1 and v.rejected_frames == 1
+    gcs = Agent(sysid=255, compid=190)  # a valid frame the vehicle has no use for
+    v.receive(gcs.pack(gcs.mav.heartbeat_encode(6, 8, 0, 0, 0)), 1.0)
+    assert v.accepted_frames == 1 and v.ignored_messages == 1
 
 
 # ---------------------------------------------------------------- setpoint validation

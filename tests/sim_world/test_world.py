@@ -2,15 +2,21 @@
 
 from __future__ import annotations
 
+import math
+import socket
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
+import msgspec
 import pytest
 
 import sim_world.world as world_module
 from sim_world.world import CLOCK_PERIOD_S, World, WorldOptions
 from swarm.config import load_config
 from swarm.launcher import choose_mavlink_base, free_tcp_port
+from swarm.transport import open_session, zenoh_config
+from swarm.wire import BeaconWire
 
 CASE1 = Path(__file__).resolve().parents[2] / "configs" / "case1.toml"
 
@@ -56,3 +62,112 @@ def test_running_is_published_at_the_start_then_every_clock_period(
     world.publish_running(50)
     world.publish_running(51)
     assert published == [(0, "running"), (50, "running")]
+
+
+class _Captured:
+    def __init__(self) -> None:
+        self.payloads: list[bytes] = []
+
+    def put(self, payload: bytes) -> None:
+        self.payloads.append(payload)
+
+
+def test_the_clock_reports_every_input_the_world_rejected(world: World) -> None:
+    """The world has no telemetry of its own: its clock carries its rejection count."""
+    assert world.fleet is not None
+    captured = _Captured()
+    world._pub_clock = captured
+    world.publish_clock(0, "waiting")
+    assert world.codec.decode_clock(captured.payloads[-1]).rejected_inputs == 0
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as junk:
+        for endpoint in world.fleet.endpoints:
+            for datagram in (b"", b"\xfd\x03abc", b"\x00" * 40):
+                junk.sendto(datagram, endpoint.local_address)
+        deadline = time.monotonic() + 5.0
+        while world.rejected_total() < 3 * len(world.fleet.endpoints) \
+                and time.monotonic() < deadline:
+            world.fleet.service(0.1)
+    total = world.rejected_total()
+    assert total >= 3 * len(world.fleet.endpoints)
+    world.publish_clock(0, "running")
+    clock = world.codec.decode_clock(captured.payloads[-1])
+    assert clock.state == "running" and clock.rejected_inputs == total
+
+
+def test_an_external_vehicle_world_counts_bad_beacons_on_its_clock() -> None:
+    """With external vehicles the world subscribes to the beacons: junk there is counted and
+    shows on its clock, and only a valid beacon moves a drone."""
+    config = load_config(CASE1)
+    port = free_tcp_port()
+    made = World(WorldOptions(config=config, seed=0, run_id="extfuzz", mode="realtime",
+                              vehicles="external", listen=(f"tcp/127.0.0.1:{port}",),
+                              log=lambda _line: None))
+    session = open_session(zenoh_config(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))
+    try:
+        captured = _Captured()
+        made._pub_clock = captured
+        valid = made.codec.encode(BeaconWire.build(2, 5, 0.1, (1.0, 2.0, 3.0)))
+        junk = [b"", b"\x93\x01\x02", valid[:-3], valid.replace(b"beacon", b"camera"),
+                msgspec.msgpack.encode(["beacon", 3, 2, 5, 0.1, [math.nan, 2.0, 3.0],
+                                        [0.0, 0.0, 0.0], 0.0])]
+        for payload in [*junk, valid]:
+            session.put(made.keys.beacon(2), payload)
+        deadline = time.monotonic() + 10.0
+        while (made.rejections.total() < len(junk) or made.beacons.get(2) is None) \
+                and time.monotonic() < deadline:
+            time.sleep(0.01)  # polling the world's counters (bounded by the deadline)
+        assert made.rejections.total() == len(junk)
+        made.publish_clock(0, "waiting")
+        assert made.codec.decode_clock(captured.payloads[-1]).rejected_inputs == len(junk)
+        made._external_positions()
+        assert made.positions[2].tolist() == [1.0, 2.0, 3.0]
+    finally:
+        session.close()
+        made.close()
+
+
+def test_a_stalled_realtime_tick_counts_queued_setpoints_before_the_failsafe(
+        world: World) -> None:
+    """The world's loop stalls (a loaded machine) while the agent keeps streaming: the next
+    tick takes the setpoints that queued up before it evaluates the setpoint-loss failsafe,
+    so the vehicle flies them instead of failing safe."""
+    import threading
+
+    import numpy as np
+
+    from swarm.mavlink_link import AutopilotLink
+
+    assert world.fleet is not None
+    vehicle = world.fleet.vehicles[0]
+    link = AutopilotLink(f"udpin:127.0.0.1:{world.options.mavlink_base}", 0, "px4",
+                         np.zeros(3), log=lambda _line: None)
+    serving = threading.Event()
+    serving.set()
+
+    def serve() -> None:  # the world's MAVLink side while the agent shakes hands
+        while serving.is_set():
+            world.fleet.send_telemetry(world.boot_ms())
+            world.fleet.service(0.01)
+
+    server = threading.Thread(target=serve)
+    server.start()
+    try:
+        link.handshake(timeout_s=20.0)
+    finally:
+        serving.clear()
+        server.join()
+    try:
+        assert vehicle.in_setpoint_mode and vehicle.armed
+        start = vehicle.position_w.copy()
+        # The world's loop stalls for twice the failsafe time, the agent sending throughout
+        # (the last setpoint just before the loop resumes).
+        resume = time.monotonic() + 2 * vehicle.setpoint_timeout_s
+        while time.monotonic() < resume:
+            link.send_velocity(np.array([1.0, 0.0, 0.0]), 0)
+            time.sleep(0.05)  # the agent's setpoint period; the stall is the point here
+        world.move_vehicles(0)
+        assert vehicle.failsafe_events == 0 and not vehicle.failsafe_active
+        np.testing.assert_allclose(vehicle.position_w - start, [world.dt_s, 0.0, 0.0],
+                                   atol=1e-6)
+    finally:
+        link.close()
