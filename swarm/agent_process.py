@@ -99,6 +99,10 @@ class AgentProcess:
         self.codec = WireCodec(self.n, len(cfg.targets), n_state)
         self.keys = Keys(options.run_id)
         self.rejections = RejectionCounter()
+        # Each sender's own keys (the codec bounds ids to 0..N-1): a string compare per
+        # message, not a key parse.
+        self._consensus_keys = [self.keys.consensus(j) for j in range(self.n)]
+        self._beacon_keys = [self.keys.beacon(j) for j in range(self.n)]
         lockstep = options.mode == "lockstep"
         # Lockstep keys everything by (step, round); realtime keeps only the latest value.
         self.camera_steps: StepMailbox[CameraFrameWire] = StepMailbox()
@@ -209,7 +213,7 @@ class AgentProcess:
         if msg.sender not in self.neighbours:
             self.rejections.reject("consensus", f"message from non-neighbour {msg.sender}")
             return
-        if self.keys.source_id(key) != msg.sender:  # j's data on another drone's key
+        if key != self._consensus_keys[msg.sender]:  # j's data on another drone's key
             self.rejections.reject("consensus", f"sender {msg.sender} on {key}")
             return
         self.consensus_steps.put(msg.step, msg.round, msg.sender, msg)
@@ -222,7 +226,7 @@ class AgentProcess:
     def _on_beacon(self, key: str, beacon: BeaconWire) -> None:
         # Our own beacons never come back (remote only): one with our id is another process
         # claiming to be this drone, or a replay.
-        if beacon.sender == self.id or self.keys.source_id(key) != beacon.sender:
+        if beacon.sender == self.id or key != self._beacon_keys[beacon.sender]:
             self.rejections.reject("beacon", f"sender {beacon.sender} on {key} (drone "
                                              f"{self.id})")
             return
