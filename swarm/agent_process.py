@@ -123,6 +123,7 @@ class AgentProcess:
         # timestamp, Unix s): the reported neighbour age includes the hop, not only the wait.
         self._consensus_sent: dict[tuple[int, int], float] = {}
 
+        self._lockstep = lockstep  # before the subscriptions: their callbacks read it
         self.session = self._open_session()
         # Lockstep: direct callbacks (on zenoh's receiving thread): every step waits on these,
         # and each only decodes and stores. Realtime: callbacks on a Python thread of their
@@ -130,22 +131,31 @@ class AgentProcess:
         # the GIL while the step computes: Case 2 scaled to N = 12, three interleaved pairs
         # of 10 s runs, 11-13 % late steps against 21-38 % with direct callbacks (lockstep
         # throughput the same within the noise). Our own beacon never comes back to us.
+        # Realtime wants the newest data only: bounded rings (a few steps' worth of every
+        # source) instead of zenoh's unbounded queue, which on an overloaded machine grew
+        # by ~300 kB/s per agent (Case 2 at N = 24) while the agents fell ever further behind.
         direct = lockstep
+        rounds = self.agent.n_rounds
+
+        def ring(per_step: int) -> int | None:
+            return None if lockstep else 4 * per_step
+
         subs = [
             subscribe(self.session, self.keys.camera(self.id), self.codec.decode_camera,
-                      self._on_camera, self.rejections, "camera", direct=direct),
+                      self._on_camera, self.rejections, "camera", direct=direct,
+                      keep_latest=ring(1)),
             subscribe(self.session, self.keys.all_beacons, self.codec.decode_beacon,
                       self._on_beacon, self.rejections, "beacon", direct=direct,
-                      remote_only=True),
+                      remote_only=True, keep_latest=ring(self.n)),
             subscribe(self.session, self.keys.clock, self.codec.decode_clock,
-                      self._on_clock, self.rejections, "clock", direct=direct),
+                      self._on_clock, self.rejections, "clock", direct=direct,
+                      keep_latest=ring(1)),
         ]
         subs += [subscribe(self.session, self.keys.consensus(j), self.codec.decode_consensus,
                            self._on_consensus, self.rejections, "consensus", direct=direct,
-                           on_sent_time=self._on_consensus_sent)
+                           on_sent_time=self._on_consensus_sent, keep_latest=ring(rounds))
                  for j in sorted(self.neighbours)]
         self._subscribers = subs
-        self._lockstep = lockstep
         # Consensus: lockstep peers wait for every message, realtime wants the newest (drop).
         # Beacons and telemetry never drop: the recorder keeps every one (in realtime, ~2-4 %
         # of the telemetry used to be dropped in zenoh's tx queues on a loaded machine), and
@@ -206,8 +216,9 @@ class AgentProcess:
         if frame.drone != self.id:
             self.rejections.reject("camera", f"frame for drone {frame.drone} on drone {self.id}")
             return
-        self.camera_steps.put(frame.step, 0, 0, frame)
-        self.camera_latest.put(0, frame)
+        if self._lockstep:
+            self.camera_steps.put(frame.step, 0, 0, frame)
+        self.camera_latest.put(0, frame)  # both modes: start() waits on it
 
     def _on_consensus(self, key: str, msg: ConsensusMessage) -> None:
         if msg.sender not in self.neighbours:
@@ -216,8 +227,12 @@ class AgentProcess:
         if key != self._consensus_keys[msg.sender]:  # j's data on another drone's key
             self.rejections.reject("consensus", f"sender {msg.sender} on {key}")
             return
-        self.consensus_steps.put(msg.step, msg.round, msg.sender, msg)
-        self.consensus_latest.put((msg.sender, msg.round), msg)
+        # One store per mode: a step mailbox nobody waits on is never pruned (realtime agents
+        # piled up to its 65 536 entries, ~100 MB, over a long mission).
+        if self._lockstep:
+            self.consensus_steps.put(msg.step, msg.round, msg.sender, msg)
+        else:
+            self.consensus_latest.put((msg.sender, msg.round), msg)
 
     def _on_consensus_sent(self, msg: ConsensusMessage, sent_unix_s: float) -> None:
         if msg.sender in self.neighbours:
@@ -230,8 +245,10 @@ class AgentProcess:
             self.rejections.reject("beacon", f"sender {beacon.sender} on {key} (drone "
                                              f"{self.id})")
             return
-        self.beacon_steps.put(beacon.step, 0, beacon.sender, beacon)
-        self.beacon_latest.put(beacon.sender, beacon)
+        if self._lockstep:
+            self.beacon_steps.put(beacon.step, 0, beacon.sender, beacon)
+        else:
+            self.beacon_latest.put(beacon.sender, beacon)
 
     # -- helpers ------------------------------------------------------------------------------
 
@@ -422,7 +439,10 @@ class AgentProcess:
                 if sample is not None:
                     self._publish(self._pub_beacon, BeaconWire.build(
                         sender=self.id, step=0, time_s=0.0, position_m=sample.position_w))
-            self.camera_steps.wait_for(0, 0, {0}, 0.05)
+            if self._lockstep:
+                self.camera_steps.wait_for(0, 0, {0}, 0.05)
+            else:
+                self.camera_latest.wait_for([0], 0.05)
 
     def run_lockstep(self) -> None:
         step = 0

@@ -21,12 +21,18 @@ stores that turn callback deliveries into what an agent step needs.
 zenoh-python 1.x runs Python callbacks on a dedicated Python thread per subscriber by default
 (``handlers.Callback(indirect=True)``), in arrival order per subscriber; ``subscribe(...,
 direct=True)`` runs them on zenoh's receiving thread instead (one thread hop and one
-wake-up fewer per message: what a lockstep step waits on). The stores here are what make
+wake-up fewer per message: what a lockstep step waits on). The queue in front of that
+Python thread has no bound: a consumer that falls behind (an overloaded machine) grows it
+without end and works through ever older data. ``subscribe(..., keep_latest=K)`` is for
+consumers that only want the newest data (realtime agents): a ring of K samples in front of
+a thread of our own, the oldest dropped when it is full. The stores here are what make
 those deliveries safe to read from the agent's own thread.
 """
 
 from __future__ import annotations
 
+import atexit
+import contextlib
 import ipaddress
 import json
 import math
@@ -34,6 +40,7 @@ import random
 import re
 import threading
 import time
+import weakref
 from collections import deque
 from collections.abc import Callable, Hashable, Iterable, Sequence
 from dataclasses import dataclass
@@ -609,7 +616,8 @@ def subscribe(
     direct: bool = False,
     remote_only: bool = False,
     on_sent_time: Callable[[T, float], None] | None = None,
-) -> zenoh.Subscriber:
+    keep_latest: int | None = None,
+) -> zenoh.Subscriber | RingSubscriber:
     """Declare a callback subscriber on ``key`` (wildcards allowed).
 
     Each sample's payload goes through ``decode`` (e.g. ``codec.decode_beacon``); a valid value
@@ -628,6 +636,12 @@ def subscribe(
     Zenoh timestamp (``put_stamped``), with its time — the sender's clock at the put, so the
     receiver sees the age of the data including the hop (exact on one host; across hosts as
     good as the clocks' synchronisation).
+    ``keep_latest``: instead of zenoh's callback thread and its unbounded queue, a ring of
+    this many samples read by a daemon thread of ours (ending when the subscriber is
+    undeclared or the session closes); when the thread falls behind, the oldest samples are
+    dropped. Memory and the age of what is handled then stay bounded on an overloaded
+    machine; only for consumers that want the newest value per source (size the ring to
+    hold at least one step's worth of sources).
     """
 
     def callback(sample: zenoh.Sample) -> None:
@@ -651,6 +665,65 @@ def subscribe(
         except BaseException as exc:
             rejections.unexpected(kind, f"handler raised {type(exc).__name__}: {exc}")
 
-    handler = zenoh.handlers.Callback(callback, indirect=not direct)
     origin = zenoh.Locality.REMOTE if remote_only else zenoh.Locality.ANY
-    return session.declare_subscriber(key, handler, allowed_origin=origin)
+    if keep_latest is None:
+        handler = zenoh.handlers.Callback(callback, indirect=not direct)
+        return session.declare_subscriber(key, handler, allowed_origin=origin)
+    if direct or isinstance(keep_latest, bool) or not (isinstance(keep_latest, int)
+                                                       and keep_latest >= 1):
+        raise ValueError(f"keep_latest must be an integer >= 1 and excludes direct, got "
+                         f"{keep_latest!r}")
+    return RingSubscriber(session.declare_subscriber(
+        key, zenoh.handlers.RingChannel(keep_latest), allowed_origin=origin), callback, kind)
+
+
+class RingSubscriber:
+    """A subscriber whose samples wait in a bounded ring (oldest dropped) for a thread of
+    ours that runs the callback (``subscribe(..., keep_latest=K)``).
+
+    ``undeclare()`` ends the subscription and joins the thread. Every ring subscriber still
+    declared at interpreter exit is undeclared then: a daemon thread woken inside zenoh while
+    Python finalizes aborts the process (seen as "FATAL: exception not rethrown").
+    """
+
+    def __init__(self, subscriber: zenoh.Subscriber, callback: Callable[[zenoh.Sample], None],
+                 kind: str) -> None:
+        self._subscriber = subscriber
+        # The channel itself: a recv() blocked on the subscriber object would keep it borrowed
+        # (pyo3), and undeclare() from another thread fails with "Already borrowed".
+        self._ring = subscriber.handler
+        self._callback = callback
+        self._lock = threading.Lock()
+        self._declared = True
+        self._thread = threading.Thread(target=self._drain, name=f"ring-{kind}", daemon=True)
+        _LIVE_RINGS.add(self)
+        self._thread.start()
+
+    def _drain(self) -> None:
+        while True:
+            try:
+                sample = self._ring.recv()
+            except zenoh.ZError:  # undeclared, or the session closed: the ring is closed
+                return
+            self._callback(sample)
+
+    def undeclare(self) -> None:
+        with self._lock:
+            if not self._declared:
+                return
+            self._declared = False
+        _LIVE_RINGS.discard(self)
+        with contextlib.suppress(zenoh.ZError):  # the session is closed already
+            self._subscriber.undeclare()
+        if threading.current_thread() is not self._thread:
+            self._thread.join(timeout=RING_JOIN_TIMEOUT_S)
+
+
+RING_JOIN_TIMEOUT_S = 2.0
+_LIVE_RINGS: weakref.WeakSet[RingSubscriber] = weakref.WeakSet()
+
+
+@atexit.register
+def _undeclare_rings() -> None:
+    for ring in list(_LIVE_RINGS):
+        ring.undeclare()

@@ -754,3 +754,64 @@ def test_a_slow_link_sends_each_message_k_steps_late_stamped_when_it_was_put() -
         # by the advance two steps later, not before.
         assert abs(sent_s - put_s[step]) < 0.005
         assert released_s[step + 2] - put_s[step] >= 0.015
+
+
+def test_a_ring_subscription_keeps_the_newest_and_drops_what_its_thread_cannot_take() -> None:
+    """``keep_latest=K``: while the callback is held up, a burst leaves only the newest K
+    samples waiting (the indirect callback's queue would have kept all 200); the newest
+    always arrives; ``undeclare`` ends the thread."""
+    port = free_port()
+    keys = Keys("ring")
+    release = threading.Event()
+    steps: list[int] = []
+
+    def on_value(_key: str, beacon) -> None:
+        release.wait(DEADLINE_S)
+        steps.append(beacon.step)
+
+    with session(zenoh_config(mode="peer", listen=[endpoint(port)])) as hub, \
+            session(zenoh_config(mode="peer", connect=[endpoint(port)])) as client:
+        ring = subscribe(hub, keys.all_beacons, CODEC.decode_beacon, on_value,
+                         RejectionCounter(), "beacon", keep_latest=4)
+        publisher = declare_publisher(client, keys.beacon(2))
+
+        def put(step: int) -> None:
+            publisher.put(CODEC.encode(BeaconWire.build(2, step, 0.0, [0, 0, 1.0])))
+
+        release.set()
+        repeat_until(lambda: put(0), lambda _wait_s: steps or None)
+        release.clear()  # the thread now holds the next sample until released
+        for step in range(1, 201):
+            put(step)
+        time.sleep(0.5)  # let every sample reach the ring (nothing to wait on: it drops)
+        release.set()
+        deadline = time.monotonic() + DEADLINE_S
+        while (not steps or steps[-1] != 200) and time.monotonic() < deadline:
+            time.sleep(0.01)  # polling the list with a deadline
+        later = [k for k in steps if k >= 1]
+        assert later[-1] == 200 and later == sorted(later)
+        # One sample in the held callback, four in the ring: the rest were dropped.
+        assert len(later) <= 1 + 4, later
+        ring.undeclare()
+        assert not any(t.name == "ring-beacon" for t in threading.enumerate())
+    with pytest.raises(ValueError, match="keep_latest"):
+        subscribe(hub, "x", CODEC.decode_beacon, on_value, RejectionCounter(), "beacon",
+                  keep_latest=0)
+
+
+def test_a_process_left_with_ring_subscriptions_exits_cleanly() -> None:
+    """No ``undeclare``, no session close: the exit hook undeclares the ring so its thread
+    is not woken inside zenoh while Python finalizes (that aborts the process)."""
+    script = (
+        "import time\n"
+        "from swarm.transport import subscribe, zenoh_config, open_session, RejectionCounter\n"
+        "s = open_session(zenoh_config(mode='peer'))\n"
+        "subs = [subscribe(s, f'r/{i}', bytes, lambda k, v: None, RejectionCounter(), 'x',\n"
+        "                  keep_latest=4) for i in range(4)]\n"
+        "s.put('r/0', b'x'); time.sleep(0.2)\n"
+    )
+    for _ in range(3):
+        done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                              timeout=60, cwd=Path(__file__).resolve().parent.parent)
+        assert done.returncode == 0, done.stderr[-2000:]
+        assert "FATAL" not in done.stderr
