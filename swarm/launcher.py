@@ -118,20 +118,21 @@ def _die_with_parent_batch() -> None:
         os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))
 
 
-# Realtime: agents run this much nicer than the world and the launcher. On one host the
-# world stands in for physics and its clock ends the mission, the launcher records; neither
-# may wait for CPU behind the agents. At equal shares an overloaded host (Case 2 at N = 24 on
-# 2 cores) gave the world 1/25 of the CPU: its sim time stood still for minutes while the
-# agents, always late, went on stepping. With separate computers per drone, as flown, this
-# changes nothing; an agent's lateness is counted either way.
-AGENT_NICE = 10
+def _placement(drone: int | None) -> dict[str, int | bool]:
+    """Where a child is scheduled: every child leads a process group of its own (stopped as
+    one); the world and sim-vehicles also get a session of their own, agents share the
+    launcher's.
 
-
-def _die_with_parent_nicer() -> None:
-    """``_die_with_parent``, and ``AGENT_NICE`` more niceness (realtime agents)."""
-    _die_with_parent()
-    with contextlib.suppress(OSError):
-        os.nice(AGENT_NICE)
+    Linux (autogroup) shares the CPU between sessions first, then between the threads in
+    each. On one host the world is the physics, the cameras and the mission clock: in a
+    session of its own it gets a share whatever the number of agents. With a session per
+    agent it got 1/(N + 1) of the CPU under load (Case 2 realtime at N = 24 on 2 cores: a
+    10 s mission ran for minutes, or never ended; now 20 s take 74 s: the launcher, which
+    records, shares the agents' session). Niceness is no substitute: agents at nice 10 reached
+    their steps late (N = 6: 11-29 % late steps against ~1 % at equal niceness). On separate
+    computers per drone, as flown, none of this applies.
+    """
+    return {"process_group": 0} if drone is not None else {"start_new_session": True}
 
 
 def free_tcp_port() -> int:
@@ -288,12 +289,9 @@ class SwarmLauncher:
             env.setdefault(variable, "1")
         process = subprocess.Popen(
             argv, stdout=handle, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-            # A process group of its own (stopped as one), but the launcher's session: Linux
-            # schedules each session as one group (autogroup), so a child with a session of its
-            # own would get a full share whatever its niceness (AGENT_NICE did nothing).
-            process_group=0, env=env,
+            env=env, **_placement(drone),
             preexec_fn=_die_with_parent_batch if self.options.mode == "lockstep"
-            else _die_with_parent_nicer if drone is not None else _die_with_parent)
+            else _die_with_parent)
         handle.close()
         child = Child(name, process, log_path, drone)
         self.children.append(child)
