@@ -540,11 +540,8 @@ class EmulatedVehicle:
             self.accepted_setpoints += 1
             if self._flavour == "ardupilot":
                 self._failsafe = False
-        # Stamped copies serve the lockstep world only (after begin_step); in realtime nobody
-        # reads them and agents' stamps repeat, so each setpoint would pay for a copy.
         stamp = int(msg.time_boot_ms)
-        if self._awaited_stamp is not None and (stamp in self._stamped
-                                                or len(self._stamped) < _MAX_STAMPED):
+        if stamp in self._stamped or len(self._stamped) < _MAX_STAMPED:
             self._stamped[stamp] = self.commanded_velocity_w(now_s)
         return []
 
