@@ -119,8 +119,9 @@ class AgentProcess:
         self.neighbour_age_ms = float("nan")
         self.members = frozenset(range(self.n))  # realtime: drones heard recently, self included
         self._first_step_s: float | None = None
-        # When each neighbour's newest consensus message of each round left it (its Zenoh
-        # timestamp, Unix s): the reported neighbour age includes the hop, not only the wait.
+        # Realtime: when each neighbour's newest consensus message of each round left it (its
+        # Zenoh timestamp, Unix s): the reported neighbour age includes the hop, not only the
+        # wait. Lockstep reports no age, so its hot path skips reading the timestamps.
         self._consensus_sent: dict[tuple[int, int], float] = {}
 
         self._lockstep = lockstep  # before the subscriptions: their callbacks read it
@@ -153,7 +154,8 @@ class AgentProcess:
         ]
         subs += [subscribe(self.session, self.keys.consensus(j), self.codec.decode_consensus,
                            self._on_consensus, self.rejections, "consensus", direct=direct,
-                           on_sent_time=self._on_consensus_sent, keep_latest=ring(rounds))
+                           on_sent_time=None if lockstep else self._on_consensus_sent,
+                           keep_latest=ring(rounds))
                  for j in sorted(self.neighbours)]
         self._subscribers = subs
         # Consensus: lockstep peers wait for every message, realtime wants the newest (drop).
