@@ -8,6 +8,7 @@ from collections.abc import Sequence
 from sim_world.fleet import mavlink_hosts
 from sim_world.world import World, WorldOptions
 from swarm.cli_common import (
+    DEFAULT_MAVLINK_BASE,
     EXIT_INTERRUPTED,
     ConfigError,
     OneLineParser,
@@ -17,6 +18,7 @@ from swarm.cli_common import (
     port,
     terminate_on_sigterm,
 )
+from swarm.config import realtime_only_reason
 from swarm.transport import check_tls_endpoints, local_endpoint
 
 PROG = "sim-world"
@@ -36,8 +38,9 @@ def build_parser() -> OneLineParser:
     parser.add_argument("--mavlink-host", default="127.0.0.1", metavar="HOST[,HOST...]",
                         help="where the agents listen for their vehicle: one address, or one "
                              "per drone comma-separated, drone 0 first (default 127.0.0.1)")
-    parser.add_argument("--mavlink-base", type=port, default=14540,
-                        help="vehicle i sends to UDP port base+i (default 14540, as PX4 SITL)")
+    parser.add_argument("--mavlink-base", type=port, default=DEFAULT_MAVLINK_BASE,
+                        help=f"vehicle i sends to UDP port base+i (default "
+                             f"{DEFAULT_MAVLINK_BASE}: no autopilot SITL sends there)")
     parser.add_argument("--vehicles", choices=("sim", "external"), default="sim",
                         help="external: serve no vehicles, take positions from beacons")
     return parser
@@ -53,9 +56,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         mavlink_hosts(args.mavlink_host, config.swarm.n_drones)
     except ValueError as err:
         return fail(PROG, str(err))
-    if args.vehicles == "external" and args.mode == "lockstep":
-        return fail(PROG, "--vehicles external needs --mode realtime: real autopilots cannot "
-                          "wait for the simulation")
+    reason = realtime_only_reason(config.vehicles, mode=args.mode,
+                                  external=args.vehicles == "external")
+    if reason is not None:
+        return fail(PROG, reason)
     try:
         check_tls_endpoints([*(args.listen or []), *args.connect], tls=config.security.enabled)
     except ValueError as err:

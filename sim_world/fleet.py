@@ -11,6 +11,13 @@ signing the endpoint follows a new sender (a relay such as MAVProxy) only once t
 took one of its frames (valid checksum, a message it handles, sane values): junk that merely
 starts like MAVLink (0xFD) is counted and dropped and never takes the stream away from the
 agent, and neither does a valid frame it ignores (another GCS's heartbeat).
+
+Public API: ``VehicleFleet(positions_w, origins_w, flavour, *, host, base_port, u_max_m_s,
+setpoint_timeout_s, clock, signing_key=None, start="air", response=VelocityResponse())``
+(``start`` and ``response`` as ``EmulatedVehicle`` takes them, the same for every vehicle)
+with ``service(timeout_s)``, ``send_telemetry(time_boot_ms)``, ``fly(dt_s)`` (every vehicle
+flies itself: ``EmulatedVehicle.fly``), ``positions_w``, ``rejected_frames()``, ``close()``;
+``serve_forever(fleet, dt_s, started, stop)``; ``mavlink_hosts``, ``bind_address_for``.
 """
 
 from __future__ import annotations
@@ -23,8 +30,9 @@ from collections.abc import Callable, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from sim_world.kinematics import VelocityResponse
 from sim_world.mavlink_endpoint import VehicleEndpoint
-from sim_world.vehicle import EmulatedVehicle, Flavour
+from sim_world.vehicle import EmulatedVehicle, Flavour, Start
 
 HEARTBEAT_PERIOD_S = 1.0
 
@@ -58,7 +66,9 @@ class VehicleFleet:
 
     def __init__(self, positions_w: Array, origins_w: Sequence[Array], flavour: Flavour, *,
                  host: str, base_port: int, u_max_m_s: float, setpoint_timeout_s: float,
-                 clock: Callable[[], float], signing_key: bytes | None = None) -> None:
+                 clock: Callable[[], float], signing_key: bytes | None = None,
+                 start: Start = "air",
+                 response: VelocityResponse = VelocityResponse()) -> None:  # noqa: B008
         self.clock = clock  # the fleet's notion of "now" [s] (wall, or a lockstep sim clock)
         # ``clock`` is the wall clock: each frame is handled at its datagram's arrival time,
         # so a stall of the serving loop never fails a vehicle safe whose setpoints came in
@@ -73,7 +83,8 @@ class VehicleFleet:
             for i, position in enumerate(positions_w):
                 self.vehicles.append(EmulatedVehicle(
                     i, flavour, position, origins_w[i], u_max_m_s=u_max_m_s,
-                    setpoint_timeout_s=setpoint_timeout_s, signing_key=signing_key))
+                    setpoint_timeout_s=setpoint_timeout_s, signing_key=signing_key,
+                    start=start, response=response))
                 endpoint = VehicleEndpoint((hosts[i], base_port + i),
                                            bind_address=bind_address_for(hosts[i]),
                                            follow_sender=False)  # service() decides
@@ -119,10 +130,11 @@ class VehicleFleet:
             endpoint.send(vehicle.telemetry(time_boot_ms, now))
 
     def fly(self, dt_s: float) -> None:
-        """Move every vehicle for dt with what it applies now (setpoint, hold or nothing)."""
+        """Every vehicle flies itself for dt up to now (``EmulatedVehicle.fly``: its mode's
+        guidance — setpoints, takeoff, hold, land, return —, its response, the ground)."""
         now = self.clock()
         for vehicle in self.vehicles:
-            vehicle.integrate(dt_s, vehicle.commanded_velocity_w(now))
+            vehicle.fly(dt_s, now)
 
     def rejected_frames(self) -> int:
         return sum(v.rejected_frames for v in self.vehicles)

@@ -2,7 +2,8 @@
 
 A stand-in for N SITL instances: run ``sim-world --vehicles external --mode realtime`` for
 the targets and cameras, this for the autopilots, and one ``swarm-agent`` per drone. Vehicle
-i starts at the position the world would give drone i for the same config and seed.
+i starts at the position the world would give drone i for the same config and seed, in the
+air or on the ground below it (``[vehicles] start``), moving as ``[vehicles] response`` says.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from collections.abc import Sequence
 
 from sim_world.fleet import VehicleFleet, serve_forever
 from swarm.cli_common import (
+    DEFAULT_MAVLINK_BASE,
     EXIT_INTERRUPTED,
     ConfigError,
     OneLineParser,
@@ -34,8 +36,9 @@ def build_parser() -> OneLineParser:
     parser.add_argument("config", help="scenario file (drones, flavour, origins, u_max)")
     parser.add_argument("--seed", type=seed, default=None, help="default: scenario.seed")
     parser.add_argument("--mavlink-host", default="127.0.0.1")
-    parser.add_argument("--mavlink-base", type=port, default=14540,
-                        help="vehicle i sends to UDP port base+i (default 14540)")
+    parser.add_argument("--mavlink-base", type=port, default=DEFAULT_MAVLINK_BASE,
+                        help=f"vehicle i sends to UDP port base+i (default "
+                             f"{DEFAULT_MAVLINK_BASE}: no autopilot SITL sends there)")
     return parser
 
 
@@ -59,7 +62,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             config.vehicles.flavour, host=args.mavlink_host, base_port=args.mavlink_base,
             u_max_m_s=config.control.u_max_m_s,
             setpoint_timeout_s=config.vehicles.failsafe_timeout_s,
-            clock=lambda: time.monotonic() - started, signing_key=signing_key)
+            clock=lambda: time.monotonic() - started, signing_key=signing_key,
+            start=config.vehicles.start, response=config.vehicles.velocity_response)
     except OSError as err:
         return fail(PROG, f"cannot open the vehicles' sockets: {err}", 1)
     print(f"sim-vehicles: {len(fleet)} {config.vehicles.flavour} vehicles sending to "

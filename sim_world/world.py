@@ -25,7 +25,8 @@ import numpy as np
 
 from sim_world.camera import detect
 from sim_world.fleet import VehicleFleet
-from swarm.config import ScenarioConfig
+from swarm.cli_common import DEFAULT_MAVLINK_BASE
+from swarm.config import ScenarioConfig, realtime_only_reason
 from swarm.rate import RateLimiter, freeze_heap
 from swarm.reference import STREAM_CAMERA, initial_drone_positions, stream
 from swarm.security import WORLD_ROLE, router_access_control
@@ -69,7 +70,7 @@ class WorldOptions:
     listen: tuple[str, ...] = ("tcp/127.0.0.1:7447",)
     connect: tuple[str, ...] = ()
     mavlink_host: str = "127.0.0.1"
-    mavlink_base: int = 14540
+    mavlink_base: int = DEFAULT_MAVLINK_BASE
     vehicles: VehicleSource = "sim"
     log: Callable[[str], None] = field(default=print)
 
@@ -80,9 +81,10 @@ class World:
     def __init__(self, options: WorldOptions) -> None:
         self.options = options
         cfg = options.config
-        if options.vehicles == "external" and options.mode == "lockstep":
-            raise ValueError("--vehicles external needs --mode realtime: real autopilots "
-                             "cannot wait for the simulation")
+        reason = realtime_only_reason(cfg.vehicles, mode=options.mode,
+                                      external=options.vehicles == "external")
+        if reason is not None:
+            raise ValueError(reason)
         self.n, self.m = cfg.swarm.n_drones, len(cfg.targets)
         self.dt_s = cfg.scenario.dt_s
         self.dt_ms = round(cfg.scenario.dt_s * 1000)
@@ -113,7 +115,8 @@ class World:
                     cfg.vehicles.flavour, host=options.mavlink_host,
                     base_port=options.mavlink_base, u_max_m_s=cfg.control.u_max_m_s,
                     setpoint_timeout_s=cfg.vehicles.failsafe_timeout_s, clock=self.now_s,
-                    signing_key=cfg.vehicles.signing_key())
+                    signing_key=cfg.vehicles.signing_key(), start=cfg.vehicles.start,
+                    response=cfg.vehicles.velocity_response)
             else:
                 # Not direct: this process hosts the router, whose threads must never wait
                 # for the GIL.

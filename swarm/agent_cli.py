@@ -16,6 +16,7 @@ os.environ.setdefault("MAVLINK_DIALECT", "ardupilotmega")
 
 from swarm.agent_process import AgentOptions, AgentProcess  # noqa: E402
 from swarm.cli_common import (  # noqa: E402
+    DEFAULT_MAVLINK_BASE,
     EXIT_INTERRUPTED,
     ConfigError,
     OneLineParser,
@@ -39,7 +40,8 @@ def build_parser() -> OneLineParser:
     parser.add_argument("--id", type=int, required=True, metavar="I", help="drone id, 0..N-1")
     parser.add_argument("--config", required=True, metavar="FILE", help="scenario file")
     parser.add_argument("--mavlink", default=None, metavar="URL",
-                        help="pymavlink connection string (default udpin:127.0.0.1:<14540+I>)")
+                        help="pymavlink connection string (default "
+                             f"udpin:127.0.0.1:<{DEFAULT_MAVLINK_BASE}+I>)")
     parser.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
                         help="Zenoh endpoint of the world's router (default tcp/127.0.0.1:7447; "
                              "tls/... with [security])")
@@ -79,7 +81,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     options = AgentOptions(
         config=config, drone_id=args.id,
         seed=config.scenario.seed if args.seed is None else args.seed,
-        run_id=args.run_id, mavlink_url=args.mavlink or f"udpin:127.0.0.1:{14540 + args.id}",
+        run_id=args.run_id,
+        mavlink_url=args.mavlink or f"udpin:127.0.0.1:{DEFAULT_MAVLINK_BASE + args.id}",
         connect=tuple(args.connect or [local_endpoint(7447, tls=config.security.enabled)]),
         listen=tuple(args.listen),
         mode=args.mode, log=lambda line: print(line, flush=True), consensus_faults=faults)

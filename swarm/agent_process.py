@@ -32,7 +32,7 @@ from swarm.config import ScenarioConfig
 from swarm.core.agent import ConsensusMessage, DroneAgent
 from swarm.mavlink_link import AutopilotLink, LinkError
 from swarm.rate import RateLimiter, freeze_heap
-from swarm.reference import build_agent
+from swarm.reference import build_agent, initial_drone_positions
 from swarm.security import agent_role
 from swarm.transport import (
     FaultyPublisher,
@@ -125,7 +125,16 @@ class AgentProcess:
         self._consensus_sent: dict[tuple[int, int], float] = {}
 
         self._lockstep = lockstep  # before the subscriptions: their callbacks read it
-        self.session = self._open_session()
+        # The link first: it listens for a second autopilot on its port (EXCLUSIVE_LISTEN_S)
+        # while the Zenoh session and subscriptions are set up.
+        self.link = AutopilotLink(options.mavlink_url, self.id, cfg.vehicles.flavour,
+                                  cfg.vehicles.origin_w(self.id), log=options.log,
+                                  signing_key=cfg.vehicles.signing_key())
+        try:
+            self.session = self._open_session()
+        except BaseException:
+            self.link.close()
+            raise
         # Lockstep: direct callbacks (on zenoh's receiving thread): every step waits on these,
         # and each only decodes and stores. Realtime: callbacks on a Python thread of their
         # own (zenoh queues samples without the GIL), so a receiving thread never stalls on
@@ -173,9 +182,6 @@ class AgentProcess:
         self._pub_beacon = declare_publisher(self.session, self.keys.beacon(self.id), block=True)
         self._pub_telemetry = declare_publisher(self.session, self.keys.telemetry(self.id),
                                                 block=True)
-        self.link = AutopilotLink(options.mavlink_url, self.id, cfg.vehicles.flavour,
-                                  cfg.vehicles.origin_w(self.id), log=options.log,
-                                  signing_key=cfg.vehicles.signing_key())
 
     def _open_session(self):
         """Join the world's router, waiting for it if the world is not up yet."""
@@ -424,9 +430,11 @@ class AgentProcess:
         """MAVLink handshake, then keep the setpoint stream alive until the mission starts."""
         cfg = self.options.config
         freeze_heap()  # set up: collect now, not between the handshake and the first step
-        self.link.wait_heartbeat(timeout_s=cfg.runtime.start_timeout_s)
-        # Takeoff altitude None: the link climbs to where the vehicle already is (ArduPilot).
-        self.link.handshake(timeout_s=cfg.runtime.start_timeout_s)
+        # On the ground, the vehicle climbs to the drone's start position (the world's emulated
+        # vehicles start there in the air, as the thesis does; real ones may start anywhere).
+        start_position = initial_drone_positions(cfg, self.options.seed)[self.id]
+        self.link.handshake(timeout_s=cfg.runtime.start_timeout_s,
+                            start_position_w=start_position)
         self.options.log(f"drone {self.id}: armed and streaming; waiting for the mission")
         deadline = time.monotonic() + cfg.runtime.start_timeout_s
         while self.camera_latest.get(0) is None:
@@ -481,9 +489,12 @@ class AgentProcess:
                 self.late_steps += 1
 
     def run(self) -> int:
+        """The mission; whatever ends it (done, an error, Ctrl-C/SIGTERM), the vehicle gets a
+        zero-velocity setpoint and then the configured end action (``vehicles.end_action``)."""
         try:
             return self._run()
         finally:
+            self.link.end_mission(self.options.config.vehicles.end_action)
             if self._faulty is not None:
                 f = self._faulty
                 self.options.log(

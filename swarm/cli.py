@@ -8,6 +8,8 @@ on after losing an agent, 2 bad command line or config (one line on stderr, no t
 
 from __future__ import annotations
 
+import argparse
+import dataclasses
 import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -16,6 +18,7 @@ from rich.console import Console
 
 from sim_world.kinematics import InitialPlacementError
 from swarm.cli_common import (
+    DEFAULT_MAVLINK_BASE,
     EXIT_FAILED,
     EXIT_INTERRUPTED,
     ConfigError,
@@ -29,11 +32,21 @@ from swarm.cli_common import (
     seed,
     terminate_on_sigterm,
 )
+from swarm.config import ScenarioConfig, realtime_only_reason
 from swarm.dashboard import Dashboard, DashboardSettings, InProcessFeed
 from swarm.launcher import LaunchOptions, MissionError, SwarmLauncher, TelemetryCollector
 from swarm.recording import RecordingError, record_directory
 from swarm.reference import RunRecord, run_reference
 from swarm.report import build_report, render_report
+from swarm.sitl import (
+    ENV_ARDUCOPTER,
+    ENV_PX4,
+    ENV_VARIABLE,
+    KINDS,
+    Firmware,
+    SitlError,
+    firmware_from_env,
+)
 from swarm.wire import TelemetryCounters
 
 PROG = "launch-swarm"
@@ -58,8 +71,8 @@ def build_parser() -> OneLineParser:
     parser.add_argument("--headless", action="store_true",
                         help="no live display: a one-line log every few simulated seconds")
     parser.add_argument("--mavlink-base", type=port, default=0, metavar="PORT",
-                        help="vehicle i talks to agent i on UDP PORT+i (default: 14540, or "
-                             "the next free block)")
+                        help=f"vehicle i talks to agent i on UDP PORT+i (default: "
+                             f"{DEFAULT_MAVLINK_BASE}, or the next free, quiet block)")
     parser.add_argument("--run-id", type=run_id, default=None,
                         help="Zenoh key prefix vigil/<run-id>/ (default: random)")
     parser.add_argument("--log-dir", default=None, metavar="DIR",
@@ -70,11 +83,62 @@ def build_parser() -> OneLineParser:
                              "goes on without it)")
     parser.add_argument("--agent-restart-delay", type=positive_float, default=2.0, metavar="S",
                         help="seconds between an agent's loss and its restart (default 2)")
+    parser.add_argument("--sitl", default=None, metavar="PATH",
+                        help="fly real autopilot firmware: one SITL instance per drone, started "
+                             "and stopped here: PATH is the arducopter SITL binary or a PX4 "
+                             "SITL build directory (bin/px4, etc/); 'ardupilot' or 'px4' take "
+                             f"it from ${ENV_ARDUCOPTER} or ${ENV_PX4} (realtime)")
+    parser.add_argument("--mavlink", action="append", default=[], metavar="I=URL",
+                        type=mavlink_assignment,
+                        help="drone I flies the autopilot at this pymavlink URL, started "
+                             "elsewhere (repeat for every drone; or vehicles.mavlink_urls in "
+                             "the config); the world then serves no vehicles (realtime)")
     parser.add_argument("--record", type=record_directory, default=None, metavar="DIR",
                         help="write DIR/run.mcap as the run goes: telemetry, beacons, "
                              "detections and truth with their sim time, and the resolved "
                              "config (MCAP, JSON; Foxglove reads it)")
     return parser
+
+
+def mavlink_assignment(text: str) -> tuple[int, str]:
+    """argparse type of ``--mavlink I=URL``."""
+    drone, sep, url = text.partition("=")
+    if not sep or not drone.strip().isdigit() or not url.strip() or " " in url.strip():
+        raise argparse.ArgumentTypeError(f"expected I=URL (e.g. 0=udpin:127.0.0.1:14540), "
+                                         f"got {text!r}")
+    return int(drone), url.strip()
+
+
+def sitl_firmware(value: str | None) -> Firmware | None:
+    """``--sitl``: a path, or 'ardupilot'/'px4' for the build named by its environment
+    variable; SitlError (one line) when unusable."""
+    if value is None:
+        return None
+    if value in KINDS:
+        firmware = firmware_from_env(value)  # type: ignore[arg-type]
+        if firmware is None:
+            variable = ENV_VARIABLE[value]  # type: ignore[index]
+            raise SitlError(f"--sitl {value}: ${variable} is not set (give the path of the "
+                            f"build instead)")
+        return firmware
+    return Firmware.at(value)
+
+
+def with_mavlink_urls(config: ScenarioConfig, urls: dict[int, str]) -> ScenarioConfig:
+    """The config with ``--mavlink I=URL`` for every drone in ``vehicles.mavlink_urls``."""
+    if not urls:
+        return config
+    n = config.swarm.n_drones
+    missing = sorted(set(range(n)) - set(urls))
+    extra = sorted(set(urls) - set(range(n)))
+    if extra:
+        raise ConfigError(f"--mavlink: drone ids {extra} out of range 0..{n - 1}")
+    if missing:
+        raise ConfigError(f"--mavlink: give a connection string for every drone (missing "
+                          f"{missing})")
+    vehicles = dataclasses.replace(config.vehicles,
+                                   mavlink_urls=tuple(urls[i] for i in range(n)))
+    return dataclasses.replace(config, vehicles=vehicles)
 
 
 def print_summary(record: RunRecord, console: Console, mode: str = "inprocess",
@@ -98,6 +162,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.agent_restarts and (args.inprocess or args.mode != "realtime"):
         return fail(PROG, "--agent-restarts needs --mode realtime (in lockstep every drone "
                           "waits for every other one)")
+    try:
+        sitl = sitl_firmware(args.sitl)
+        config = with_mavlink_urls(config, dict(args.mavlink))
+    except (SitlError, ConfigError) as err:
+        return fail(PROG, str(err))
+    real = sitl is not None or bool(config.vehicles.mavlink_urls)
+    reason = realtime_only_reason(config.vehicles, mode=args.mode, inprocess=args.inprocess,
+                                  external=real)
+    if reason is not None:
+        return fail(PROG, reason)
+    if sitl is not None and config.vehicles.mavlink_urls:
+        return fail(PROG, "--sitl starts its own autopilots: leave out --mavlink and "
+                          "vehicles.mavlink_urls")
     terminate_on_sigterm()
     try:
         if args.inprocess:
@@ -111,7 +188,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 mode=args.mode, run_id=args.run_id or "", mavlink_base=args.mavlink_base,
                 log_dir=Path(args.log_dir) if args.log_dir else None, record_dir=args.record,
                 agent_restarts=args.agent_restarts,
-                agent_restart_delay_s=args.agent_restart_delay)
+                agent_restart_delay_s=args.agent_restart_delay, sitl=sitl)
             launcher = SwarmLauncher(options, log=lambda line: console.print(
                 line, highlight=False, markup=False))
             with Dashboard(config, console, headless=args.headless,

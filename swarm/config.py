@@ -20,7 +20,14 @@ import msgspec
 import numpy as np
 
 from sim_world.camera import CameraParams
-from sim_world.kinematics import InitialPlacementError, sample_initial_positions
+from sim_world.kinematics import (
+    ARDUCOPTER_SITL_RESPONSE,
+    IDEAL_RESPONSE,
+    PX4_SITL_RESPONSE,
+    InitialPlacementError,
+    VelocityResponse,
+    sample_initial_positions,
+)
 from sim_world.targets import (
     LinearTrajectory,
     OutAndBackTrajectory,
@@ -145,7 +152,13 @@ class ChecksSection:
 
 
 Flavour = Literal["px4", "ardupilot"]
+EndAction = Literal["hold", "land", "rtl"]
+VehicleStart = Literal["air", "ground"]
+ResponseKind = Literal["ideal", "arducopter", "px4", "custom"]
 DEFAULT_SETPOINT_TIMEOUT_S = {"px4": 0.5, "ardupilot": 3.0}  # COM_OF_LOSS_T, GUID_TIMEOUT
+# Where W's origin is on Earth (ArduPilot's SITL test field, CMAC), for autopilots that need
+# a home: [latitude deg, longitude deg, altitude m above mean sea level].
+DEFAULT_GEO_ORIGIN = (-35.363261, 149.165230, 584.0)
 
 
 @dataclass(frozen=True)
@@ -159,6 +172,24 @@ class VehiclesSection:
     # 64 hex digits (swarm.mavlink_signing), relative to the config file; "" = no signing.
     # Only the path is kept here (recordings never hold the key).
     signing_key_file: str = ""
+    # What every agent has its vehicle do when it leaves (mission end, Ctrl-C, an error):
+    # "hold" (ArduPilot BRAKE, PX4 Hold), "land" or "rtl" (return to launch).
+    end_action: EndAction = "hold"
+    # Emulated vehicles only: "air" = at the start position, armed, hovering (the thesis'
+    # start); "ground" = on the ground below it, disarmed (the agents take off; realtime only).
+    start: VehicleStart = "air"
+    # Emulated vehicles (and the in-process reference) only: how their velocity follows the
+    # command (sim_world.kinematics.VelocityResponse): "ideal" (the thesis' single
+    # integrator, v = u), "arducopter" (the lag and acceleration limit fitted to ArduCopter
+    # SITL) or "custom" (the two values below: a first-order lag [s] and an acceleration
+    # limit [m/s²], 0 = none).
+    response: ResponseKind = "ideal"
+    response_time_constant_s: float = 0.0
+    response_accel_limit_m_s2: float = 0.0
+    # One pymavlink connection string per drone for autopilots started elsewhere (launch-swarm
+    # then serves no vehicles and supervises agents flying these); () = emulated vehicles.
+    mavlink_urls: tuple[str, ...] = ()
+    geo_origin: Vector3 = DEFAULT_GEO_ORIGIN  # W's origin on Earth [deg, deg, m]; SITL homes
 
     def __post_init__(self) -> None:
         require(self.flavour in ("px4", "ardupilot"), "flavour", "must be 'px4' or 'ardupilot'",
@@ -168,6 +199,28 @@ class VehiclesSection:
                 require_finite("origin_offsets_m", value)
         require(math.isfinite(self.setpoint_timeout_s) and self.setpoint_timeout_s >= 0,
                 "setpoint_timeout_s", "must be a finite number >= 0", self.setpoint_timeout_s)
+        require(self.end_action in ("hold", "land", "rtl"), "end_action",
+                "must be 'hold', 'land' or 'rtl'", self.end_action)
+        require(self.start in ("air", "ground"), "start", "must be 'air' or 'ground'",
+                self.start)
+        require(self.response in ("ideal", "arducopter", "px4", "custom"), "response",
+                "must be 'ideal', 'arducopter', 'px4' or 'custom'", self.response)
+        for name in ("response_time_constant_s", "response_accel_limit_m_s2"):
+            value = getattr(self, name)
+            require(math.isfinite(value) and value >= 0, name, "must be a finite number >= 0",
+                    value)
+            require(self.response == "custom" or value == 0, name,
+                    "is used only with response = 'custom'", value)
+        for url in self.mavlink_urls:
+            require(bool(url.strip()) and url == url.strip() and " " not in url,
+                    "mavlink_urls", "must hold pymavlink connection strings without spaces",
+                    url)
+        lat, lon, alt = self.geo_origin
+        require(math.isfinite(lat) and -85.0 <= lat <= 85.0, "geo_origin",
+                "latitude must lie in [-85, 85] deg", lat)
+        require(math.isfinite(lon) and -180.0 <= lon <= 180.0, "geo_origin",
+                "longitude must lie in [-180, 180] deg", lon)
+        require_finite("geo_origin", alt)
 
     def origin_w(self, drone_id: int) -> np.ndarray:
         if not self.origin_offsets_m:
@@ -177,6 +230,18 @@ class VehiclesSection:
     @property
     def failsafe_timeout_s(self) -> float:
         return self.setpoint_timeout_s or DEFAULT_SETPOINT_TIMEOUT_S[self.flavour]
+
+    @property
+    def velocity_response(self) -> VelocityResponse:
+        """The emulated vehicles' velocity response this section names."""
+        if self.response == "arducopter":
+            return ARDUCOPTER_SITL_RESPONSE
+        if self.response == "px4":
+            return PX4_SITL_RESPONSE
+        if self.response == "custom":
+            return VelocityResponse(self.response_time_constant_s,
+                                    self.response_accel_limit_m_s2)
+        return IDEAL_RESPONSE
 
     def signing_key(self) -> bytes | None:
         """The MAVLink signing key read from ``signing_key_file`` now (None: signing off);
@@ -270,6 +335,21 @@ class ScenarioConfig:
             raise ConfigError(f"--duration: {err}") from None
 
 
+def realtime_only_reason(vehicles: VehiclesSection, *, mode: str, inprocess: bool = False,
+                         external: bool = False) -> str | None:
+    """Why this run needs ``--mode realtime`` and does not have it (one line), else None.
+    ``external``: the agents fly autopilots the world does not serve (SITL, --mavlink)."""
+    if not inprocess and mode == "realtime":
+        return None
+    if external:
+        return ("real or external autopilots (--sitl, --mavlink, vehicles.mavlink_urls) need "
+                "--mode realtime: they cannot wait for the simulation")
+    if vehicles.start == "ground":
+        return ("vehicles.start = 'ground' needs --mode realtime: the take-off runs on the wall "
+                "clock (lockstep and --inprocess start the drones in the air, as the thesis)")
+    return None
+
+
 def _cross_check(config: ScenarioConfig) -> None:
     """Rules that involve more than one section; each names its key."""
     dt_ms = config.scenario.dt_s * 1000.0
@@ -280,6 +360,10 @@ def _cross_check(config: ScenarioConfig) -> None:
     if offsets and len(offsets) != config.swarm.n_drones:
         raise ConfigError(f"vehicles.origin_offsets_m needs one [x, y, z] per drone "
                           f"({config.swarm.n_drones}) or none (got {len(offsets)})")
+    urls = config.vehicles.mavlink_urls
+    if urls and len(urls) != config.swarm.n_drones:
+        raise ConfigError(f"vehicles.mavlink_urls needs one connection string per drone "
+                          f"({config.swarm.n_drones}) or none (got {len(urls)})")
     if not 1 <= len(config.targets) <= 16:
         raise ConfigError(f"targets: need 1 to 16 [[targets]] entries (got {len(config.targets)})")
     graph = config.swarm.graph
@@ -402,9 +486,21 @@ def config_to_data(config: ScenarioConfig) -> dict[str, object]:
     return data
 
 
-def load_config(path: str | Path) -> ScenarioConfig:
-    """Read and validate a scenario TOML file (raises ConfigError, one line)."""
+def write_resolved_config(config: ScenarioConfig, path: str | Path) -> Path:
+    """Write ``config`` as JSON that ``load_config`` reads back into an equal config: how
+    ``launch-swarm`` hands every process the config it resolved (e.g. the origin offsets it
+    measured on SITL autopilots). Paths in it are absolute already."""
     path = Path(path)
+    path.write_bytes(msgspec.json.format(msgspec.json.encode(config_to_data(config))))
+    return path
+
+
+def load_config(path: str | Path) -> ScenarioConfig:
+    """Read and validate a scenario TOML file, or a resolved config written by
+    ``write_resolved_config`` (``.json``); raises ConfigError, one line."""
+    path = Path(path)
+    if path.suffix == ".json":
+        return _load_resolved(path)
     try:
         with path.open("rb") as handle:
             data = tomllib.load(handle)
@@ -423,6 +519,26 @@ def load_config(path: str | Path) -> ScenarioConfig:
     try:
         config = config_from_dict(data, source=str(path))
         config.vehicles.signing_key()  # every entry point refuses a bad key file at start-up
+        config.security.check(config.swarm.n_drones)
+    except ConfigError as err:
+        raise ConfigError(f"{path}: {err}") from None
+    return config
+
+
+def _load_resolved(path: Path) -> ScenarioConfig:
+    try:
+        data = msgspec.json.decode(path.read_bytes())
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such file") from None
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot read: {err.strerror or err}") from None
+    except msgspec.DecodeError as err:
+        raise ConfigError(f"{path}: not valid JSON: {err}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: expected a JSON object (a resolved config)")
+    try:
+        config = config_from_dict(data, source=str(path))
+        config.vehicles.signing_key()
         config.security.check(config.swarm.n_drones)
     except ConfigError as err:
         raise ConfigError(f"{path}: {err}") from None

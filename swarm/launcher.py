@@ -13,9 +13,11 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import dataclasses
 import fcntl
 import os
 import secrets
+import select
 import shlex
 import shutil
 import signal
@@ -30,13 +32,24 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO
 
+import numpy as np
 import zenoh
 
+from swarm import frames
+from swarm.cli_common import DEFAULT_MAVLINK_BASE
 from swarm.collector import TelemetryCollector
-from swarm.config import ScenarioConfig
-from swarm.recording import Recorder, RecordingError, RecordingMetadata
-from swarm.reference import RunRecord
+from swarm.config import ScenarioConfig, write_resolved_config
+from swarm.recording import AutopilotState, Recorder, RecordingError, RecordingMetadata
+from swarm.reference import RunRecord, initial_drone_positions
 from swarm.security import OBSERVER_ROLE
+from swarm.sitl import (
+    DEFAULT_BOOT_SPEEDUP,
+    Firmware,
+    GeoPoint,
+    SitlError,
+    SitlFleet,
+    VehicleView,
+)
 from swarm.transport import (
     Keys,
     LatestValues,
@@ -49,7 +62,12 @@ from swarm.transport import (
 )
 from swarm.wire import BeaconWire, CameraFrameWire, ClockWire, TelemetryWire, TruthWire, WireCodec
 
+# Listen this long for datagrams before taking a block of MAVLink ports: PX4 SITL streams its
+# offboard link at tens of messages a second, ArduPilot at least a 1 Hz heartbeat (agents also
+# refuse a second autopilot on their port, see swarm.mavlink_link).
+TRAFFIC_LISTEN_S = 0.3
 STOP_GRACE_S = 4.0  # SIGTERM → SIGKILL; the whole stop stays under 5 s
+AGENT_END_GRACE_S = 1.5  # agents stop first (their end action), then the world (within the above)
 CLEAN_EXIT_GRACE_S = 2.0  # a child's exit 0 waits this long for the world's "done" to arrive
 SUPERVISE_PERIOD_S = 0.1
 LOG_TAIL_LINES = 12
@@ -69,13 +87,17 @@ class LaunchOptions:
     mode: str = "lockstep"
     run_id: str = ""  # empty: a random one
     zenoh_port: int = 0  # 0: a free port
-    mavlink_base: int = 0  # 0: 14540 if free, else the next free block
+    mavlink_base: int = 0  # 0: DEFAULT_MAVLINK_BASE if free and quiet, else the next such block
     log_dir: Path | None = None
     extra_agent_args: dict[int, list[str]] = field(default_factory=dict)
     mavlink_urls: dict[int, str] = field(default_factory=dict)  # e.g. through MAVProxy
     # The world serves no vehicles (--vehicles external) and a separate ``sim-vehicles``
     # process plays the autopilots, as real ones would be flown; realtime only.
     external_vehicles: bool = False
+    # Real autopilot firmware: one SITL instance of this build per drone (swarm.sitl), started,
+    # brought up, flown by the agents and stopped by the launcher; realtime only.
+    sitl: Firmware | None = None
+    sitl_boot_speedup: float = DEFAULT_BOOT_SPEEDUP
     # Record telemetry, beacons, detections and truth to record_dir/run.mcap (swarm.recording).
     record_dir: Path | None = None
     # Realtime: an agent that dies during the mission is restarted with the same id (it
@@ -89,6 +111,13 @@ class LaunchOptions:
         if self.agent_restarts and self.mode != "realtime":
             raise ValueError("restarting agents needs realtime mode: in lockstep every drone "
                              "waits for every other one")
+        if self.mode != "realtime" and (self.sitl is not None or self.external_vehicles
+                                        or self.config.vehicles.mavlink_urls):
+            raise ValueError("real or external autopilots need --mode realtime: they cannot "
+                             "wait for the simulation")
+        if self.sitl is not None and self.config.vehicles.mavlink_urls:
+            raise ValueError("--sitl starts its own autopilots: leave vehicles.mavlink_urls "
+                             "empty (or drop --sitl to fly those)")
 
 
 def _die_with_parent() -> None:
@@ -141,8 +170,11 @@ def free_tcp_port() -> int:
         return int(sock.getsockname()[1])
 
 
-def udp_ports_free(base: int, count: int, skip: frozenset[int] = frozenset()) -> bool:
-    """Can UDP ports base..base+count−1 (but the offsets in ``skip``) be bound on loopback?"""
+def udp_ports_free(base: int, count: int, skip: frozenset[int] = frozenset(), *,
+                   listen_s: float = 0.0) -> bool:
+    """Can UDP ports base..base+count−1 (but the offsets in ``skip``) be bound on loopback,
+    and (``listen_s`` > 0) does nothing arrive on them for that long? An autopilot SITL sends
+    to its port without binding it (PX4 to 14540 + i), so a free port may still be taken."""
     sockets = []
     try:
         for offset in range(count):
@@ -151,6 +183,9 @@ def udp_ports_free(base: int, count: int, skip: frozenset[int] = frozenset()) ->
             sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
             sockets.append(sock)
             sock.bind(("127.0.0.1", base + offset))
+        if listen_s > 0 and sockets:
+            readable, _, _ = select.select(sockets, [], [], listen_s)
+            return not readable
         return True
     except OSError:
         return False
@@ -159,19 +194,28 @@ def udp_ports_free(base: int, count: int, skip: frozenset[int] = frozenset()) ->
             sock.close()
 
 
+def _candidate_bases(count: int) -> range:
+    return range(DEFAULT_MAVLINK_BASE, 32768 - count, 100)
+
+
 def choose_mavlink_base(requested: int, count: int,
                         skip: frozenset[int] = frozenset()) -> int:
-    """The requested base if its ports are free, else (none requested) the first free block.
+    """The requested base if its ports are free and quiet, else (none requested) the first
+    free, quiet block from DEFAULT_MAVLINK_BASE on.
 
     ``skip``: drones whose agent listens elsewhere (e.g. behind MAVProxy, which holds base+i).
     """
     if requested:
         if not udp_ports_free(requested, count, skip):
             raise MissionError(f"UDP ports {requested}..{requested + count - 1} on 127.0.0.1 "
-                                f"are in use (another swarm?); pick another --mavlink-base")
+                               f"are in use (another swarm?); pick another --mavlink-base")
+        if not udp_ports_free(requested, count, skip, listen_s=TRAFFIC_LISTEN_S):
+            raise MissionError(f"UDP ports {requested}..{requested + count - 1} on 127.0.0.1 "
+                               f"receive traffic from another program (an autopilot SITL "
+                               f"sending there?); pick another --mavlink-base")
         return requested
-    for base in range(14540, 60000, 100):
-        if udp_ports_free(base, count):
+    for base in _candidate_bases(count):
+        if udp_ports_free(base, count, listen_s=TRAFFIC_LISTEN_S):
             return base
     raise MissionError("no free block of UDP ports for the MAVLink links")
 
@@ -183,11 +227,12 @@ def reserve_mavlink_base(requested: int, count: int, skip: frozenset[int] = froz
 
     The world and agents bind the ports only later, so two launchers started together would
     both see the same block free: the lock (``<tmp>/vigil-mavlink-<base>.lock``) makes the
-    second one take the next block, or fail at once if that base was requested.
+    second one take the next block, or fail at once if that base was requested. A block that
+    receives datagrams (``TRAFFIC_LISTEN_S``) is passed over: something sends there.
     """
     lock_dir = Path(tempfile.gettempdir())
     base = requested
-    candidates = [requested] if requested else range(14540, 60000, 100)
+    candidates = [requested] if requested else _candidate_bases(count)
     for base in candidates:
         if not requested and not udp_ports_free(base, count):
             continue
@@ -201,7 +246,10 @@ def reserve_mavlink_base(requested: int, count: int, skip: frozenset[int] = froz
                                    f"another launch-swarm; pick another --mavlink-base") from None
             continue
         if not requested:
-            return base, handle
+            if udp_ports_free(base, count, listen_s=TRAFFIC_LISTEN_S):
+                return base, handle
+            handle.close()
+            continue
         try:
             return choose_mavlink_base(requested, count, skip), handle
         except MissionError:
@@ -266,8 +314,17 @@ class SwarmLauncher:
         self.log_dir.mkdir(parents=True, exist_ok=True)
         self.zenoh_port = options.zenoh_port or free_tcp_port()
         self.endpoint = local_endpoint(self.zenoh_port, tls=cfg.security.enabled)
+        # SITL: agent i listens on base + i, the launcher's monitor link of autopilot i on
+        # base + N + i.
         self.mavlink_base, self._port_lock = reserve_mavlink_base(
-            options.mavlink_base, self.n, frozenset(options.mavlink_urls))
+            options.mavlink_base, 2 * self.n if options.sitl is not None else self.n,
+            frozenset(options.mavlink_urls))
+        # The config every child reads: the user's file, or the one resolved here (SITL: the
+        # flavour of the firmware and the origin offsets measured on the autopilots).
+        self.config = cfg
+        self.config_path = options.config_path
+        self.sitl_fleet: SitlFleet | None = None
+        self._autopilot_seen: dict[int, tuple[str, bool]] = {}
         self.session: zenoh.Session | None = None
         self._subscribers: list = []
         self.recorder: Recorder | None = None
@@ -299,25 +356,28 @@ class SwarmLauncher:
 
     def _common_args(self) -> list[str]:
         opts = self.options
-        return [opts.config_path, "--run-id", self.run_id, "--mode", opts.mode,
+        return [self.config_path, "--run-id", self.run_id, "--mode", opts.mode,
                 "--seed", str(opts.seed), "--duration", repr(opts.config.scenario.duration_s)]
 
     def start_world(self) -> Child:
         argv = [sys.executable, "-m", "sim_world.cli", *self._common_args(),
                 "--listen", self.endpoint, "--mavlink-base", str(self.mavlink_base)]
-        if self.options.external_vehicles:
+        if self.external_autopilots:
             argv += ["--vehicles", "external"]
         return self._spawn("world", argv)
 
     def start_vehicles(self) -> Child:
-        argv = [sys.executable, "-m", "sim_world.vehicles_cli", self.options.config_path,
+        argv = [sys.executable, "-m", "sim_world.vehicles_cli", self.config_path,
                 "--seed", str(self.options.seed), "--mavlink-base", str(self.mavlink_base)]
         return self._spawn("vehicles", argv)
 
     def start_agent(self, drone_id: int) -> Child:
         opts = self.options
         common = self._common_args()
-        url = opts.mavlink_urls.get(drone_id, f"udpin:127.0.0.1:{self.mavlink_base + drone_id}")
+        configured = self.config.vehicles.mavlink_urls
+        url = opts.mavlink_urls.get(drone_id) or (
+            configured[drone_id] if configured
+            else f"udpin:127.0.0.1:{self.mavlink_base + drone_id}")
         argv = [sys.executable, "-m", "swarm.agent_cli", "--id", str(drone_id),
                 "--config", common[0], *common[1:], "--connect", self.endpoint,
                 "--mavlink", url, *opts.extra_agent_args.get(drone_id, [])]
@@ -326,12 +386,21 @@ class SwarmLauncher:
         return self._spawn(name, argv, drone_id)
 
     def stop_children(self) -> None:
-        """SIGTERM every process group, SIGKILL what is left after the grace period."""
-        for child in self.children:
-            if child.process.poll() is None:
-                with contextlib.suppress(ProcessLookupError, PermissionError):
-                    os.killpg(child.process.pid, signal.SIGTERM)
+        """SIGTERM every process group, SIGKILL what is left after the grace period. The
+        agents go first (up to AGENT_END_GRACE_S): each commands its vehicle's end action on
+        the way out, and an emulated vehicle needs the world still there to obey it."""
         deadline = time.monotonic() + STOP_GRACE_S
+        agents = [child for child in self.children if child.drone is not None]
+        for group in (agents, [child for child in self.children if child.drone is None]):
+            for child in group:
+                if child.process.poll() is None:
+                    with contextlib.suppress(ProcessLookupError, PermissionError):
+                        os.killpg(child.process.pid, signal.SIGTERM)
+            if group is agents:
+                agents_done = time.monotonic() + AGENT_END_GRACE_S
+                for child in agents:
+                    with contextlib.suppress(subprocess.TimeoutExpired):
+                        child.process.wait(timeout=max(agents_done - time.monotonic(), 0.01))
         for child in self.children:
             remaining = deadline - time.monotonic()
             try:
@@ -412,6 +481,98 @@ class SwarmLauncher:
                 self.log(f"launch-swarm: drone {drone} restarted (pid {child.process.pid}, "
                          f"log {child.log_path})")
 
+    # -- autopilots ---------------------------------------------------------------------------
+
+    @property
+    def external_autopilots(self) -> bool:
+        """The world serves no vehicles: SITL, configured connection strings, or sim-vehicles."""
+        return (self.options.sitl is not None or self.options.external_vehicles
+                or bool(self.config.vehicles.mavlink_urls))
+
+    def _start_sitl(self) -> None:
+        """One autopilot per drone, at home below its start position (W's origin on Earth is
+        ``vehicles.geo_origin``, the ground is z = 0); once every one is ready, each one's
+        origin offset is measured (where its estimator puts it on the ground is where it
+        stands in W) and the resolved config written for the world and the agents."""
+        firmware = self.options.sitl
+        assert firmware is not None
+        cfg = dataclasses.replace(self.config, vehicles=dataclasses.replace(
+            self.config.vehicles, flavour=firmware.kind))
+        if firmware.kind != self.config.vehicles.flavour:
+            self.log(f"launch-swarm: vehicles.flavour = {firmware.kind!r} for {firmware.name}")
+        positions = initial_drone_positions(cfg, self.options.seed)
+        ground_w = [np.array([p[0], p[1], 0.0]) for p in positions]
+        geo = GeoPoint(*cfg.vehicles.geo_origin)
+        n, base = self.n, self.mavlink_base
+        fleet = SitlFleet(firmware, [geo.moved(g[0], g[1]) for g in ground_w],
+                          [base + i for i in range(n)], [base + n + i for i in range(n)],
+                          self.log_dir, setpoint_timeout_s=cfg.vehicles.failsafe_timeout_s,
+                          boot_speedup=self.options.sitl_boot_speedup, log=self.log,
+                          on_state=self._on_autopilot_state)
+        self.sitl_fleet = fleet
+        try:
+            fleet.start()
+            fleet.wait_ready(cfg.runtime.start_timeout_s, stop=self.stop_requested.is_set)
+            offsets = fleet.origin_offsets(ground_w)
+        except SitlError as err:
+            raise MissionError(str(err)) from None
+        cfg = dataclasses.replace(cfg, vehicles=dataclasses.replace(
+            cfg.vehicles, origin_offsets_m=tuple(
+                (float(o[0]), float(o[1]), float(o[2])) for o in offsets)))
+        self.config = cfg
+        self.config_path = str(write_resolved_config(cfg, self.log_dir / "config.json"))
+        shown = ", ".join(f"[{o[0]:.2f}, {o[1]:.2f}, {o[2]:.2f}]" for o in offsets)
+        self.log(f"launch-swarm: origin offsets measured on the autopilots: {shown} m")
+
+    def _on_autopilot_state(self, drone: int, view: VehicleView) -> None:
+        """The monitor link's newest state of autopilot ``drone`` (its thread): mode and
+        armed changes logged, and during the mission the state recorded."""
+        seen = (view.mode, view.armed)
+        if self._autopilot_seen.get(drone) != seen:
+            if drone in self._autopilot_seen:
+                self.log(f"launch-swarm: drone {drone}'s autopilot now {view.mode}, "
+                         f"{'armed' if view.armed else 'disarmed'}")
+            self._autopilot_seen[drone] = seen
+        recorder = self.recorder
+        if (recorder is None or view.local_ned is None or view.local_velocity_ned is None
+                or self._mission_state() not in ("running", "done")):
+            return
+        position = frames.world_from_local_ned(view.local_ned, self.config.vehicles.origin_w(
+            drone))
+        velocity = frames.ned_to_enu(view.local_velocity_ned)
+        with contextlib.suppress(ValueError):  # a non-finite sample: nothing to record
+            recorder.put(AutopilotState(
+                drone=drone, time_s=max(self.collector.last_truth_step, 0)
+                * self.config.scenario.dt_s,
+                position_m=tuple(float(v) for v in position),  # type: ignore[arg-type]
+                velocity_m_s=tuple(float(v) for v in velocity),  # type: ignore[arg-type]
+                mode=view.mode, armed=view.armed, landed_state=view.landed_state or 0))
+
+    def _await_autopilots_after_agents(self, timeout_s: float = 2.5) -> None:
+        """SITL: until every autopilot has sent a HEARTBEAT (1 Hz) and a position since the
+        agents left, so that the recording ends with what the end action made of it."""
+        if self.sitl_fleet is None or self.sitl_fleet.monitor is None:
+            return
+        monitor = self.sitl_fleet.monitor
+        since = time.monotonic()
+        deadline = since + timeout_s
+        while time.monotonic() < deadline:
+            views = [monitor.view(i) for i in range(self.n)]
+            if all(v.heartbeat_s is not None and v.heartbeat_s > since and v.local_s is not None
+                   and v.local_s > v.heartbeat_s for v in views):
+                return
+            time.sleep(0.05)
+
+    def _check_sitl(self) -> None:
+        """An autopilot that dies ends the mission (its drone would fall)."""
+        if self.sitl_fleet is None:
+            return
+        dead = self.sitl_fleet.dead()
+        if dead is not None:
+            tail = "\n    ".join(dead.tail())
+            raise MissionError(f"{dead.name} (pid {dead.pid}) ended with exit code "
+                               f"{dead.poll()}; last lines of {dead.console_log}:\n    {tail}")
+
     # -- zenoh --------------------------------------------------------------------------------
 
     def _connect(self, timeout_s: float) -> None:
@@ -489,16 +650,19 @@ class SwarmLauncher:
         cfg = self.options.config
         started = time.monotonic()
         try:
+            vehicles = (f", {self.options.sitl.name} autopilots" if self.options.sitl
+                        else ", external autopilots" if self.external_autopilots else "")
             self.log(f"launch-swarm: run {self.run_id}: world + {self.n} agents "
-                     f"({self.options.mode}), zenoh {self.endpoint}, MAVLink "
+                     f"({self.options.mode}{vehicles}), zenoh {self.endpoint}, MAVLink "
                      f"{self.mavlink_base}..{self.mavlink_base + self.n - 1}, logs {self.log_dir}")
+            if self.options.sitl is not None:
+                self._start_sitl()
             self._open_recorder()
             if self.options.external_vehicles:
-                if self.options.mode != "realtime":
-                    raise MissionError("external vehicles need --mode realtime")
                 self.start_vehicles()
             # The agents start with the world, not after it: their imports overlap the
             # world's start-up, and they keep trying its router until it is up.
+            world_started = time.monotonic()
             self.start_world()
             for i in range(self.n):
                 self.start_agent(i)
@@ -510,6 +674,7 @@ class SwarmLauncher:
                 self._state_changed.clear()
                 if self.stop_requested.is_set():
                     raise KeyboardInterrupt
+                self._check_sitl()
                 dead = self._dead_child()
                 while dead is not None:
                     if not self._survivable(dead):
@@ -526,7 +691,7 @@ class SwarmLauncher:
                 if state == "aborted":
                     latest = self.clock.get(0)
                     raise MissionError(f"the world aborted the mission: {latest[0].detail}")
-                if state == "waiting" and time.monotonic() - started > (
+                if state == "waiting" and time.monotonic() - world_started > (
                         cfg.runtime.start_timeout_s + 10.0):
                     raise MissionError("the mission never started")
                 step = self.collector.last_truth_step
@@ -536,6 +701,7 @@ class SwarmLauncher:
                 if state == "done":
                     break
             self._wait_agents_done()
+            self._await_autopilots_after_agents()
             self._leave_zenoh()  # no message arrives after this: record and recording agree
             record = self.collector.record(self.options.seed, time.monotonic() - started)
             self.close()
@@ -557,10 +723,11 @@ class SwarmLauncher:
         opts = self.options
         if opts.record_dir is None:
             return
-        metadata = RecordingMetadata.for_run(opts.config, opts.seed, opts.mode, self.run_id,
+        metadata = RecordingMetadata.for_run(self.config, opts.seed, opts.mode, self.run_id,
                                              opts.config_path)
         try:
-            self.recorder = Recorder(opts.record_dir, metadata)
+            self.recorder = Recorder(opts.record_dir, metadata,
+                                     autopilots=self.sitl_fleet is not None)
         except RecordingError as err:
             raise MissionError(str(err)) from None
         self.log(f"launch-swarm: recording to {self.recorder.path}")
@@ -582,7 +749,9 @@ class SwarmLauncher:
         once."""
         self._leave_zenoh()
         self._close_recorder()
-        self.stop_children()
+        self.stop_children()  # the agents' end actions go out before their autopilots stop
+        if self.sitl_fleet is not None:
+            self.sitl_fleet.stop()
         self._port_lock.close()  # the children that used the ports are gone
 
     def _leave_zenoh(self) -> None:

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import struct
 from collections import Counter
+from collections.abc import Collection
 from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
@@ -49,11 +50,14 @@ def reset_parser(parser: mavlink2.MAVLink) -> None:
 
 
 def parse_bytes(parser: mavlink2.MAVLink, data: bytes, rejections: Counter[str], *,
-                datagram: bool) -> list[Any]:
+                datagram: bool, known_undecoded: Collection[int] = ()) -> list[Any]:
     """The complete, known messages in ``data``; everything else counted in ``rejections``
     (``bad_data``, ``unknown_message``, ``truncated``, ``parser_error:<type>``; with signing
     also ``unsigned``, ``bad_signature``, ``stale_signature``).
-    ``datagram``: ``data`` is one whole UDP datagram (a leftover is a truncated frame)."""
+    ``datagram``: ``data`` is one whole UDP datagram (a leftover is a truncated frame).
+    ``known_undecoded``: ids of messages outside the dialect that the caller decodes itself
+    (e.g. PX4's EVENT, ``swarm.px4_events``): returned as pymavlink's UNKNOWN_<id> objects,
+    their checksum unchecked (the caller checks it), not counted."""
     try:
         if parser.signing.secret_key is None:
             messages = parser.parse_buffer(bytes(data)) or []
@@ -69,7 +73,10 @@ def parse_bytes(parser: mavlink2.MAVLink, data: bytes, rejections: Counter[str],
         if kind == "BAD_DATA":
             rejections["bad_data"] += 1
         elif kind.startswith("UNKNOWN"):
-            rejections["unknown_message"] += 1
+            if known_undecoded and int(kind[len("UNKNOWN_"):]) in known_undecoded:
+                out.append(msg)
+            else:
+                rejections["unknown_message"] += 1
         else:
             out.append(msg)
     if datagram and parser.buf_len() > 0:

@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
+import math
 import os
 import queue
 import re
@@ -73,7 +74,7 @@ FLUSH_PERIOD_S: Final = 0.5  # newest data on disk is at most this old (plus one
 CHUNK_BYTES: Final = 256 * 1024  # a chunk also ends at every flush
 DRAIN_PERIOD_S: Final = 0.1  # the writer thread wakes this often (and at close)
 MODES: Final = ("lockstep", "realtime", "inprocess")
-KINDS: Final = ("telemetry", "beacon", "camera", "truth")
+KINDS: Final = ("telemetry", "beacon", "camera", "truth", "autopilot")
 _GIT_TIMEOUT_S: Final = 5.0
 _LITTLE_ENDIAN: Final = sys.byteorder == "little"
 # msgspec's JSON is ~10x faster than the json module both ways, with the same exact
@@ -81,7 +82,28 @@ _LITTLE_ENDIAN: Final = sys.byteorder == "little"
 _JSON_ENCODER: Final = msgspec.json.Encoder()
 _JSON_DECODER: Final = msgspec.json.Decoder()
 
-Recordable = TelemetryWire | BeaconWire | CameraFrameWire | TruthWire
+
+
+class AutopilotState(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_fields=True):
+    """What the launcher's own link to a real autopilot (SITL, ``swarm.sitl.SitlMonitor``)
+    heard from it during the mission: its own estimate of where it is, in W, its mode and
+    armed state. Recorded on ``autopilot/<i>/state`` (about 10 Hz per drone), beside what the
+    agents say, so a run shows what the vehicle did when its agent did not (lost, killed)."""
+
+    drone: int
+    time_s: float  # mission time of the newest truth step when heard [s]
+    position_m: tuple[float, float, float]  # W [m]
+    velocity_m_s: tuple[float, float, float]  # W [m/s]
+    mode: str  # pymavlink's name of the autopilot's mode, e.g. "GUIDED", "BRAKE", "OFFBOARD"
+    armed: bool
+    landed_state: int  # MAV_LANDED_STATE (0 unknown, 1 ground, 2 air, 3 takeoff, 4 landing)
+
+    def __post_init__(self) -> None:
+        if not all(map(math.isfinite, (self.time_s, *self.position_m, *self.velocity_m_s))):
+            raise ValueError("non-finite autopilot state")
+
+
+Recordable = TelemetryWire | BeaconWire | CameraFrameWire | TruthWire | AutopilotState
 
 
 class RecordingError(RuntimeError):
@@ -270,6 +292,14 @@ def truth_from_json(data: dict[str, Any]) -> TruthWire:
                      target_velocities=_array(data["target_velocities"]))
 
 
+def autopilot_to_json(state: AutopilotState) -> dict[str, Any]:
+    return msgspec.to_builtins(state)
+
+
+def autopilot_from_json(data: dict[str, Any]) -> AutopilotState:
+    return msgspec.convert(data, AutopilotState)
+
+
 @dataclass(frozen=True)
 class _Kind:
     """How one kind of message is named, timed and converted."""
@@ -286,6 +316,8 @@ _BY_TYPE: Final[dict[type, _Kind]] = {
     BeaconWire: _Kind("beacon", beacon_to_json, beacon_from_json, lambda m: m.sender),
     CameraFrameWire: _Kind("camera", camera_to_json, camera_from_json, lambda m: m.drone),
     TruthWire: _Kind("truth", truth_to_json, truth_from_json, lambda _m: None),
+    AutopilotState: _Kind("autopilot", autopilot_to_json, autopilot_from_json,
+                          lambda m: m.drone),
 }
 _BY_NAME: Final[dict[str, _Kind]] = {kind.name: kind for kind in _BY_TYPE.values()}
 
@@ -296,10 +328,13 @@ def topic(kind: str, drone: int | None = None) -> str:
         return "world/truth"
     if kind == "camera":
         return f"world/camera/{drone}"
+    if kind == "autopilot":
+        return f"autopilot/{drone}/state"
     return f"agent/{drone}/{kind}"
 
 
-_TOPIC = re.compile(r"^(?:agent/(\d+)/(telemetry|beacon)|world/(camera)/(\d+)|world/(truth))$")
+_TOPIC = re.compile(r"^(?:agent/(\d+)/(telemetry|beacon)|world/(camera)/(\d+)|world/(truth)"
+                    r"|autopilot/(\d+)/state)$")
 
 
 def parse_topic(name: str) -> tuple[str, int | None] | None:
@@ -309,6 +344,8 @@ def parse_topic(name: str) -> tuple[str, int | None] | None:
         return None
     if match.group(5):
         return "truth", None
+    if match.group(6):
+        return "autopilot", int(match.group(6))
     if match.group(3):
         return "camera", int(match.group(4))
     return match.group(2), int(match.group(1))
@@ -379,6 +416,13 @@ def schemas(n_targets: int, n_state: int) -> dict[str, dict[str, Any]]:
                           "drone_positions": _list(vec3), "target_positions": _list(vec3),
                           "target_velocities": _list(vec3)},
                          "vigil.Truth", "Ground truth of one step (world frame) [m], [m/s]."),
+        "autopilot": _object({"drone": _COUNT, "time_s": _NUMBER, "position_m": vec3,
+                              "velocity_m_s": vec3, "mode": {"type": "string"},
+                              "armed": _BOOL, "landed_state": _COUNT},
+                             "vigil.AutopilotState",
+                             "A real autopilot's own state as its monitor link reports it: "
+                             "its position estimate in the world frame [m], [m/s], mode, "
+                             "armed, MAV_LANDED_STATE."),
     }
 
 
@@ -425,7 +469,7 @@ class Recorder:
     """
 
     def __init__(self, directory: Path, metadata: RecordingMetadata, *,
-                 flush_period_s: float = FLUSH_PERIOD_S) -> None:
+                 flush_period_s: float = FLUSH_PERIOD_S, autopilots: bool = False) -> None:
         self.path = Path(directory) / RECORDING_FILE
         self.metadata = metadata
         self.flush_period_s = flush_period_s
@@ -454,7 +498,7 @@ class Recorder:
                               compression=CompressionType.ZSTD)
         try:  # header, schemas, channels and metadata are on disk before any message
             self._writer.start(library=f"{DISTRIBUTION}/{metadata.version}")
-            self._register_channels(cfg)
+            self._register_channels(cfg, autopilots)
             self._writer.add_metadata(METADATA_NAME, metadata.to_mcap())
             self._writer.flush()
         except OSError as err:
@@ -473,7 +517,8 @@ class Recorder:
         self._thread = threading.Thread(target=self._run, name="vigil-recorder", daemon=True)
         self._thread.start()
 
-    def _register_channels(self, cfg: ScenarioConfig) -> None:
+    def _register_channels(self, cfg: ScenarioConfig, autopilots: bool) -> None:
+        """``autopilots``: also ``autopilot/<i>/state`` (runs that watch real autopilots)."""
         ids = {kind: self._writer.register_schema(
                    name=schema["title"], encoding="jsonschema",
                    data=json.dumps(schema).encode())
@@ -482,6 +527,8 @@ class Recorder:
         channels = [("truth", topic("truth"))] + [
             (kind, topic(kind, i)) for i in range(cfg.swarm.n_drones)
             for kind in ("telemetry", "beacon", "camera")]
+        if autopilots:
+            channels += [("autopilot", topic("autopilot", i)) for i in range(cfg.swarm.n_drones)]
         for kind, name in channels:
             self._channels[name] = self._writer.register_channel(
                 topic=name, message_encoding="json", schema_id=ids[kind])
@@ -504,7 +551,9 @@ class Recorder:
         data = _JSON_ENCODER.encode(kind.to_json(message))
         sequence = self._sequence.get(channel, 0)
         self._sequence[channel] = sequence + 1
-        self._writer.add_message(channel_id=channel, log_time=message.step * self._dt_ns,
+        log_time = (round(message.time_s * 1e9) if isinstance(message, AutopilotState)
+                    else message.step * self._dt_ns)
+        self._writer.add_message(channel_id=channel, log_time=log_time,
                                  data=data, publish_time=received_ns,
                                  sequence=sequence)
         self.written += 1
@@ -603,7 +652,7 @@ class RecordedMessage:
     """One message of a recording, converted back to its wire struct."""
 
     topic: str
-    kind: str  # "telemetry", "beacon", "camera" or "truth"
+    kind: str  # "telemetry", "beacon", "camera", "truth" or "autopilot"
     drone: int | None  # from the topic; None for world/truth
     log_time_ns: int  # sim time of its step
     publish_time_ns: int  # wall time of receipt
@@ -655,12 +704,13 @@ def _decode(kind: str, data: bytes, codec: WireCodec | None, where: str) -> Reco
     """JSON → the wire struct, checked like a received payload when a codec is given."""
     try:
         message = _BY_NAME[kind].from_json(_JSON_DECODER.decode(data))
-        if codec is not None:
+        if codec is not None and not isinstance(message, AutopilotState):
             codec.validate(message)
         return message
     except WireError as err:
         raise RecordingError(f"{where}: invalid {kind} message: {err.reason}") from None
-    except (msgspec.DecodeError, ValueError, KeyError, TypeError) as err:
+    except (msgspec.DecodeError, msgspec.ValidationError, ValueError, KeyError,
+            TypeError) as err:
         raise RecordingError(f"{where}: malformed {kind} message: "
                              f"{type(err).__name__}: {err}") from None
 

@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from sim_world.camera import detect
-from sim_world.kinematics import sample_initial_positions, step_drone
+from sim_world.kinematics import sample_initial_positions, step_vehicle
 from swarm.config import ScenarioConfig
 from swarm.core.agent import AgentSetup, Detection, DroneAgent, StepDiagnostics
 from swarm.core.formation import circle_bearings
@@ -202,6 +202,8 @@ def _run(config: ScenarioConfig, seed: int, on_step: StepCallback | None,
     truth = ReferenceGramians(m, config.gramian, config.perception, config.estimation.info_gain,
                               dt)
     flying = np.zeros((n, 3))  # the setpoint each drone flies (its beacon's velocity)
+    response = config.vehicles.velocity_response
+    vehicle_velocities = np.zeros((n, 3))  # every drone starts hovering
 
     rec = {
         "pos": np.zeros((steps, n, 3)), "vel": np.zeros((steps, n, 3)),
@@ -250,9 +252,12 @@ def _run(config: ScenarioConfig, seed: int, on_step: StepCallback | None,
         truth.advance(positions, targets, rec["det"][k])
         if on_step is not None:
             on_step(k, diags)
-        # The vehicle applies the float32 setpoint it received, clamped to u_max.
-        positions = np.array([step_drone(positions[i], velocity_over_link(results[i].velocity),
-                                         config.control.u_max_m_s, dt) for i in range(n)])
+        # The vehicle applies the float32 setpoint it received, clamped to u_max, through its
+        # velocity response (ideal by default: p + ΔT·u), exactly as the emulated vehicles.
+        for i in range(n):
+            positions[i], vehicle_velocities[i] = step_vehicle(
+                positions[i], vehicle_velocities[i], velocity_over_link(results[i].velocity),
+                config.control.u_max_m_s, dt, response)
 
     return RunRecord(
         config=config, seed=seed, times_s=np.arange(steps) * dt,

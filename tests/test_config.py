@@ -388,3 +388,25 @@ def test_every_accepted_box_can_hold_its_drones() -> None:
     data["swarm"].update(n_drones=2, edges=[[0, 1]], initial_box_size_m=[1.0, 0.0, 0.0])
     with pytest.raises(ConfigError, match=r"swarm\.initial_box_size_m"):
         config_from_dict(data)
+
+
+def test_a_resolved_config_reads_back_equal(tmp_path: Path) -> None:
+    """launch-swarm hands its children the config it resolved (e.g. SITL origin offsets) as
+    JSON: it must read back into an equal config, and a broken file is one line."""
+    import dataclasses
+
+    from swarm.config import write_resolved_config
+
+    config = load_config(ROOT / "configs" / "case2.toml")
+    config = dataclasses.replace(config, vehicles=dataclasses.replace(
+        config.vehicles, flavour="ardupilot", response="arducopter",
+        origin_offsets_m=tuple((float(i), -0.5 * i, 0.01) for i in range(6))))
+    path = write_resolved_config(config, tmp_path / "config.json")
+    assert load_config(path) == config
+    (tmp_path / "bad.json").write_text("{not json")
+    (tmp_path / "list.json").write_text("[1, 2]")
+    for name, expect in (("bad.json", "not valid JSON"), ("list.json", "expected a JSON object"),
+                         ("missing.json", "no such file")):
+        with pytest.raises(ConfigError) as info:
+            load_config(tmp_path / name)
+        assert expect in str(info.value) and "\n" not in str(info.value)

@@ -1,7 +1,7 @@
 """swarm.mavlink_link.AutopilotLink against EmulatedVehicle over real UDP on 127.0.0.1.
 
 Both ends are real pymavlink; ports come from the OS. A served vehicle is a small loop in a
-background thread stepping the vehicle at 50 Hz wall clock (integrate + telemetry) and
+background thread stepping the vehicle at 50 Hz wall clock (``fly`` + telemetry) and
 answering every datagram at once. Waits are on conditions with deadlines, never sleeps.
 """
 
@@ -12,6 +12,7 @@ import select
 import socket
 import threading
 import time
+from collections import Counter
 from collections.abc import Callable, Iterator
 from typing import Any
 
@@ -23,7 +24,7 @@ from sim_world.mavlink_endpoint import VehicleEndpoint
 from sim_world.vehicle import EmulatedVehicle
 from swarm import frames
 from swarm.mavlink_link import IDLE_STAMP_MS, AutopilotLink, LinkError, PositionSample
-from swarm.mavlink_parse import LOCAL_POSITION_NED
+from swarm.mavlink_parse import LOCAL_POSITION_NED, parse_bytes
 
 DT = 0.02
 DRONE = 2
@@ -48,7 +49,7 @@ class ServedVehicle:
         self.endpoint = VehicleEndpoint(("127.0.0.1", agent_port))
         self.intercept = intercept
         self.lock = threading.Lock()
-        self.applied: list[np.ndarray] = []  # velocity integrated at each step
+        self.applied: list[np.ndarray] = []  # velocity flown at each step
         self.errors: list[BaseException] = []
         self._stop = threading.Event()
         self._parser = mav.MAVLink(None)
@@ -75,9 +76,8 @@ class ServedVehicle:
                         self._deliver(data, now - self._t0)
                     if now >= next_step:
                         t = now - self._t0
-                        velocity = self.vehicle.commanded_velocity_w(t)
-                        self.vehicle.integrate(DT, velocity)
-                        self.applied.append(velocity)
+                        self.vehicle.fly(DT, t)  # as sim-world's realtime loop
+                        self.applied.append(self.vehicle.velocity_w)
                         self.endpoint.send(self.vehicle.telemetry(round(t * 1000), t))
                         next_step += DT
                         if next_step < now:
@@ -119,10 +119,11 @@ def served() -> Iterator[Callable[..., tuple[AutopilotLink, ServedVehicle]]]:
     made: list[tuple[AutopilotLink, ServedVehicle]] = []
 
     def factory(flavour: str, logs: list[str], *, link_flavour: str | None = None,
-                intercept: Any = None, heartbeat_period_s: float | None = 1.0
-                ) -> tuple[AutopilotLink, ServedVehicle]:
+                intercept: Any = None, heartbeat_period_s: float | None = 1.0,
+                start: str = "air") -> tuple[AutopilotLink, ServedVehicle]:
         link = make_link(link_flavour or flavour, logs)
-        vehicle = EmulatedVehicle(DRONE, flavour, START, ORIGIN)  # type: ignore[arg-type]
+        vehicle = EmulatedVehicle(DRONE, flavour, START, ORIGIN,  # type: ignore[arg-type]
+                                  start=start)  # type: ignore[arg-type]
         assert link.local_address is not None
         server = ServedVehicle(vehicle, link.local_address[1], intercept, heartbeat_period_s)
         made.append((link, server))
@@ -157,26 +158,53 @@ def pump_until(link: AutopilotLink, condition: Callable[[], bool], timeout: floa
 
 
 # ---------------------------------------------------------------- full handshake and flight
-@pytest.mark.parametrize("flavour", ["px4", "ardupilot"])
-def test_handshake_then_fly_a_velocity_setpoint(flavour: str, served: Any,
+EXPECTED_HANDSHAKE = {  # the stages each start logs, in this order
+    ("px4", "air"): ["vehicle in the air", "OFFBOARD accepted", "ARM already in effect",
+                     "ready (OFFBOARD, armed)"],
+    ("px4", "ground"): ["vehicle on the ground", "streaming position setpoints at the start",
+                        "OFFBOARD accepted", "ARM accepted", "climb done",
+                        "ready (OFFBOARD, armed, at the start)"],
+    ("ardupilot", "air"): ["requesting LOCAL_POSITION_NED", "vehicle in the air",
+                           "GUIDED already in effect", "already in the air: no takeoff",
+                           "ready (GUIDED, armed, airborne)"],
+    ("ardupilot", "ground"): ["vehicle on the ground", "GUIDED accepted", "ARM accepted",
+                              "TAKEOFF to 4.00 m accepted", "climb done",
+                              "ready (GUIDED, armed, airborne)"],
+}
+
+
+@pytest.mark.parametrize(("flavour", "start"), list(EXPECTED_HANDSHAKE))
+def test_handshake_then_fly_a_velocity_setpoint(flavour: str, start: str, served: Any,
                                                 logs: list[str]) -> None:
-    link, server = served(flavour, logs)
-    link.handshake(timeout_s=10.0)  # ardupilot: takeoff to the current altitude (4 m)
+    link, server = served(flavour, logs, start=start)
+    # From the ground: a climb to the start (4 m up; ArduPilot: 3 s spool-up first).
+    link.handshake(timeout_s=30.0, start_position_w=START)
     with server.lock:
         vehicle = server.vehicle
         assert vehicle.armed and vehicle.in_setpoint_mode and not vehicle.failsafe_active
         assert vehicle.accepting_setpoints
         assert vehicle.mode == link.mode == ("OFFBOARD" if flavour == "px4" else "GUIDED")
         assert vehicle.airborne and vehicle.rejected_frames == 0
-        start = vehicle.position_w
+        assert vehicle.landed_state == mav.MAV_LANDED_STATE_IN_AIR
+        if start == "ground":  # arrived: within the link's tolerance of the start height
+            assert abs(vehicle.position_w[2] - START[2]) <= 0.3
         n_before = len(server.applied)
     assert link.armed
-    expected_lines = (["OFFBOARD accepted", "ARM accepted", "ready (OFFBOARD, armed)"]
-                      if flavour == "px4" else
-                      ["LOCAL_POSITION_NED stream accepted", "GUIDED accepted", "ARM accepted",
-                       "TAKEOFF to 4.00 m accepted", "ready (GUIDED, armed, airborne)"])
-    for line in expected_lines:
-        assert f"drone {DRONE}: {line}" in logs
+    said = [line.removeprefix(f"drone {DRONE}: ") for line in logs]
+    where = 0
+    for expected in EXPECTED_HANDSHAKE[(flavour, start)]:
+        found = [i for i, line in enumerate(said) if i >= where and line.startswith(expected)]
+        assert found, (expected, said)
+        where = found[0] + 1
+    if start == "air":
+        assert not any(line.startswith(("TAKEOFF", "climbing")) for line in said), said
+    # Settle: the idle (zero) setpoints hold it still before the step.
+    link.send_velocity(np.zeros(3), 6)
+    assert pump_until(link, lambda: np.array_equal(server.applied[-1], np.zeros(3)), 5.0,
+                      velocity=np.zeros(3))
+    with server.lock:
+        start_w = server.vehicle.position_w
+        n_before = len(server.applied)
 
     # fly 1.0 m/s east, -0.5 m/s north, +0.25 m/s up for ~0.5 s, then stop
     u = np.array([1.0, -0.5, 0.25])
@@ -191,7 +219,7 @@ def test_handshake_then_fly_a_velocity_setpoint(flavour: str, served: Any,
     moving = [s for s in steps if np.any(s != 0)]
     assert all(np.array_equal(s, u_link) for s in moving)  # bit-exact, never clamped here
     assert 0.35 <= len(moving) * DT <= 0.8
-    displacement = end - start
+    displacement = end - start_w
     np.testing.assert_allclose(displacement, len(moving) * DT * u_link, rtol=0, atol=1e-10)
     assert displacement[0] > 0.3 and displacement[1] < -0.15 and displacement[2] > 0.08
 
@@ -218,10 +246,12 @@ def test_arm_denied_once_is_retried_and_logged(served: Any, logs: list[str]) -> 
             return [ack.pack(forge)]
         return None
 
-    link, server = served("px4", logs, intercept=deny_first_arm)
-    link.handshake(timeout_s=10.0, retries=3)
+    link, server = served("px4", logs, intercept=deny_first_arm, start="ground")
+    link.handshake(timeout_s=20.0, start_position_w=START, retries=3)
     assert denied == [0]
-    assert f"drone {DRONE}: ARM denied (result 4 MAV_RESULT_FAILED), retry 2/3" in logs
+    # FAILED is "not now" (PX4/ArduPilot pre-arm checks): asked again until the deadline
+    assert (f"drone {DRONE}: ARM denied (result 4 MAV_RESULT_FAILED); asking again every 1 s"
+            in logs)
     assert f"drone {DRONE}: ARM accepted" in logs
     assert link.armed and link.mode == "OFFBOARD"
 
@@ -238,7 +268,8 @@ def test_handshake_gives_up_with_one_line_error(served: Any, logs: list[str]) ->
     text = str(err.value)
     assert "\n" not in text
     assert text == (f"drone {DRONE}: OFFBOARD failed after 2 attempts on {link.url}: "
-                    f"got no ACK within 0.2 s")
+                    f"got no ACK within 0.2 s: it needs a setpoint stream (COM_OF_LOSS_T) "
+                    f"and a position estimate")
     assert f"drone {DRONE}: OFFBOARD got no ACK within 0.2 s, retry 2/2" in logs
 
 
@@ -280,13 +311,15 @@ def test_no_heartbeat_error_names_the_port_base() -> None:
             link.wait_heartbeat(0.3)
         assert 0.25 <= time.monotonic() - t0 < 2.0
         assert str(err.value) == (f"no HEARTBEAT from system {SYS} on udpin:127.0.0.1:{port} "
-                                  f"within 0.3 s: is sim-world running with --mavlink-base "
-                                  f"{port - DRONE}?")
+                                  f"within 0.3 s: is the vehicle (sim-world --mavlink-base "
+                                  f"{port - DRONE}, or an autopilot) sending to port {port}?")
         # a vehicle with the wrong system id talking to this port is named in the error
         other = EmulatedVehicle(DRONE + 1, "px4", START, ORIGIN)
         with VehicleEndpoint(("127.0.0.1", port)) as ep:
             ep.send([other.heartbeat()])
-            with pytest.raises(LinkError, match=r"heard system\(s\) 4 instead: check --id"):
+            with pytest.raises(LinkError, match=(
+                    rf"autopilot system 4 \(PX4\) at 127\.0\.0\.1:\d+ on "
+                    rf"udpin:127\.0\.0\.1:{port} is not ours \(system 3\): refusing to fly it")):
                 link.wait_heartbeat(0.3)
         assert link.foreign_frames >= 1
     finally:
@@ -512,3 +545,136 @@ def test_udpin_pins_the_vehicle_address_and_counts_other_senders() -> None:
         forger.close()
         endpoint.close()
         link.close()
+
+
+# ---------------------------------------------------------------- exactly one vehicle
+@pytest.mark.parametrize("flavour", ["px4", "ardupilot"])
+def test_a_second_autopilot_is_refused_and_never_commanded(flavour: str, served: Any,
+                                                           logs: list[str]) -> None:
+    """Two autopilots of the same system id send to the agent's port (a SITL left running
+    beside an emulated run): the link keeps the first, stops with one line naming both, and
+    the second never gets a command or a setpoint."""
+    link, server = served(flavour, logs, start="ground")
+    assert pump_until(link, lambda: link.peer is not None, 5.0)  # the first one is pinned
+    intruder = EmulatedVehicle(DRONE, flavour, START, ORIGIN, start="ground")  # same system
+    received: list[str] = []
+    with VehicleEndpoint(("127.0.0.1", link.local_address[1])) as other:
+        stop = threading.Event()
+
+        def intrude() -> None:  # heartbeats at 5 Hz, every reply recorded and answered
+            while not stop.is_set():
+                other.send([intruder.heartbeat()])
+                for data in other.poll():
+                    received.extend(m.get_type() for m in parse_bytes(
+                        mav.MAVLink(None), data, Counter(), datagram=True))
+                    other.send(intruder.receive(data, time.monotonic()))
+                stop.wait(0.2)
+
+        thread = threading.Thread(target=intrude, daemon=True)
+        thread.start()
+        try:
+            with pytest.raises(LinkError) as err:
+                link.handshake(timeout_s=15.0, start_position_w=START)
+        finally:
+            stop.set()
+            thread.join(timeout=5.0)
+        other_address = other.local_address
+    text = str(err.value)
+    assert "\n" not in text
+    first = server.endpoint.local_address
+    assert f"{first[0]}:{first[1]}" in text and f"{other_address[0]}:{other_address[1]}" in text
+    assert "second autopilot" in text, text
+    assert not intruder.armed and intruder.mode == ("LOITER" if flavour == "px4" else "STABILIZE")
+    assert "COMMAND_LONG" not in received and "SET_POSITION_TARGET_LOCAL_NED" not in received
+    with server.lock:
+        assert not server.vehicle.armed  # refused before the first was armed either
+    assert not link.end_mission("hold")  # nothing was commanded: nothing to end
+
+
+# ---------------------------------------------------------------- what the autopilot says
+def test_a_refusal_quotes_what_the_autopilot_said(served: Any, logs: list[str]) -> None:
+    """ArduPilot says why in STATUSTEXT right behind a refused ARM: the log line and the
+    final error quote it."""
+    def refuse_arm(msg: Any, t: float) -> list[bytes] | None:
+        if msg.get_type() == "COMMAND_LONG" and msg.command == 400:
+            forge = server.forge()
+            ack = forge.command_ack_encode(400, mav.MAV_RESULT_DENIED, 0, 0, SYS, 191)
+            text = forge.statustext_encode(mav.MAV_SEVERITY_CRITICAL,
+                                           b"PreArm: Throttle below Failsafe")
+            return [ack.pack(forge), text.pack(forge)]
+        return None
+
+    link, server = served("ardupilot", logs, intercept=refuse_arm, start="ground")
+    with pytest.raises(LinkError) as err:
+        link.handshake(timeout_s=15.0, start_position_w=START, retries=2, ack_timeout_s=0.5)
+    text = str(err.value)
+    assert text.startswith(f"drone {DRONE}: ARM failed after 2 attempts on {link.url}: "
+                           f"denied (result 2 MAV_RESULT_DENIED); autopilot says: "
+                           f"'PreArm: Throttle below Failsafe'"), text
+    assert "pre-arm checks fail" in text  # what the operator can do
+    assert any("retry 2/2" in line and "PreArm: Throttle below Failsafe" in line
+               for line in logs), logs
+
+
+def test_position_is_awaited_up_to_the_deadline(served: Any, logs: list[str]) -> None:
+    """A freshly booted ArduCopter accepts the stream request but sends no position until its
+    EKF has an origin: the link asks again and waits (not a fixed number of tries)."""
+    opened_at = time.monotonic() + 3.0
+    requests: list[float] = []
+
+    def no_position_yet(msg: Any, t: float) -> list[bytes] | None:
+        if (msg.get_type() == "COMMAND_LONG" and msg.command == 511
+                and msg.param1 == mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED
+                and time.monotonic() < opened_at):
+            requests.append(t)
+            forge = server.forge()
+            return [forge.command_ack_encode(511, mav.MAV_RESULT_ACCEPTED, 0, 0, SYS,
+                                             191).pack(forge)]
+        return None
+
+    link, server = served("ardupilot", logs, intercept=no_position_yet)
+    link.handshake(timeout_s=20.0, start_position_w=START)
+    up = [line for line in logs if "position stream up after" in line]
+    assert up and float(up[0].split("after ")[1].split(" s")[0]) >= 2.5, logs
+    assert len(requests) >= 2  # asked again (every 2 s), accepted each time, no give-up
+
+
+# ---------------------------------------------------------------- a defined end
+END_MODES = {("px4", "hold"): "LOITER", ("px4", "land"): "LAND", ("px4", "rtl"): "RTL",
+             ("ardupilot", "hold"): "BRAKE", ("ardupilot", "land"): "LAND",
+             ("ardupilot", "rtl"): "RTL"}
+
+
+@pytest.mark.parametrize(("flavour", "action"), list(END_MODES))
+def test_end_mission_stops_then_commands_the_end_action(flavour: str, action: str,
+                                                        served: Any, logs: list[str]) -> None:
+    link, server = served(flavour, logs)
+    link.handshake(timeout_s=10.0, start_position_w=START)
+    u = np.array([1.5, 0.0, 0.0])
+    assert pump_until(link, lambda: np.array_equal(server.applied[-1], u), 3.0, velocity=u)
+    assert link.end_mission(action)  # type: ignore[arg-type]
+    expected = END_MODES[(flavour, action)]
+    assert f"drone {DRONE}: end action {action} accepted ({expected})" in logs
+    with server.lock:
+        assert server.vehicle.mode == expected and not server.vehicle.failsafe_active
+    # The vehicle slows down at once (zero velocity first, then its mode's own stop).
+    assert pump_until(link, lambda: float(np.linalg.norm(server.vehicle.velocity_w[:2])) < 0.3,
+                      5.0)
+    if action == "land":
+        assert pump_until(link, lambda: server.vehicle.velocity_w[2] < -0.3, 5.0)
+
+
+def test_end_mission_refused_is_logged_not_raised(served: Any, logs: list[str]) -> None:
+    def refuse_mode(msg: Any, t: float) -> list[bytes] | None:
+        if msg.get_type() == "COMMAND_LONG" and msg.command == 176 and link.armed:
+            forge = server.forge()
+            return [forge.command_ack_encode(176, mav.MAV_RESULT_DENIED, 0, 0, SYS,
+                                             191).pack(forge)]
+        return None
+
+    link, server = served("px4", logs, intercept=refuse_mode, start="ground")
+    with pytest.raises(LinkError):
+        link.handshake(timeout_s=3.0, start_position_w=START, retries=1, ack_timeout_s=0.3)
+    assert not link.end_mission("land")
+    assert any("end action land (LAND) refused (result 2 MAV_RESULT_DENIED)" in line
+               for line in logs), logs

@@ -53,13 +53,14 @@ class ServedFleet:
     """A one-vehicle VehicleFleet sending to ``agent_port``, stepped at 50 Hz (as
     ``fleet.serve_forever``, plus a record of the velocity flown at each step)."""
 
-    def __init__(self, agent_port: int, flavour: str, signing_key: bytes | None) -> None:
+    def __init__(self, agent_port: int, flavour: str, signing_key: bytes | None,
+                 start: str = "air") -> None:
         started = time.monotonic()
         self.fleet = VehicleFleet(np.array([START]), [ORIGIN], flavour,  # type: ignore[arg-type]
                                   host="127.0.0.1", base_port=agent_port, u_max_m_s=3.0,
                                   setpoint_timeout_s=0.5 if flavour == "px4" else 3.0,
                                   clock=lambda: time.monotonic() - started,
-                                  signing_key=signing_key)
+                                  signing_key=signing_key, start=start)  # type: ignore[arg-type]
         self.vehicle: EmulatedVehicle = self.fleet.vehicles[DRONE]
         self.address = self.fleet.endpoints[DRONE].local_address
         self.lock = threading.Lock()
@@ -100,11 +101,11 @@ def served() -> Iterator[Callable[..., tuple[AutopilotLink, ServedFleet]]]:
     made: list[tuple[AutopilotLink, ServedFleet]] = []
 
     def factory(*, link_key: bytes | None = KEY, vehicle_key: bytes | None = KEY,
-                flavour: str = "px4") -> tuple[AutopilotLink, ServedFleet]:
+                flavour: str = "px4", start: str = "air") -> tuple[AutopilotLink, ServedFleet]:
         link = AutopilotLink("udpin:127.0.0.1:0", DRONE, flavour, ORIGIN,  # type: ignore[arg-type]
                              log=lambda _: None, signing_key=link_key)
         assert link.local_address is not None
-        server = ServedFleet(link.local_address[1], flavour, vehicle_key)
+        server = ServedFleet(link.local_address[1], flavour, vehicle_key, start)
         made.append((link, server))
         return link, server
 
@@ -170,9 +171,9 @@ def assert_flies(link: AutopilotLink, server: ServedFleet, velocity: np.ndarray)
 # ---------------------------------------------------------------- (1) signed end to end
 @pytest.mark.parametrize("flavour", ["px4", "ardupilot"])
 def test_signed_agent_and_signed_vehicle_fly_a_setpoint(served: Any, flavour: str) -> None:
-    link, server = served(flavour=flavour)
+    link, server = served(flavour=flavour, start="ground")  # the whole handshake, signed
     assert link.signing and server.vehicle.signing
-    link.handshake(timeout_s=10.0)
+    link.handshake(timeout_s=20.0, start_position_w=START)
     assert link.armed and server.vehicle.accepting_setpoints
     assert_flies(link, server, U)
     sample = link.latest_position()
@@ -289,7 +290,7 @@ def test_the_signing_agent_drops_frames_of_a_vehicle_without_the_key(
 
 
 def test_the_vehicle_answers_only_signed_commands_and_signs_its_answers() -> None:
-    vehicle = EmulatedVehicle(DRONE, "px4", START, ORIGIN, signing_key=KEY)
+    vehicle = EmulatedVehicle(DRONE, "px4", START, ORIGIN, signing_key=KEY, start="ground")
     unsigned = mav.MAVLink(None, srcSystem=SYS, srcComponent=COMPANION)
     arm = unsigned.command_long_encode(SYS, 1, mav.MAV_CMD_COMPONENT_ARM_DISARM, 0,
                                        1, 0, 0, 0, 0, 0, 0)

@@ -23,12 +23,7 @@ from vehicle 0 and every step-stamped setpoint of agent 0 went through it.
 
 from __future__ import annotations
 
-import contextlib
-import os
-import signal
-import subprocess
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -39,69 +34,16 @@ from swarm.config import load_config
 from swarm.launcher import LaunchOptions, SwarmLauncher
 from swarm.mavlink_link import IDLE_STAMP_MS
 from swarm.reference import run_reference
-from tests.process_tools import console_script, free_udp_block
+from tests.process_tools import free_udp_block, start_mavproxy
 
 ROOT = Path(__file__).resolve().parent.parent
 CASE1 = ROOT / "configs" / "case1.toml"
 DURATION_S = 3.0
 SEED = 0
 RELAYED_DRONE = 0
-MAVPROXY_SYSTEM_ID = 255
 COMPANION_COMPONENT_ID = 191  # swarm.mavlink_link: the agent speaks as the onboard computer
 COMPARED = ("drone_positions_m", "velocities_m_s", "estimates", "lambda_bar", "weights",
             "target_positions_m")
-
-
-@dataclass
-class MavProxy:
-    process: subprocess.Popen
-    log_path: Path
-    tlog_path: Path
-
-    def log(self) -> str:
-        return self.log_path.read_text(errors="replace") if self.log_path.exists() else ""
-
-    def wait_for(self, text: str, timeout_s: float) -> None:
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if text in self.log():
-                return
-            if self.process.poll() is not None:
-                break
-            time.sleep(0.05)
-        raise AssertionError(f"MAVProxy never printed {text!r} (exit code "
-                             f"{self.process.poll()}):\n{self.log()}")
-
-    def stop(self) -> None:
-        """SIGTERM the group (MAVProxy then unloads its modules and flushes its logs)."""
-        if self.process.poll() is None:
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(self.process.pid, signal.SIGTERM)
-            with contextlib.suppress(subprocess.TimeoutExpired):
-                self.process.wait(timeout=5)
-        with contextlib.suppress(ProcessLookupError):  # anything left in the group
-            os.killpg(self.process.pid, signal.SIGKILL)
-        self.process.wait()
-
-
-def start_mavproxy(master_port: int, out_port: int, state_dir: Path) -> MavProxy:
-    state_dir.mkdir(parents=True, exist_ok=True)
-    log_path, tlog_path = state_dir / "mavproxy.log", state_dir / "relay.tlog"
-    argv = [*console_script("mavproxy.py", "MAVProxy.mavproxy"),
-            f"--master=udpin:127.0.0.1:{master_port}",  # where vehicle 0 sends
-            f"--out=udp:127.0.0.1:{out_port}",  # to agent 0, which listens (udpin) there
-            "--non-interactive", "--default-modules=", "--streamrate=-1",
-            f"--source-system={MAVPROXY_SYSTEM_ID}",
-            f"--state-basedir={state_dir}", f"--logfile={tlog_path}",
-            # The log writer thread otherwise flushes every 10 s only, and not at exit.
-            "--cmd=set flushlogs True"]
-    env = dict(os.environ, HOME=str(state_dir), PYTHONUNBUFFERED="1",
-               MPLCONFIGDIR=str(state_dir / "mpl"))
-    with log_path.open("wb") as out:
-        process = subprocess.Popen(argv, stdout=out, stderr=subprocess.STDOUT,
-                                   stdin=subprocess.DEVNULL, start_new_session=True,
-                                   cwd=state_dir, env=env)
-    return MavProxy(process, log_path, tlog_path)
 
 
 def relayed_stamps(tlog: Path) -> tuple[set[int], set[int]]:

@@ -40,7 +40,7 @@ COMPARED = ("drone_positions_m", "velocities_m_s", "estimates", "lambda_bar", "w
 DURATION_S = 30.0  # the whole of Case 1 (its barrier QP is active from ~14 s)
 SEED = 0
 ZENOH_PORT = 7447
-MAVLINK_BASE = 14540
+MAVLINK_BASE = 24540  # the emulated runs' default (README, "Across machines")
 RUN_TIMEOUT_S = 240.0
 
 

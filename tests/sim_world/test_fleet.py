@@ -8,9 +8,11 @@ import time
 from collections.abc import Callable
 
 import numpy as np
+import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from sim_world.fleet import VehicleFleet
+from sim_world.kinematics import VelocityResponse
 from tests.sim_world.test_vehicle import Agent
 
 
@@ -73,3 +75,35 @@ def test_mavlink_like_junk_never_takes_the_stream_away_from_the_agent() -> None:
         fleet.close()
         for sock in (agent, junk, relay):
             sock.close()
+
+
+def test_fleet_vehicles_take_start_and_response_and_fly_themselves() -> None:
+    """``start`` and ``response`` reach every vehicle; ``fly`` lets each vehicle fly its own
+    mode (here one takes off from the ground, the other stays there) on the fleet's clock."""
+    agent = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    agent.bind(("127.0.0.1", 0))
+    clock = [1.0]
+    response = VelocityResponse(time_constant_s=0.5, accel_limit_m_s2=2.0)
+    fleet = VehicleFleet(np.array([[0.0, 0.0, 3.0], [5.0, 0.0, 3.0]]), [np.zeros(3)] * 2,
+                         "ardupilot", host="127.0.0.1", base_port=agent.getsockname()[1],
+                         u_max_m_s=3.0, setpoint_timeout_s=3.0, clock=lambda: clock[0],
+                         start="ground", response=response)
+    try:
+        np.testing.assert_array_equal(fleet.positions_w, [[0.0, 0.0, 0.0], [5.0, 0.0, 0.0]])
+        for vehicle in fleet.vehicles:
+            assert vehicle.response is response and not vehicle.armed
+            assert vehicle.landed_state == mav.MAV_LANDED_STATE_ON_GROUND
+        second = Agent(target=2)
+        for message in (second.set_mode(4), second.arm(),
+                        second.command(mav.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 2.0)):
+            assert fleet.vehicles[1].receive(message, clock[0])
+        for _ in range(600):
+            clock[0] += 0.02
+            fleet.fly(0.02)
+        positions = fleet.positions_w
+        assert positions[0][2] == 0.0 and not fleet.vehicles[0].armed
+        assert positions[1][2] == pytest.approx(2.0, abs=0.1)
+        assert fleet.vehicles[1].landed_state == mav.MAV_LANDED_STATE_IN_AIR
+    finally:
+        fleet.close()
+        agent.close()

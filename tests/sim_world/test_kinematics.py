@@ -10,7 +10,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sim_world.kinematics import clamp_velocity, sample_initial_positions, step_drone
+from sim_world.kinematics import (
+    ARDUCOPTER_SITL_RESPONSE,
+    VelocityResponse,
+    clamp_velocity,
+    sample_initial_positions,
+    step_drone,
+    step_vehicle,
+)
 
 U_MAX = 3.0
 CENTER = np.array([0.0, 0.0, 3.5])  # SPEC §11 start box
@@ -154,3 +161,60 @@ def test_zero_drones_gives_an_empty_layout() -> None:
     positions = sample_initial_positions(0, CENTER, SIZE, 1.0, np.random.default_rng(0),
                                          max_tries=10)
     assert positions.shape == (0, 3)
+
+
+# -- velocity response (sim_world.kinematics.VelocityResponse) -----------------------------------
+
+vectors = st.lists(st.floats(-5, 5), min_size=3, max_size=3).map(np.array)
+
+
+@given(vectors, vectors)
+def test_the_ideal_response_is_the_command_itself_bit_for_bit(velocity: np.ndarray,
+                                                             command: np.ndarray) -> None:
+    position = np.array([1.0, -2.0, 3.0])
+    p, v = step_vehicle(position, velocity, command, U_MAX, 0.02, VelocityResponse())
+    assert np.array_equal(v, clamp_velocity(command, U_MAX))
+    assert np.array_equal(p, step_drone(position, command, U_MAX, 0.02))
+
+
+@given(vectors, vectors, st.floats(0.05, 2.0), st.floats(0.001, 0.1))
+def test_a_lag_is_the_exact_first_order_step(velocity: np.ndarray, command: np.ndarray,
+                                             tau: float, dt: float) -> None:
+    """Without an acceleration limit: v_(k+1) = u + (v_k − u)·e^(−ΔT/τ), the exact solution of
+    τ·v̇ = u − v over ΔT."""
+    v = VelocityResponse(time_constant_s=tau).step(velocity, command, dt)
+    np.testing.assert_allclose(v, command + (velocity - command) * math.exp(-dt / tau),
+                               rtol=0, atol=1e-12)
+
+
+@given(vectors, vectors, st.floats(0.0, 1.0), st.floats(0.1, 5.0), st.floats(0.001, 0.1))
+def test_the_acceleration_never_exceeds_the_limit(velocity: np.ndarray, command: np.ndarray,
+                                                  tau: float, limit: float, dt: float) -> None:
+    response = VelocityResponse(time_constant_s=tau, accel_limit_m_s2=limit)
+    v = response.step(velocity, command, dt)
+    # (v − v_k is read back through a rounded sum: allow the rounding of numbers of that size)
+    rounding = 8 * np.finfo(float).eps * (np.linalg.norm(velocity) + np.linalg.norm(command))
+    assert np.linalg.norm(v - velocity) <= limit * dt * (1 + 1e-12) + rounding
+    # and it moves toward the command, never past it
+    assert np.linalg.norm(command - v) <= np.linalg.norm(command - velocity) + rounding
+
+
+def test_a_step_command_is_followed_within_the_time_constant_and_the_limit() -> None:
+    response = ARDUCOPTER_SITL_RESPONSE
+    v, p = np.zeros(3), np.zeros(3)
+    speeds = []
+    for _ in range(250):  # 5 s at 50 Hz of 1 m/s east
+        p, v = step_vehicle(p, v, np.array([1.0, 0.0, 0.0]), U_MAX, 0.02, response)
+        speeds.append(v[0])
+    rate_limited = 1.0 / response.accel_limit_m_s2  # the time a pure rate limit would take
+    reached = 0.02 * (1 + next(k for k, s in enumerate(speeds) if s >= 1.0 - math.exp(-1)))
+    assert rate_limited * (1 - math.exp(-1)) <= reached <= rate_limited + response.time_constant_s
+    assert speeds[-1] == pytest.approx(1.0, abs=1e-3)
+
+
+@pytest.mark.parametrize("field, value", [("time_constant_s", -0.1),
+                                          ("accel_limit_m_s2", math.inf),
+                                          ("time_constant_s", math.nan)])
+def test_response_parameters_are_checked(field: str, value: float) -> None:
+    with pytest.raises(ValueError, match=field):
+        VelocityResponse(**{field: value})

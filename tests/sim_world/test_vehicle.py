@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import select
 import socket
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -28,7 +29,10 @@ DRONE = 2
 SYS = DRONE + 1
 ORIGIN = np.array([10.0, -20.0, 0.5])
 START = np.array([13.0, -16.0, 4.5])
-MASK = 0x0DC7
+MASK = 0x0DC7  # velocity only
+POSITION_MASK = 0x0DF8  # position only
+POSITION_VELOCITY_MASK = 0x0DC0  # position + velocity
+FULL_MASK = 0x0C00  # position + velocity + acceleration
 
 
 class _Sink:
@@ -59,6 +63,23 @@ class Agent:
         vn, ve, vd = frames.to_link_float(frames.enu_to_ned(vel_w))
         return self.pack(self.mav.set_position_target_local_ned_encode(
             stamp, target, comp, frame, mask, 0, 0, 0, vn, ve, vd, 0, 0, 0, 0, 0))
+
+    def position_setpoint(self, position_w: Any, vel_w: Any = None, accel_w: Any = None,
+                          stamp: int = 0, *, mask: int | None = None,
+                          origin: Any = ORIGIN) -> bytes:
+        """A setpoint with a position (W, sent in the vehicle's local NED frame), and a
+        velocity and an acceleration feed-forward if given; the mask says which are used."""
+        if mask is None:
+            mask = POSITION_MASK if vel_w is None else (
+                POSITION_VELOCITY_MASK if accel_w is None else FULL_MASK)
+        x, y, z = frames.to_link_float(frames.local_ned_from_world(position_w, origin))
+        vn, ve, vd = frames.to_link_float(frames.enu_to_ned([0, 0, 0] if vel_w is None
+                                                            else vel_w))
+        an, ae, ad = frames.to_link_float(frames.enu_to_ned([0, 0, 0] if accel_w is None
+                                                            else accel_w))
+        return self.pack(self.mav.set_position_target_local_ned_encode(
+            stamp, self.target, 1, mav.MAV_FRAME_LOCAL_NED, mask, x, y, z, vn, ve, vd,
+            an, ae, ad, 0, 0))
 
     def command(self, command: int, *params: float, target: int | None = None) -> bytes:
         target = self.target if target is None else target
@@ -94,21 +115,45 @@ def make(flavour: str, **kw: Any) -> EmulatedVehicle:
     return EmulatedVehicle(DRONE, flavour, START, ORIGIN, **kw)  # type: ignore[arg-type]
 
 
-def px4_offboard_armed(agent: Agent, t: float = 10.0) -> EmulatedVehicle:
-    v = make("px4")
+DT = 0.02
+
+
+def fly(v: EmulatedVehicle, t0: float, seconds: float, dt: float = DT,
+        each: Callable[[float], object] | None = None) -> float:
+    """``v.fly(dt, now)`` for ``seconds`` from ``t0`` (now = t0 + k·dt, k = 1, 2, ...;
+    ``each(now)`` first at every step, e.g. to send a setpoint); returns the last now."""
+    now = t0
+    for k in range(1, round(seconds / dt) + 1):
+        now = t0 + k * dt
+        if each is not None:
+            each(now)
+        v.fly(dt, now)
+    return now
+
+
+def px4_offboard_armed(agent: Agent, t: float = 10.0, **kw: Any) -> EmulatedVehicle:
+    """A px4 vehicle started in the air (armed, Hold), switched to OFFBOARD by a setpoint
+    stream."""
+    v = make("px4", **kw)
+    assert v.armed and v.mode == "LOITER" and v.landed_state == mav.MAV_LANDED_STATE_IN_AIR
     v.receive(agent.setpoint(), t - 0.2)
     v.receive(agent.setpoint(), t - 0.1)
     assert acks(v.receive(agent.set_mode(6), t)) == [(176, mav.MAV_RESULT_ACCEPTED)]
-    assert acks(v.receive(agent.arm(), t)) == [(400, mav.MAV_RESULT_ACCEPTED)]
+    assert acks(v.receive(agent.arm(), t)) == [(400, mav.MAV_RESULT_ACCEPTED)]  # already
+    assert v.mode == "OFFBOARD" and v.accepting_setpoints
     return v
 
 
-def ardupilot_flying(agent: Agent, t: float = 10.0) -> EmulatedVehicle:
-    v = make("ardupilot")
-    assert acks(v.receive(agent.set_mode(4), t))[0][1] == mav.MAV_RESULT_ACCEPTED
-    assert acks(v.receive(agent.arm(), t))[0][1] == mav.MAV_RESULT_ACCEPTED
+def ardupilot_flying(agent: Agent, t: float = 10.0, **kw: Any) -> EmulatedVehicle:
+    """An ardupilot vehicle started in the air: GUIDED, armed, hovering, taking setpoints
+    (a takeoff there is FAILED, as on the real one)."""
+    v = make("ardupilot", **kw)
+    assert acks(v.receive(agent.set_mode(4), t)) == [(176, mav.MAV_RESULT_ACCEPTED)]
+    assert acks(v.receive(agent.arm(), t)) == [(400, mav.MAV_RESULT_ACCEPTED)]
     assert acks(v.receive(agent.command(mav.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 4.0), t)) \
-        == [(22, mav.MAV_RESULT_ACCEPTED)]
+        == [(22, mav.MAV_RESULT_FAILED)]
+    assert v.mode == "GUIDED" and v.armed and v.airborne and v.accepting_setpoints
+    assert v.landed_state == mav.MAV_LANDED_STATE_IN_AIR
     return v
 
 
@@ -118,7 +163,7 @@ def ardupilot_flying(agent: Agent, t: float = 10.0) -> EmulatedVehicle:
     ("ardupilot", mav.MAV_AUTOPILOT_ARDUPILOTMEGA, "STABILIZE", 0),
 ])
 def test_heartbeat_contents(flavour: str, autopilot: int, mode: str, custom: int) -> None:
-    v = make(flavour)
+    v = make(flavour, start="ground")
     (hb,) = parse([v.heartbeat()])
     assert hb.get_type() == "HEARTBEAT"
     assert (hb.get_srcSystem(), hb.get_srcComponent()) == (SYS, 1)
@@ -131,6 +176,34 @@ def test_heartbeat_contents(flavour: str, autopilot: int, mode: str, custom: int
     assert hb.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED
     assert hb.base_mode & mav.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
     assert hb.system_status == mav.MAV_STATE_ACTIVE
+    assert mavutil.mode_string_v10(hb) == mode  # arming changes no mode
+
+
+@pytest.mark.parametrize(("flavour", "mode", "custom"), [
+    ("px4", "LOITER", (4 << 16) | (3 << 24)), ("ardupilot", "GUIDED", 4)])
+def test_air_start_is_armed_and_hovering(flavour: str, mode: str, custom: int) -> None:
+    v = make(flavour)
+    (hb,) = parse([v.heartbeat()])
+    assert hb.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED
+    assert hb.system_status == mav.MAV_STATE_ACTIVE and hb.custom_mode == custom
+    assert mavutil.mode_string_v10(hb) == v.mode == mode
+    assert v.armed and v.airborne and v.landed_state == mav.MAV_LANDED_STATE_IN_AIR
+    np.testing.assert_array_equal(v.position_w, START)
+    (es,) = of_type(v.telemetry(0, 0.0), "EXTENDED_SYS_STATE")
+    assert es.landed_state == mav.MAV_LANDED_STATE_IN_AIR
+
+
+@pytest.mark.parametrize(("flavour", "mode"), [("px4", "LOITER"), ("ardupilot", "STABILIZE")])
+def test_ground_start_is_disarmed_on_the_ground_below_the_start(flavour: str,
+                                                                 mode: str) -> None:
+    v = make(flavour, start="ground")
+    assert not v.armed and not v.airborne and v.mode == mode
+    assert v.landed_state == mav.MAV_LANDED_STATE_ON_GROUND
+    np.testing.assert_array_equal(v.position_w, [START[0], START[1], ORIGIN[2]])
+    assert v.ground_z_m == ORIGIN[2]
+    (lp,) = of_type(v.receive(Agent().command(512, mav.MAVLINK_MSG_ID_LOCAL_POSITION_NED),
+                              1.0), "LOCAL_POSITION_NED")
+    assert (lp.x, lp.y, lp.z) == (4.0, 3.0, 0.0)  # at home height: the NED origin's
 
 
 def test_heartbeat_reports_offboard_and_guided() -> None:
@@ -144,7 +217,7 @@ def test_heartbeat_reports_offboard_and_guided() -> None:
 # ---------------------------------------------------------------- commands
 @pytest.mark.parametrize("flavour", ["px4", "ardupilot"])
 def test_arm_disarm_acks_and_immediate_heartbeat(flavour: str) -> None:
-    v, a = make(flavour), Agent()
+    v, a = make(flavour, start="ground"), Agent()
     replies = v.receive(a.arm(), 1.0)
     (ack,) = of_type(replies, "COMMAND_ACK")
     assert (ack.command, ack.result) == (400, mav.MAV_RESULT_ACCEPTED)
@@ -153,42 +226,98 @@ def test_arm_disarm_acks_and_immediate_heartbeat(flavour: str) -> None:
     assert hb.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED and v.armed
     assert acks(v.receive(a.arm(), 1.1)) == [(400, mav.MAV_RESULT_ACCEPTED)]  # idempotent
     assert of_type(v.receive(a.arm(), 1.2), "HEARTBEAT") == []  # no change, no extra HB
-    assert acks(v.receive(a.arm(False), 1.3)) == [(400, mav.MAV_RESULT_ACCEPTED)]
-    assert not v.armed
+    replies = v.receive(a.arm(False), 1.3)  # on the ground: accepted
+    assert acks(replies) == [(400, mav.MAV_RESULT_ACCEPTED)]
+    (hb,) = of_type(replies, "HEARTBEAT")
+    assert not hb.base_mode & mav.MAV_MODE_FLAG_SAFETY_ARMED and not v.armed
     assert acks(v.receive(a.command(400, 7.0), 1.4)) == [(400, mav.MAV_RESULT_DENIED)]
+    assert not v.armed
 
 
+@pytest.mark.parametrize("start", ["air", "ground"])
 @pytest.mark.parametrize(("flavour", "params", "mode"), [
-    ("px4", (1, 3, 0), "POSCTL"), ("px4", (1, 4, 3), "LOITER"),
+    ("px4", (1, 4, 3), "LOITER"), ("px4", (1, 4, 6), "LAND"), ("px4", (1, 4, 5), "RTL"),
+    ("px4", (1, 4, 2), "TAKEOFF"),
     ("ardupilot", (1, 4), "GUIDED"), ("ardupilot", (1, 5), "LOITER"),
-    ("ardupilot", (1 | 128, 17), "BRAKE"),
+    ("ardupilot", (1 | 128, 17), "BRAKE"), ("ardupilot", (1, 9), "LAND"),
+    ("ardupilot", (1, 6), "RTL"), ("ardupilot", (1, 0), "STABILIZE"),
 ])
-def test_set_mode_accepted(flavour: str, params: tuple[int, ...], mode: str) -> None:
-    v = make(flavour)
+def test_set_mode_accepted(flavour: str, params: tuple[int, ...], mode: str,
+                           start: str) -> None:
+    v = make(flavour, start=start)
+    armed = v.armed
     assert acks(v.receive(Agent().command(176, *params), 1.0)) == [(176, 0)]
-    assert v.mode == mode
+    assert v.mode == mode and v.armed == armed  # a mode change never arms nor disarms
     (hb,) = parse([v.heartbeat()])
     assert mavutil.mode_string_v10(hb) == mode
 
 
-@pytest.mark.parametrize(("flavour", "params"), [
-    ("px4", (1, 9, 0)), ("px4", (0, 3, 0)), ("px4", (1, 4, 7)),
-    ("ardupilot", (1, 3)), ("ardupilot", (0, 4)), ("ardupilot", (1, float("nan"))),
+@pytest.mark.parametrize("start", ["air", "ground"])
+def test_px4_posctl_rejected_without_manual_control(start: str) -> None:
+    v = make("px4", start=start)
+    assert acks(v.receive(Agent().set_mode(3), 1.0)) \
+        == [(176, mav.MAV_RESULT_TEMPORARILY_REJECTED)]
+    assert v.mode == "LOITER"
+
+
+@pytest.mark.parametrize("start", ["air", "ground"])
+@pytest.mark.parametrize(("flavour", "params", "result"), [
+    ("px4", (1, 9, 0), mav.MAV_RESULT_DENIED),  # unknown main mode
+    ("px4", (0, 3, 0), mav.MAV_RESULT_DENIED),  # no CUSTOM_MODE_ENABLED
+    ("px4", (1, 4, 7), mav.MAV_RESULT_DENIED),  # unknown AUTO sub mode
+    ("px4", (1, float("nan"), 0), mav.MAV_RESULT_DENIED),
+    ("ardupilot", (0, 4), mav.MAV_RESULT_DENIED),
+    ("ardupilot", (1, float("nan")), mav.MAV_RESULT_DENIED),
+    ("ardupilot", (1, 99), mav.MAV_RESULT_FAILED),  # no such mode number (measured)
 ])
-def test_set_mode_denied(flavour: str, params: tuple[float, ...]) -> None:
-    v = make(flavour)
-    mode = v.mode
-    assert acks(v.receive(Agent().command(176, *params), 1.0)) == [(176, mav.MAV_RESULT_DENIED)]
-    assert v.mode == mode
+def test_set_mode_refused(flavour: str, params: tuple[float, ...], result: int,
+                          start: str) -> None:
+    v = make(flavour, start=start)
+    mode, armed = v.mode, v.armed
+    assert acks(v.receive(Agent().command(176, *params), 1.0)) == [(176, result)]
+    assert (v.mode, v.armed) == (mode, armed)
+
+
+def test_ardupilot_auto_without_a_mission() -> None:
+    """AUTO (no mission) is FAILED armed, accepted disarmed, and then not armable."""
+    a = Agent()
+    v = make("ardupilot")
+    replies = v.receive(a.set_mode(3), 1.0)
+    assert acks(replies) == [(176, mav.MAV_RESULT_FAILED)] and v.mode == "GUIDED"
+    assert [m.text for m in of_type(replies, "STATUSTEXT")] \
+        == ["Mode change to AUTO failed: no mission"]
+    v = make("ardupilot", start="ground")
+    assert acks(v.receive(a.set_mode(3), 1.0)) == [(176, mav.MAV_RESULT_ACCEPTED)]
+    assert v.mode == "AUTO"
+    replies = v.receive(a.arm(), 1.1)
+    assert acks(replies) == [(400, mav.MAV_RESULT_FAILED)] and not v.armed
+    assert [m.text for m in of_type(replies, "STATUSTEXT")] == ["Arm: Mode requires mission"]
+
+
+@pytest.mark.parametrize(("mode", "number"), [("LAND", 9), ("RTL", 6), ("BRAKE", 17)])
+def test_ardupilot_refuses_to_arm_in_a_mode_that_is_not_armable(mode: str,
+                                                                 number: int) -> None:
+    a = Agent()
+    v = make("ardupilot", start="ground")
+    assert acks(v.receive(a.set_mode(number), 1.0)) == [(176, 0)] and v.mode == mode
+    replies = v.receive(a.arm(), 1.1)
+    assert acks(replies) == [(400, mav.MAV_RESULT_FAILED)] and not v.armed
+    assert [m.text for m in of_type(replies, "STATUSTEXT")] == [f"Arm: {mode} mode not armable"]
+    assert of_type(replies, "HEARTBEAT") == []  # nothing changed
 
 
 def test_legacy_set_mode_message_is_acked_with_its_message_id() -> None:
-    v, a = make("ardupilot"), Agent()
+    v, a = make("ardupilot", start="ground"), Agent()
     replies = v.receive(a.pack(a.mav.set_mode_encode(SYS, 1, 4)), 1.0)
     assert acks(replies) == [(mav.MAVLINK_MSG_ID_SET_MODE, 0)] and v.mode == "GUIDED"
+    assert len(of_type(replies, "HEARTBEAT")) == 1  # the mode changed
     v = make("px4")
-    replies = v.receive(a.pack(a.mav.set_mode_encode(SYS, 1, 3 << 16)), 1.0)
-    assert acks(replies) == [(11, 0)] and v.mode == "POSCTL"
+    replies = v.receive(a.pack(a.mav.set_mode_encode(SYS, 1, (4 << 16) | (6 << 24))), 1.0)
+    assert acks(replies) == [(11, 0)] and v.mode == "LAND"
+    replies = v.receive(a.pack(a.mav.set_mode_encode(SYS, 1, 3 << 16)), 1.1)
+    assert acks(replies) == [(11, mav.MAV_RESULT_TEMPORARILY_REJECTED)] and v.mode == "LAND"
+    replies = v.receive(a.pack(a.mav.set_mode_encode(SYS, 0, 4 << 16)), 1.2)  # no custom flag
+    assert acks(replies) == [(11, mav.MAV_RESULT_DENIED)] and v.mode == "LAND"
 
 
 def test_command_int_is_handled_like_command_long() -> None:
@@ -204,7 +333,7 @@ def test_unknown_command_is_unsupported() -> None:
 
 
 def test_request_message_autopilot_version_params_mission_timesync() -> None:
-    for flavour, param, value in (("px4", "COM_OF_LOSS_T", 0.5),
+    for flavour, param, value in (("px4", "COM_OF_LOSS_T", 1.0),
                                   ("ardupilot", "GUID_TIMEOUT", 3.0)):
         v, a = make(flavour), Agent()
         replies = v.receive(a.command(512, mav.MAVLINK_MSG_ID_AUTOPILOT_VERSION), 1.0)
@@ -215,10 +344,15 @@ def test_request_message_autopilot_version_params_mission_timesync() -> None:
         assert acks(v.receive(a.command(512, 12345), 1.0)) == [(512, mav.MAV_RESULT_DENIED)]
         assert of_type(v.receive(a.command(520), 1.0), "AUTOPILOT_VERSION")
 
-        (pv,) = of_type(v.receive(a.pack(a.mav.param_request_list_encode(SYS, 1)), 1.0),
-                        "PARAM_VALUE")
+        values = of_type(v.receive(a.pack(a.mav.param_request_list_encode(SYS, 1)), 1.0),
+                         "PARAM_VALUE")
+        pv = values[0]  # the setpoint timeout first
         assert (pv.param_id, pv.param_value, pv.param_count, pv.param_index) == (param, value,
-                                                                                1, 0)
+                                                                                8, 0)
+        assert [m.param_id for m in values] == list(v.params)
+        assert [(m.param_count, m.param_index) for m in values] == [(8, i) for i in range(8)]
+        assert [m.param_value for m in values] \
+            == [float(np.float32(x)) for x in v.params.values()]  # a float field on the link
         set_msg = a.mav.param_set_encode(SYS, 1, param.encode(), 1.5, mav.MAV_PARAM_TYPE_REAL32)
         (pv,) = of_type(v.receive(a.pack(set_msg), 1.0), "PARAM_VALUE")
         assert pv.param_value == 1.5 and v.setpoint_timeout_s == 1.5
@@ -248,36 +382,66 @@ def test_px4_offboard_denied_without_streaming_setpoints() -> None:
 
 
 def test_px4_offboard_accepted_when_streaming_and_setpoint_applied_when_armed() -> None:
-    v, a = make("px4"), Agent()
+    v, a = make("px4", start="ground"), Agent()
     u = np.array([1.0, -2.0, 0.5])
     v.receive(a.setpoint(u), 1.0)
     v.receive(a.setpoint(u), 1.1)
     assert v.setpoints_streaming(1.2)
     assert acks(v.receive(a.set_mode(6), 1.2)) == [(176, 0)] and v.in_setpoint_mode
     np.testing.assert_array_equal(v.commanded_velocity_w(1.2), 0.0)  # disarmed
-    v.receive(a.arm(), 1.25)
+    assert not v.accepting_setpoints
+    assert acks(v.receive(a.arm(), 1.25)) == [(400, 0)]
+    assert v.accepting_setpoints  # px4 takes setpoints on the ground too
     np.testing.assert_array_equal(v.commanded_velocity_w(1.3), frames.velocity_over_link(u))
 
 
-def test_px4_setpoint_loss_failsafe_switches_to_hold() -> None:
+def test_px4_offboard_while_disarmed_without_setpoints_then_arming_waits_for_them() -> None:
+    """Measured: DO_SET_MODE OFFBOARD without a setpoint stream is ACCEPTED while disarmed;
+    arming is then TEMPORARILY_REJECTED until setpoints stream."""
+    v, a = make("px4", start="ground"), Agent()
+    assert acks(v.receive(a.set_mode(6), 1.0)) == [(176, mav.MAV_RESULT_ACCEPTED)]
+    assert v.mode == "OFFBOARD"
+    assert acks(v.receive(a.arm(), 1.1)) == [(400, mav.MAV_RESULT_TEMPORARILY_REJECTED)]
+    v.receive(a.setpoint(), 1.2)
+    assert acks(v.receive(a.arm(), 1.25)) == [(400, mav.MAV_RESULT_TEMPORARILY_REJECTED)]
+    v.receive(a.setpoint(), 1.3)
+    assert acks(v.receive(a.arm(), 1.35)) == [(400, mav.MAV_RESULT_ACCEPTED)] and v.armed
+    assert v.mode == "OFFBOARD" and not v.failsafe_active
+
+
+def test_px4_setpoint_loss_failsafe_holds_and_setpoints_bring_offboard_back() -> None:
     a = Agent()
     v = px4_offboard_armed(a, t=10.0)
+    assert v.setpoint_timeout_s == 1.0  # COM_OF_LOSS_T
     u = np.array([2.0, 1.0, -0.5])
     v.receive(a.setpoint(u), 10.0)
-    np.testing.assert_array_equal(v.commanded_velocity_w(10.5), frames.velocity_over_link(u))
+    np.testing.assert_array_equal(v.commanded_velocity_w(11.0), frames.velocity_over_link(u))
     assert not v.failsafe_active and v.mode == "OFFBOARD"
-    np.testing.assert_array_equal(v.commanded_velocity_w(10.5001), 0.0)
+    np.testing.assert_array_equal(v.commanded_velocity_w(11.0001), 0.0)
     assert v.failsafe_active and v.mode == "LOITER" and v.failsafe_events == 1
-    assert not v.accepting_setpoints
+    assert not v.accepting_setpoints and v.armed
     (hb,) = parse([v.heartbeat()])
     assert mavutil.mode_string_v10(hb) == "LOITER" and hb.custom_mode >> 16 & 0xFF == 4
-    # setpoints alone do not bring OFFBOARD back; a new mode request does
-    v.receive(a.setpoint(u), 11.0)
-    v.receive(a.setpoint(u), 11.05)
-    np.testing.assert_array_equal(v.commanded_velocity_w(11.05), 0.0)
-    assert acks(v.receive(a.set_mode(6), 11.1)) == [(176, 0)]
+    # one setpoint is no stream yet; a stream brings OFFBOARD back by itself (measured)
+    v.receive(a.setpoint(u), 12.0)
+    np.testing.assert_array_equal(v.commanded_velocity_w(12.0), 0.0)
+    assert v.mode == "LOITER"
+    v.receive(a.setpoint(u), 12.05)
+    assert v.mode == "OFFBOARD" and not v.failsafe_active and v.accepting_setpoints
+    np.testing.assert_array_equal(v.commanded_velocity_w(12.05), frames.velocity_over_link(u))
+    (hb,) = parse([v.heartbeat()])
+    assert mavutil.mode_string_v10(hb) == "OFFBOARD"
+    # lost again; a mode commanded meanwhile wins: the stream no longer brings OFFBOARD back
+    np.testing.assert_array_equal(v.commanded_velocity_w(13.1), 0.0)
+    assert v.failsafe_active and v.mode == "LOITER" and v.failsafe_events == 2
+    assert acks(v.receive(a.set_mode(4, 3), 13.2)) == [(176, 0)]
     assert not v.failsafe_active
-    np.testing.assert_array_equal(v.commanded_velocity_w(11.1), frames.velocity_over_link(u))
+    v.receive(a.setpoint(u), 13.3)
+    v.receive(a.setpoint(u), 13.35)
+    np.testing.assert_array_equal(v.commanded_velocity_w(13.4), 0.0)
+    assert v.mode == "LOITER"
+    assert acks(v.receive(a.set_mode(6), 13.4)) == [(176, 0)]  # streaming: accepted
+    np.testing.assert_array_equal(v.commanded_velocity_w(13.4), frames.velocity_over_link(u))
 
 
 def test_ardupilot_setpoint_loss_failsafe_stops_but_stays_guided() -> None:
@@ -288,25 +452,39 @@ def test_ardupilot_setpoint_loss_failsafe_stops_but_stays_guided() -> None:
     np.testing.assert_array_equal(v.commanded_velocity_w(13.0), frames.velocity_over_link(u))
     np.testing.assert_array_equal(v.commanded_velocity_w(13.0001), 0.0)
     assert v.failsafe_active and v.mode == "GUIDED" and v.failsafe_events == 1
-    assert not v.accepting_setpoints
+    assert not v.accepting_setpoints and v.armed
     v.receive(a.setpoint(u), 14.0)  # the next setpoint resumes
     assert not v.failsafe_active
     np.testing.assert_array_equal(v.commanded_velocity_w(14.0), frames.velocity_over_link(u))
 
 
-def test_setpoint_timeout_is_configurable() -> None:
-    v = EmulatedVehicle(0, "ardupilot", START, ORIGIN, setpoint_timeout_s=0.2)
-    assert v.system_id == 1
+def test_ardupilot_position_only_setpoints_never_time_out() -> None:
+    a = Agent()
+    v = ardupilot_flying(a, t=10.0)
+    v.receive(a.position_setpoint(START + np.array([5.0, 0.0, 0.0])), 10.0)
+    assert v.commanded_velocity_w(10.0)[0] > 0.0
+    assert v.commanded_velocity_w(100.0)[0] > 0.0  # the vehicle has not moved: still going
+    assert not v.failsafe_active and v.failsafe_events == 0
+
+
+@pytest.mark.parametrize(("flavour", "param"), [("ardupilot", "GUID_TIMEOUT"),
+                                                ("px4", "COM_OF_LOSS_T")])
+def test_setpoint_timeout_is_configurable(flavour: str, param: str) -> None:
+    v = EmulatedVehicle(0, flavour, START, ORIGIN, setpoint_timeout_s=0.2)  # type: ignore[arg-type]
+    assert v.system_id == 1 and v.params[param] == 0.2
     b = Agent(sysid=1, target=1)
-    for msg in (b.set_mode(4), b.arm(), b.command(22, 0, 0, 0, 0, 0, 0, 3.0)):
-        assert acks(v.receive(msg, 1.0))[0][1] == 0
+    if flavour == "px4":
+        v.receive(b.setpoint(), 0.9)
+        v.receive(b.setpoint(), 0.95)
+        assert acks(v.receive(b.set_mode(6), 1.0)) == [(176, 0)]
+    assert acks(v.receive(b.arm(), 1.0)) == [(400, 0)]
     v.receive(b.setpoint([1, 0, 0]), 1.0)
     assert v.commanded_velocity_w(1.2)[0] == 1.0
-    assert v.commanded_velocity_w(1.2001)[0] == 0.0
+    assert v.commanded_velocity_w(1.2001)[0] == 0.0 and v.failsafe_active
 
 
 def test_ardupilot_ignores_setpoints_before_guided_armed_takeoff() -> None:
-    v, a = make("ardupilot"), Agent()
+    v, a = make("ardupilot", start="ground"), Agent()
     u = np.array([1.0, 1.0, 0.0])
 
     def applied(t: float) -> np.ndarray:
@@ -322,19 +500,25 @@ def test_ardupilot_ignores_setpoints_before_guided_armed_takeoff() -> None:
     np.testing.assert_array_equal(applied(1.4), 0.0)  # GUIDED, armed, on the ground
     assert v.ignored_setpoints == 3 and v.accepted_setpoints == 0
     assert not v.accepting_setpoints
-    # the world spawns vehicles at altitude: takeoff is accepted at once and does not move it
+    assert acks(v.receive(a.command(22, 0, 0, 0, 0, 0, 0, 0.0), 1.5)) == [(22, 4)]  # 0 m
     assert acks(v.receive(a.command(22, 0, 0, 0, 0, 0, 0, 4.0), 1.5)) == [(22, 0)]
-    np.testing.assert_array_equal(v.position_w, START)
+    t = fly(v, 1.5, 4.0)  # the spool-up, the start of the climb: no setpoint meanwhile
     assert v.airborne and v.accepting_setpoints
-    np.testing.assert_array_equal(v.commanded_velocity_w(1.5), 0.0)  # old ones were dropped
-    np.testing.assert_array_equal(applied(1.6), frames.velocity_over_link(u))
-    v.receive(a.set_mode(5), 1.7)  # LOITER: not the setpoint mode
-    np.testing.assert_array_equal(applied(1.8), 0.0)
-    v.receive(a.set_mode(4), 1.9)
-    np.testing.assert_array_equal(applied(2.0), frames.velocity_over_link(u))
-    v.receive(a.arm(False), 2.1)  # disarm = landed: a new takeoff is needed
-    v.receive(a.arm(), 2.2)
-    np.testing.assert_array_equal(applied(2.3), 0.0)
+    np.testing.assert_array_equal(v.commanded_velocity_w(t), 0.0)  # old ones were dropped
+    np.testing.assert_array_equal(applied(t + 0.1), frames.velocity_over_link(u))
+    assert v.landed_state == mav.MAV_LANDED_STATE_IN_AIR  # the setpoint ended the takeoff
+    v.receive(a.set_mode(5), t + 0.2)  # LOITER: not the setpoint mode
+    np.testing.assert_array_equal(applied(t + 0.3), 0.0)
+    v.receive(a.set_mode(4), t + 0.4)
+    np.testing.assert_array_equal(applied(t + 0.5), frames.velocity_over_link(u))
+    # landed (and disarmed): a new takeoff is needed
+    assert acks(v.receive(a.set_mode(9), t + 0.6)) == [(176, 0)]
+    t = fly(v, t + 0.6, 30.0)
+    assert not v.armed and not v.airborne
+    v.receive(a.set_mode(4), t)
+    v.receive(a.arm(), t)
+    assert v.armed
+    np.testing.assert_array_equal(applied(t + 0.1), 0.0)
     assert v.rejected_frames == 0
 
 
@@ -396,9 +580,12 @@ def test_velocity_only_masks_accepted(mask: int) -> None:
 
 
 @pytest.mark.parametrize(("kw", "reason"), [
-    ({"mask": 0x0DF8}, "setpoint_type_mask"),  # position only
-    ({"mask": 0x0DC0}, "setpoint_type_mask"),  # position and velocity
     ({"mask": 0x0C07}, "setpoint_type_mask"),  # velocity and acceleration
+    ({"mask": 0x0C3F}, "setpoint_type_mask"),  # acceleration only
+    ({"mask": 0x0C38}, "setpoint_type_mask"),  # position and acceleration
+    ({"mask": 0x0DFF}, "setpoint_type_mask"),  # nothing
+    ({"mask": 0x0DF9}, "setpoint_type_mask"),  # x ignored, y and z used
+    ({"mask": 0x0FF8}, "setpoint_type_mask"),  # position only with the force bit
     ({"mask": 0x0FC7}, "setpoint_type_mask"),  # force bit
     ({"mask": 0x0DCF}, "setpoint_type_mask"),  # vx ignored
     ({"mask": 0x1DC7}, "setpoint_type_mask"),  # undefined bit
@@ -444,7 +631,7 @@ def test_garbage_truncated_and_corrupted_frames_counted_and_dropped() -> None:
     bad_crc = bytearray(a.setpoint([0.0, 2.0, 0.0]))
     bad_crc[-1] ^= 0xFF
     assert v.receive(bytes(bad_crc), 10.04) == []
-    flipped = bytearray(a.arm(False))
+    flipped = bytearray(a.set_mode(4, 3))  # LOITER, if it were taken
     flipped[12] ^= 0x01  # payload bit flip: CRC no longer matches
     assert v.receive(bytes(flipped), 10.05) == []
     assert v.receive(b"", 10.06) == []
@@ -456,18 +643,19 @@ def test_garbage_truncated_and_corrupted_frames_counted_and_dropped() -> None:
     assert v.rejections["truncated"] >= 1 and v.rejections["bad_data"] >= 2
     assert v.rejections["unknown_message"] == 1
     assert not any(k.startswith(("handler_error", "parser_error")) for k in v.rejections)
-    # the vehicle still works, and a valid packet after junk in one datagram is applied
-    replies = v.receive(b"\x00\x01junk" + a.setpoint([0.0, 0.0, 1.0]) + a.arm(False), 10.1)
-    assert acks(replies) == [(400, 0)] and not v.armed
+    # the vehicle still works, and valid packets after junk in one datagram are applied
+    replies = v.receive(b"\x00\x01junk" + a.setpoint([0.0, 0.0, 1.0]) + a.set_mode(4, 3),
+                        10.1)
+    assert acks(replies) == [(176, 0)] and v.mode == "LOITER" and v.accepted_setpoints == 4
 
 
 def test_stream_framing_completes_packets_across_calls() -> None:
     a = Agent()
     packet = a.arm()
-    datagram = make("px4")
+    datagram = make("px4", start="ground")
     assert datagram.receive(packet[:9], 1.0) == [] and datagram.rejections == {"truncated": 1}
     assert datagram.receive(packet[9:], 1.0) == [] and not datagram.armed
-    stream = make("px4", datagram_framing=False)
+    stream = make("px4", start="ground", datagram_framing=False)
     assert stream.receive(packet[:9], 1.0) == []
     assert acks(stream.receive(packet[9:], 1.0)) == [(400, 0)] and stream.armed
     assert stream.rejected_frames == 0
@@ -476,7 +664,7 @@ def test_stream_framing_completes_packets_across_calls() -> None:
 @settings(max_examples=300, deadline=None)
 @given(st.binary(max_size=400), st.sampled_from(["px4", "ardupilot"]))
 def test_arbitrary_bytes_never_raise(data: bytes, flavour: str) -> None:
-    v = make(flavour)
+    v = make(flavour, start="ground")
     v.receive(data, 1.0)
     v.receive(data + Agent().arm() + data, 1.1)
     assert acks(v.receive(Agent().arm(False), 1.2)) == [(400, 0)]
@@ -582,7 +770,7 @@ def test_request_data_stream_ardupilot_only_and_explicit_interval_wins() -> None
 
 def test_extended_sys_state_and_sys_status() -> None:
     a = Agent()
-    v = make("ardupilot")
+    v = make("ardupilot", start="ground")
     (es,) = of_type(v.telemetry(0, 0.0), "EXTENDED_SYS_STATE")
     assert es.landed_state == mav.MAV_LANDED_STATE_ON_GROUND
     v = ardupilot_flying(a)
@@ -642,7 +830,21 @@ def test_constructor_validation() -> None:
         EmulatedVehicle(254, "px4", START, ORIGIN)
     with pytest.raises(ValueError, match="setpoint_timeout_s"):
         EmulatedVehicle(0, "px4", START, ORIGIN, setpoint_timeout_s=0.0)
-    assert make("px4").setpoint_timeout_s == 0.5 and make("ardupilot").setpoint_timeout_s == 3.0
+    with pytest.raises(ValueError, match="u_max_m_s"):
+        EmulatedVehicle(0, "px4", START, ORIGIN, u_max_m_s=float("inf"))
+    with pytest.raises(ValueError, match="start"):
+        EmulatedVehicle(0, "px4", START, ORIGIN, start="hover")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="ground"):  # in the air, but not above the ground
+        EmulatedVehicle(0, "ardupilot", [START[0], START[1], ORIGIN[2]], ORIGIN)
+    with pytest.raises(ValueError, match="response"):
+        EmulatedVehicle(0, "px4", START, ORIGIN, response=0.5)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="finite"):
+        EmulatedVehicle(0, "px4", [0.0, float("nan"), 3.0], ORIGIN)
+    # the firmware's defaults: COM_OF_LOSS_T, GUID_TIMEOUT
+    assert make("px4").setpoint_timeout_s == 1.0 and make("ardupilot").setpoint_timeout_s == 3.0
+    # "ground" takes the x, y of any position: z is the ground's
+    v = EmulatedVehicle(0, "px4", [1.0, 2.0, -7.0], ORIGIN, start="ground")
+    np.testing.assert_array_equal(v.position_w, [1.0, 2.0, ORIGIN[2]])
 
 
 # ---------------------------------------------------------------- UDP endpoint
