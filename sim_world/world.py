@@ -236,7 +236,10 @@ class World:
         fleet = self.fleet
         assert fleet is not None
         start_ms = self.boot_ms() + MISSION_TIME_OFFSET_MS
-        start_s = self.now_s()  # the failsafe clock continues from wall time, without a jump
+        # The vehicles' clock continues from wall time, one step on: a stream the agent asked
+        # for at the step's rate (LOCAL_POSITION_NED at 50 Hz) is then due at step 0 whenever
+        # its last pre-mission sample went out, and at every step after it.
+        start_s = self.now_s() + self.dt_s
         fleet.arrival_times = False  # sim time from here: waiting for a setpoint is not time
         timeout = self.options.config.runtime.lockstep_timeout_s
         for k in range(self.options.config.n_steps):

@@ -3,17 +3,19 @@
 MAVSDK-Python 4.x is a native binding of the MAVSDK C++ core (``mavsdk.asyncio``; no
 mavsdk_server), so this is the same MAVLink client code that flies real PX4 and ArduPilot
 vehicles. For each flavour a real ``sim-world`` process serves a 2-drone scenario
-(tests/configs/case1_two_<flavour>.toml); MAVSDK listens where vehicle 0 (system id 1) sends
-(``udpin://127.0.0.1:<base>``), reads its LOCAL_POSITION_NED through the telemetry plugin, arms,
-starts offboard and flies a NED velocity setpoint. Vehicle 1 is never armed, so the mission never
-starts and the world keeps serving the vehicles in its pre-mission loop, where an armed vehicle
-moves with its commanded velocity over wall-clock time.
+(tests/configs/case1_two_<flavour>.toml, vehicles on the ground, realtime); MAVSDK listens where
+vehicle 0 (system id 1) sends (``udpin://127.0.0.1:<base>``), reads its LOCAL_POSITION_NED
+through the telemetry plugin, arms, takes off, starts offboard, flies a NED velocity setpoint,
+stops offboard and lands (the vehicle then disarms itself). Vehicle 1 is never armed, so the
+mission never starts and the world keeps serving the vehicles in its pre-mission loop, where
+they fly themselves over wall-clock time.
 
 What MAVSDK does per flavour (seen on the wire, MAVSDK 4.1):
-- PX4: ARM (400); offboard ``start()`` needs a setpoint first (PX4 refuses OFFBOARD without
+- PX4: ARM (400); ``Action.takeoff()`` is NAV_TAKEOFF (AUTO.TAKEOFF, then Hold); offboard
+  ``start()`` needs a setpoint first (PX4 refuses OFFBOARD without
   streaming setpoints, and so does the emulator), then DO_SET_MODE(129, main mode 6 OFFBOARD);
   setpoints are SET_POSITION_TARGET_LOCAL_NED, MAV_FRAME_LOCAL_NED, type_mask 0x09C7 at 20 Hz;
-  ``stop()`` is DO_SET_MODE AUTO.LOITER (Hold).
+  ``stop()`` is DO_SET_MODE AUTO.LOITER (Hold); ``Action.land()`` lands and PX4 disarms itself.
 - ArduPilot: ``Action.takeoff()`` is DO_SET_MODE GUIDED (4) then MAV_CMD_NAV_TAKEOFF (ArduCopter,
   and the emulator, ignore velocity setpoints on the ground); offboard ``start()`` is
   DO_SET_MODE GUIDED, reported back by MAVSDK as FlightMode.OFFBOARD; ``stop()`` is BRAKE (17).
@@ -44,7 +46,7 @@ from typing import Any
 import numpy as np
 import pytest
 from mavsdk.asyncio import Autopilot, ComponentType, Configuration, Mavsdk
-from mavsdk.asyncio.plugins.action import ActionAsync
+from mavsdk.asyncio.plugins.action import ActionAsync, ActionError
 from mavsdk.asyncio.plugins.offboard import (
     OffboardAsync,
     OffboardError,
@@ -118,7 +120,8 @@ def start_world(flavour: str, tmp_path: Path, base: int) -> WorldProcess:
         process = subprocess.Popen(
             [*console_script("sim-world", "sim_world.cli"), str(config),
              "--run-id", f"mavsdk{os.getpid()}{flavour}",
-             "--listen", f"tcp/127.0.0.1:{free_tcp_port()}", "--mavlink-base", str(base)],
+             "--listen", f"tcp/127.0.0.1:{free_tcp_port()}", "--mavlink-base", str(base),
+             "--mode", "realtime"],
             stdout=out, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
             start_new_session=True, env=dict(os.environ, PYTHONUNBUFFERED="1"))
     return WorldProcess(process, log_path)
@@ -246,15 +249,14 @@ async def fly(flavour: str, base: int) -> None:
                 return finite[-1] if finite else None
             start = await until(finite_position, "a LOCAL_POSITION_NED sample through MAVSDK")
             assert not np.any(start.velocity)
-            assert start.position[2] < -1.0  # spawned in the air: up is negative down
+            assert start.position[2] == 0.0  # on the ground: its home, the local origin
 
-            # -- arm; ArduPilot: take off (GUIDED + NAV_TAKEOFF) so that setpoints are obeyed
+            # -- arm and take off (ArduPilot: GUIDED + NAV_TAKEOFF; PX4: AUTO.TAKEOFF)
             await action.arm()
             await until(armed_is(telemetry, True), "MAVSDK telemetry armed")
-            if flavour == "ardupilot":
-                assert await telemetry.landed_state() == LandedState.ON_GROUND
-                await action.takeoff()
-            await until(landed_is(telemetry, LandedState.IN_AIR), "landed state IN_AIR")
+            assert await telemetry.landed_state() == LandedState.ON_GROUND
+            await action.takeoff()
+            await until(landed_is(telemetry, LandedState.IN_AIR), "landed state IN_AIR", 15.0)
 
             # -- offboard: a setpoint first (MAVSDK then streams it at 20 Hz), then start
             await offboard.set_velocity_ned(VelocityNedYaw(0.0, 0.0, 0.0, 0.0))
@@ -295,13 +297,19 @@ async def fly(flavour: str, base: int) -> None:
                 f"moved {along:.4f} m along the command = {along / speed:.3f} s at {speed:.3f} "
                 f"m/s, commanded for {elapsed:.3f} s")
 
-            # -- stop offboard (PX4: Hold; ArduPilot: BRAKE) and disarm; the vehicle stays put
+            # -- stop offboard (PX4: Hold; ArduPilot: BRAKE): it stays put; disarming in the
+            # air is refused (as the firmware does); land, and it disarms itself on the ground
             await offboard.stop()
             await until(mode_is(telemetry, stopped_mode), f"flight mode {stopped_mode.name}")
-            await action.disarm()
-            await until(armed_is(telemetry, False), "MAVSDK telemetry disarmed")
-            final = await settled(log, time.monotonic(), "a still vehicle after disarming")
-            np.testing.assert_array_equal(final.position, after.position)
+            held = await settled(log, time.monotonic(), "a still vehicle in hold")
+            np.testing.assert_allclose(held.position, after.position, atol=1e-6)
+            with pytest.raises(ActionError):
+                await action.disarm()
+            await action.land()
+            await until(armed_is(telemetry, False), "disarmed after landing", 20.0)
+            final = await settled(log, time.monotonic(), "a still vehicle after landing")
+            assert final.position[2] == 0.0
+            np.testing.assert_allclose(final.position[:2], after.position[:2], atol=1e-6)
         finally:
             await log.close()
 
@@ -314,7 +322,7 @@ def test_mavsdk_flies_a_world_vehicle_with_an_offboard_velocity_setpoint(
     try:
         first = world.wait_first_line(timeout_s=15.0)
         assert f"MAVLink to 127.0.0.1:{base}.." in first, first
-        asyncio.run(asyncio.wait_for(fly(flavour, base), timeout=30.0))
+        asyncio.run(asyncio.wait_for(fly(flavour, base), timeout=75.0))
         assert world.process.poll() is None, f"sim-world ended:\n{world.log()}"
         assert "mission starts" not in world.log()  # vehicle 1 was never armed
     finally:

@@ -400,14 +400,14 @@ def px4_dialogue(pilot: Pilot, record: Record) -> None:
     record.answer("DO_SET_MODE AUTO.LOITER (Hold) in the air", pilot.set_mode(4, 3), ACCEPTED)
     pilot.setpoint = None
     pilot.until(lambda: pilot.mode == "LOITER", 2.0, "mode LOITER")
-    # Judged by the slow-down, not by coming to rest: in 2 of 4 runs SIH's Hold went on
-    # drifting at ~0.5 m/s for > 6 s (the other two: at rest after 0.93-1.03 s, 0.85-1.08 m
-    # on), which the emulator does not reproduce.
+    # Judged by the slow-down, not by coming to rest: in 3 of 6 runs SIH's Hold went on
+    # drifting at ~0.5 m/s for > 6 s (the ratio below: 0.33, 0.49; the others at rest after
+    # 0.93-1.03 s, 0.85-1.08 m on), which the emulator does not reproduce (0.23).
     pilot.pump(2.0)
     entry = max(_speed_xy(holding), 0.1)
     recent = pilot.since(pilot.now() - 0.5)
     record.figure("Hold from 1.2-1.5 m/s: speed 2 s later / speed at the switch",
-                  float(np.mean([_speed_xy(s) for s in recent])) / entry, 0.0, 0.45, "")
+                  float(np.mean([_speed_xy(s) for s in recent])) / entry, 0.0, 0.7, "")
 
     # --- return = AUTO.RTL (RTL_RETURN_ALT 1.5 m: below the vehicle, so no climb)
     for name in ("RTL_RETURN_ALT", "RTL_DESCEND_ALT"):
