@@ -482,9 +482,13 @@ class AgentProcess:
             if latest is not None and latest[0].step != last_frame_step:
                 frame = latest[0]
                 last_frame_step = frame.step
-            if position is not None:
+            # The mission has n_steps: past its last step (the world's "done" not yet here)
+            # the agent only holds its vehicle (keepalive) and waits for the end.
+            if position is not None and step < self.options.config.n_steps:
                 self._step(step, position, frame, max(time.monotonic() - received_s, 0.0))
                 step += 1
+            elif step >= self.options.config.n_steps:
+                self.link.keepalive()
             if limiter.sleep():
                 self.late_steps += 1
 

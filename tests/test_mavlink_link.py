@@ -598,10 +598,11 @@ def test_a_refusal_quotes_what_the_autopilot_said(served: Any, logs: list[str]) 
     def refuse_arm(msg: Any, t: float) -> list[bytes] | None:
         if msg.get_type() == "COMMAND_LONG" and msg.command == 400:
             forge = server.forge()
-            ack = forge.command_ack_encode(400, mav.MAV_RESULT_DENIED, 0, 0, SYS, 191)
+            # ArduPilot says why while it checks, so the text comes right before the ACK
             text = forge.statustext_encode(mav.MAV_SEVERITY_CRITICAL,
                                            b"PreArm: Throttle below Failsafe")
-            return [ack.pack(forge), text.pack(forge)]
+            ack = forge.command_ack_encode(400, mav.MAV_RESULT_DENIED, 0, 0, SYS, 191)
+            return [text.pack(forge), ack.pack(forge)]
         return None
 
     link, server = served("ardupilot", logs, intercept=refuse_arm, start="ground")
