@@ -107,12 +107,16 @@ def load_scenario(path: str, duration_s: float | None) -> ScenarioConfig:
 
 
 def terminate_on_sigterm() -> None:
-    """Turn SIGTERM into KeyboardInterrupt so ``finally`` blocks close sessions and sockets."""
+    """Turn SIGTERM into KeyboardInterrupt so ``finally`` blocks close sessions and sockets;
+    and make SIGINT (Ctrl-C) do the same even when the process inherited it ignored — a shell
+    starts background commands so, and Python then leaves it ignored: the swarm would fly on
+    through a Ctrl-C sent to it (seen: a launch-swarm under a backgrounded test run)."""
 
     def _raise(_signum: int, _frame: object) -> None:
         raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, _raise)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 __all__ = ["ConfigError", "OneLineParser", "add_run_arguments", "fail", "load_scenario", "port",
