@@ -63,6 +63,7 @@ from rich.table import Table
 from scipy.optimize import minimize
 
 from sim_world.kinematics import VelocityResponse
+from swarm.mavlink_parse import POSITION_ONLY_TYPE_MASK, VELOCITY_ONLY_TYPE_MASK
 from swarm.sitl import (
     KINDS,
     Firmware,
@@ -94,8 +95,6 @@ CLIMB_TOLERANCE_M = 0.3
 READY_TIMEOUT_S = 90.0
 ARM_TIMEOUT_S = 60.0  # PX4 refuses to arm until ~37 s after boot
 CLIMB_TIMEOUT_S = 40.0
-VELOCITY_ONLY_TYPE_MASK = 0x0DC7  # ignore position, acceleration, yaw, yaw rate
-POSITION_ONLY_TYPE_MASK = 0x0DF8  # ignore velocity, acceleration, yaw, yaw rate
 MAV_FRAME_LOCAL_NED = 1
 MAV_CMD_DO_SET_MODE = 176
 MAV_CMD_NAV_TAKEOFF = 22

@@ -385,9 +385,6 @@ _IGNORE_POSITION = 0x007  # bits 0-2: x, y, z
 _IGNORE_VELOCITY = 0x038  # bits 3-5: vx, vy, vz
 _IGNORE_ACCEL = 0x1C0  # bits 6-8: afx, afy, afz
 _YAW_BITS = 0xC00  # bits 10-11: yaw, yaw rate (free)
-VELOCITY_ONLY_TYPE_MASK = _IGNORE_POSITION | _IGNORE_ACCEL | _YAW_BITS  # 0x0DC7
-POSITION_ONLY_TYPE_MASK = _IGNORE_VELOCITY | _IGNORE_ACCEL | _YAW_BITS  # 0x0DF8
-POSITION_VELOCITY_TYPE_MASK = _IGNORE_ACCEL | _YAW_BITS  # 0x0DC0
 # type_mask without the yaw bits → what the setpoint carries (the force bit 0x200 and bits
 # above 11 never match).
 _SETPOINT_KINDS: dict[int, tuple[bool, bool, bool]] = {  # (position, velocity, acceleration)

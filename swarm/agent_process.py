@@ -465,6 +465,7 @@ class AgentProcess:
 
     def run_realtime(self) -> None:
         limiter = RateLimiter(self.options.config.scenario.dt_s)
+        n_steps = self.options.config.n_steps
         last_frame_step = -1
         position = received_s = None
         # Count steps from the world's step of the first frame: with both loops on the wall
@@ -484,11 +485,11 @@ class AgentProcess:
                 last_frame_step = frame.step
             # The mission has n_steps: past its last step (the world's "done" not yet here)
             # the agent only holds its vehicle (keepalive) and waits for the end.
-            if position is not None and step < self.options.config.n_steps:
+            if step >= n_steps:
+                self.link.keepalive()
+            elif position is not None:
                 self._step(step, position, frame, max(time.monotonic() - received_s, 0.0))
                 step += 1
-            elif step >= self.options.config.n_steps:
-                self.link.keepalive()
             if limiter.sleep():
                 self.late_steps += 1
 

@@ -107,7 +107,13 @@ from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from swarm import frames, px4_events
-from swarm.mavlink_parse import LOCAL_POSITION_NED, SET_POSITION_TARGET_LOCAL_NED, parse_bytes
+from swarm.mavlink_parse import (
+    LOCAL_POSITION_NED,
+    POSITION_ONLY_TYPE_MASK,
+    SET_POSITION_TARGET_LOCAL_NED,
+    VELOCITY_ONLY_TYPE_MASK,
+    parse_bytes,
+)
 from swarm.mavlink_signing import KEY_BYTES, refresh_signing_timestamp
 
 Array = NDArray[np.float64]
@@ -119,8 +125,6 @@ __all__ = ["END_ACTIONS", "IDLE_STAMP_MS", "AutopilotLink", "EndAction", "Flavou
            "PositionSample"]
 
 IDLE_STAMP_MS = 0xFFFFFFFF
-VELOCITY_ONLY_TYPE_MASK = 0x0DC7  # ignore x, y, z, afx, afy, afz, yaw, yaw rate
-POSITION_ONLY_TYPE_MASK = 0x0DF8  # ignore vx, vy, vz, afx, afy, afz, yaw, yaw rate
 AUTOPILOT_COMPONENT_ID = 1
 # ArduCopter mode numbers; PX4 (main mode, sub mode) of px4_custom_mode.h.
 _ACM_MODE: Final = {"guided": 4, "hold": 17, "land": 9, "rtl": 6}  # hold = BRAKE

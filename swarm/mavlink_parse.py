@@ -181,4 +181,7 @@ class FastFrame:
 
 
 LOCAL_POSITION_NED = FastFrame(mavlink2.MAVLink_local_position_ned_message)
+# SET_POSITION_TARGET_LOCAL_NED type masks the swarm sends (bits set = fields ignored).
+VELOCITY_ONLY_TYPE_MASK = 0x0DC7  # ignore x, y, z, afx, afy, afz, yaw, yaw rate
+POSITION_ONLY_TYPE_MASK = 0x0DF8  # ignore vx, vy, vz, afx, afy, afz, yaw, yaw rate
 SET_POSITION_TARGET_LOCAL_NED = FastFrame(mavlink2.MAVLink_set_position_target_local_ned_message)
