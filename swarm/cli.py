@@ -168,6 +168,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (SitlError, ConfigError) as err:
         return fail(PROG, str(err))
     real = sitl is not None or bool(config.vehicles.mavlink_urls)
+    if real:  # the tracking margins the config leaves out: the firmware's fitted ones
+        autopilot = sitl.kind if sitl is not None else config.vehicles.flavour
+        try:
+            config = with_mavlink_urls(load_scenario(args.config, args.duration,
+                                                     autopilot=autopilot), dict(args.mavlink))
+        except ConfigError as err:
+            return fail(PROG, f"config error: {err}")
     reason = realtime_only_reason(config.vehicles, mode=args.mode, inprocess=args.inprocess,
                                   external=real)
     if reason is not None:

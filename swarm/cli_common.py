@@ -98,9 +98,11 @@ def add_run_arguments(parser: argparse.ArgumentParser, *, run_id_help: str) -> N
     parser.add_argument("--duration", type=positive_float, default=None, metavar="S")
 
 
-def load_scenario(path: str, duration_s: float | None) -> ScenarioConfig:
-    """Config file plus an optional --duration; ConfigError (one line) when unusable."""
-    config = load_config(path)
+def load_scenario(path: str, duration_s: float | None, *,
+                  autopilot: str | None = None) -> ScenarioConfig:
+    """Config file plus an optional --duration; ConfigError (one line) when unusable.
+    ``autopilot``: real autopilots of that flavour fly the drones (``load_config``)."""
+    config = load_config(path, autopilot=autopilot)
     if duration_s is not None:
         config = config.with_duration(duration_s)
     return config

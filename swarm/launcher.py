@@ -657,6 +657,11 @@ class SwarmLauncher:
                      f"{self.mavlink_base}..{self.mavlink_base + self.n - 1}, logs {self.log_dir}")
             if self.options.sitl is not None:
                 self._start_sitl()
+            elif self.external_autopilots:
+                # The config as resolved here (the --mavlink URLs, the tracking margins fitted
+                # to the autopilots' flavour), not the user's file, for every child.
+                self.config_path = str(write_resolved_config(self.config,
+                                                             self.log_dir / "config.json"))
             self._open_recorder()
             if self.options.external_vehicles:
                 self.start_vehicles()

@@ -225,8 +225,16 @@ _TELEMETRY_ARRAYS: Final = ("velocity", "nominal_velocity", "estimates", "lambda
                             "psi1", "weights", "weight_sum_estimate", "slacks", "weight_slacks")
 _TELEMETRY_PLAIN: Final = ("drone", "step", "time_s", "control_active", "qp_status",
                            "qp_iterations", "qp_fallback", "qp_solve_us", "step_us",
-                           "bearing_error", "missing_neighbour_messages", "rejected_inputs")
+                           "bearing_error", "missing_neighbour_messages", "rejected_inputs",
+                           "rate_limit_released")
 _COUNTER_FIELDS: Final = TelemetryCounters.__struct_fields__
+# Fields added after recordings were first written (issue 14): absent in older files, read
+# as their defaults.
+_ADDED_LATER: Final = {"rate_limit_released": False,
+                       **{name: getattr(TelemetryCounters(), name)
+                          for name in ("rate_limit_releases", "reference_resets",
+                                       "vehicle_events", "tracking_error_m",
+                                       "velocity_error_m_s", "vehicle_status")}}
 
 
 def telemetry_to_json(tel: TelemetryWire) -> dict[str, Any]:
@@ -239,9 +247,13 @@ def telemetry_to_json(tel: TelemetryWire) -> dict[str, Any]:
 
 
 def telemetry_from_json(data: dict[str, Any]) -> TelemetryWire:
-    counters = TelemetryCounters(**{name: data["counters"][name] for name in _COUNTER_FIELDS})
+    given = data["counters"]
+    counters = TelemetryCounters(**{
+        name: given[name] if name in given or name not in _ADDED_LATER else _ADDED_LATER[name]
+        for name in _COUNTER_FIELDS})
     return TelemetryWire(
-        **{name: data[name] for name in _TELEMETRY_PLAIN},
+        **{name: data[name] if name in data or name not in _ADDED_LATER else _ADDED_LATER[name]
+           for name in _TELEMETRY_PLAIN},
         position_m=_vector3(data["position_m"]),
         **{name: _array(data[name]) for name in _TELEMETRY_ARRAYS},
         detected=tuple(bool(v) for v in data["detected"]), counters=counters)
@@ -381,6 +393,7 @@ def schemas(n_targets: int, n_state: int) -> dict[str, dict[str, Any]]:
     telemetry = {
         "drone": _COUNT, "step": _COUNT, "time_s": _NUMBER, "control_active": _BOOL,
         "qp_status": {"type": "string"}, "qp_iterations": _COUNT, "qp_fallback": _BOOL,
+        "rate_limit_released": _BOOL,
         "qp_solve_us": _NUMBER, "step_us": _NUMBER,
         "bearing_error": {"type": ["number", "null"]},
         "missing_neighbour_messages": _COUNT, "rejected_inputs": _COUNT,
@@ -394,7 +407,12 @@ def schemas(n_targets: int, n_state: int) -> dict[str, dict[str, Any]]:
                                          "missing_neighbour_messages",
                                          "stale_neighbour_messages", "late_steps", "steps")},
             "neighbour_age_ms": {"type": ["number", "null"]},
-            "mavlink_state": {"type": "string"}, "swarm_size": _COUNT}),
+            "mavlink_state": {"type": "string"}, "swarm_size": _COUNT,
+            **{name: _COUNT for name in ("rate_limit_releases", "reference_resets",
+                                         "vehicle_events")},
+            **{name: {"type": ["number", "null"]} for name in ("tracking_error_m",
+                                                               "velocity_error_m_s")},
+            "vehicle_status": {"type": "string"}}),
     }
     return {
         "telemetry": _object(telemetry, "vigil.Telemetry",

@@ -340,6 +340,27 @@ class TelemetryCounters(msgspec.Struct, frozen=True, array_like=True,
     # Drones in the live membership this step (the N of the formulas, SPEC §5-§8): the own
     # drone and every drone heard within ``runtime.member_timeout_s``; 0: not reported.
     swarm_size: NonNegativeInt = 0
+    # Steps whose QP had no solution within the rate box and was solved without it.
+    rate_limit_releases: NonNegativeInt = 0
+    # Times the command reference (position setpoints) was reset to the vehicle's position.
+    reference_resets: NonNegativeInt = 0
+    # Changes of the vehicle the agent did not ask for (mode, disarm, failsafe, lost position).
+    vehicle_events: NonNegativeInt = 0
+    # This step: ‖p − r‖ of the vehicle against the command reference [m] and ‖v − u‖ of its
+    # velocity against the last command [m/s]; None: not measured (no reference, no sample).
+    tracking_error_m: float | None = None
+    velocity_error_m_s: float | None = None
+    # What the agent does about its vehicle (``vehicles.on_vehicle_event``): "" = flying as
+    # asked; otherwise the policy in effect and why, e.g. "degraded: mode Hold".
+    vehicle_status: Label = ""
+
+
+# The counters that are integers >= 0, and those that are floats >= 0 or None.
+_INT_COUNTERS: Final = ("qp_fallbacks", "rejected_messages", "missing_neighbour_messages",
+                        "stale_neighbour_messages", "late_steps", "steps", "swarm_size",
+                        "rate_limit_releases", "reference_resets", "vehicle_events")
+_OPTIONAL_FLOAT_COUNTERS: Final = ("neighbour_age_ms", "tracking_error_m", "velocity_error_m_s")
+_LABEL_COUNTERS: Final = ("mavlink_state", "vehicle_status")
 
 
 class TelemetryWire(_Wire, tag="telemetry", kw_only=True):
@@ -371,6 +392,7 @@ class TelemetryWire(_Wire, tag="telemetry", kw_only=True):
     missing_neighbour_messages: NonNegativeInt = 0  # this step
     rejected_inputs: NonNegativeInt = 0  # this step
     counters: TelemetryCounters = TelemetryCounters()
+    rate_limit_released: bool = False  # this step's QP was solved without the rate box
 
     @classmethod
     def from_diagnostics(cls, diag: StepDiagnostics, position: ArrayLike,
@@ -397,6 +419,7 @@ class TelemetryWire(_Wire, tag="telemetry", kw_only=True):
             bearing_error=self.bearing_error,
             missing_neighbour_messages=self.missing_neighbour_messages,
             rejected_inputs=self.rejected_inputs,
+            rate_limit_released=self.rate_limit_released,
         )
 
 
@@ -523,16 +546,18 @@ def _counters(counters: TelemetryCounters | None,
     if not _COUNTER_NAMES.issuperset(counter_fields):
         unknown = set(counter_fields) - _COUNTER_NAMES
         raise TypeError(f"unknown telemetry counters: {sorted(unknown)}")
-    age = counter_fields.get("neighbour_age_ms")
-    if age is not None and isinstance(age, float | int) and math.isnan(age):
-        counter_fields["neighbour_age_ms"] = None
-    elif age is not None:
-        counter_fields["neighbour_age_ms"] = float(age)
+    for name in _OPTIONAL_FLOAT_COUNTERS:
+        value = counter_fields.get(name)
+        if value is not None and isinstance(value, float | int) and math.isnan(value):
+            counter_fields[name] = None
+        elif value is not None:
+            counter_fields[name] = float(value)
     return TelemetryCounters(**counter_fields)
 
 
 _NO_COUNTERS: Final = TelemetryCounters()
 _COUNTER_NAMES: Final = frozenset(TelemetryCounters.__struct_fields__)
+_COUNTER_FIELDS: Final = TelemetryCounters.__struct_fields__
 _COUNTER_DEFAULTS: Final = msgspec.structs.astuple(_NO_COUNTERS)
 TELEMETRY_ARRAYS: Final = ("velocity", "nominal_velocity", "estimates", "lambda_bar", "psi0",
                            "psi1", "weights", "weight_sum_estimate", "slacks", "weight_slacks")
@@ -540,7 +565,8 @@ TELEMETRY_ARRAYS: Final = ("velocity", "nominal_velocity", "estimates", "lambda_
 assert TelemetryWire.__struct_fields__ == (
     "version", "drone", "step", "time_s", "position_m", *TELEMETRY_ARRAYS, "detected",
     "control_active", "qp_status", "qp_iterations", "qp_fallback", "qp_solve_us", "step_us",
-    "bearing_error", "missing_neighbour_messages", "rejected_inputs", "counters")
+    "bearing_error", "missing_neighbour_messages", "rejected_inputs", "counters",
+    "rate_limit_released")
 assert BeaconWire.__struct_fields__ == ("version", "sender", "step", "time_s", "position_m",
                                         "velocity_m_s", "sample_age_s")
 assert ConsensusWire.__struct_fields__ == ("version", "sender", "step", "round", "n_targets",
@@ -566,7 +592,8 @@ def _telemetry(diag: StepDiagnostics, position: ArrayLike,
         qp_solve_us=float(diag.qp_solve_us), step_us=float(diag.step_us),
         bearing_error=None if bearing is None else float(bearing),
         missing_neighbour_messages=int(diag.missing_neighbour_messages),
-        rejected_inputs=int(diag.rejected_inputs), counters=counters)
+        rejected_inputs=int(diag.rejected_inputs), counters=counters,
+        rate_limit_released=bool(diag.rate_limit_released))
 
 
 # -- validation --------------------------------------------------------------------------------
@@ -796,22 +823,31 @@ class WireCodec:
                            fields: dict[str, Any]) -> bytes | None:
         """The payload of ``encode_telemetry``, or None if anything needs a closer look."""
         if counters is None and _COUNTER_NAMES.issuperset(fields):
-            totals = tuple(map(fields.get, TelemetryCounters.__struct_fields__,
-                               _COUNTER_DEFAULTS))
-            *counts, age, label, size = totals
-            if age is not None and age != age:  # NaN: no neighbour message yet
-                age = None
-                totals = (*counts, None, label, size)
+            values = dict(zip(_COUNTER_FIELDS, map(fields.get, _COUNTER_FIELDS,
+                                                   _COUNTER_DEFAULTS), strict=True))
+            for name in _OPTIONAL_FLOAT_COUNTERS:
+                value = values[name]
+                if value is not None and value != value:  # NaN: not measured
+                    values[name] = None
         elif not fields and type(counters) is TelemetryCounters:
-            totals = msgspec.structs.astuple(counters)
-            *counts, age, label, size = totals
+            values = dict(zip(_COUNTER_FIELDS, msgspec.structs.astuple(counters), strict=True))
         else:
             return None
-        counts.append(size)
-        if (set(map(type, counts)) != {int} or min(counts) < 0 or type(label) is not str
-                or len(label) > MAX_LABEL_CHARS
-                or (age is not None and not (type(age) is float and age >= 0.0))):
+        counts = [values[name] for name in _INT_COUNTERS]
+        if set(map(type, counts)) != {int} or min(counts) < 0:
             return None
+        for name in _LABEL_COUNTERS:
+            label = values[name]
+            if type(label) is not str or len(label) > MAX_LABEL_CHARS:
+                return None
+        measured = 0.0
+        for name in _OPTIONAL_FLOAT_COUNTERS:
+            value = values[name]
+            if value is not None:
+                if not (type(value) is float and value >= 0.0):
+                    return None
+                measured += value
+        totals = tuple(values.values())
         arrays = self._telemetry_arrays(diag)
         if (tuple(map(_shape_of, arrays)) != self._telemetry_shapes
                 or tuple(map(_dtype_of, arrays)) != self._telemetry_dtypes):
@@ -828,7 +864,7 @@ class WireCodec:
         bearing = None if diag.bearing_error is None else float(diag.bearing_error)
         missing, rejected = int(diag.missing_neighbour_messages), int(diag.rejected_inputs)
         p = _vector3(position)
-        total = t + solve_us + step_us + p[0] + p[1] + p[2] + (age or 0.0) + (bearing or 0.0)
+        total = t + solve_us + step_us + p[0] + p[1] + p[2] + measured + (bearing or 0.0)
         if not (0 <= drone < self.n_drones and min(step, iterations, missing, rejected) >= 0
                 and len(status) <= MAX_LABEL_CHARS and t >= 0.0 and solve_us >= 0.0
                 and step_us >= 0.0 and total - total == 0.0):
@@ -837,7 +873,8 @@ class WireCodec:
             "telemetry", WIRE_VERSION, drone, step, t, p,
             *zip(self._telemetry_shapes, chunks, strict=True),
             tuple(detected.tolist()), bool(diag.control_active), status, iterations,
-            bool(diag.qp_fallback), solve_us, step_us, bearing, missing, rejected, totals))
+            bool(diag.qp_fallback), solve_us, step_us, bearing, missing, rejected, totals,
+            bool(diag.rate_limit_released)))
         return payload if len(payload) <= self.max_payload_bytes else None
 
     def validate(self, message: WireMessage) -> None:
@@ -1079,12 +1116,13 @@ class WireCodec:
         c = m.counters
         if not isinstance(c, TelemetryCounters):
             _fail("counters must be TelemetryCounters")
-        for name in ("qp_fallbacks", "rejected_messages", "missing_neighbour_messages",
-                     "stale_neighbour_messages", "late_steps", "steps", "swarm_size"):
+        for name in _INT_COUNTERS:
             _check_int(f"counters.{name}", getattr(c, name))
-        if c.neighbour_age_ms is not None:
-            _check_float("counters.neighbour_age_ms", c.neighbour_age_ms, non_negative=True)
-        _check_str("counters.mavlink_state", c.mavlink_state, MAX_LABEL_CHARS)
+        for name in _OPTIONAL_FLOAT_COUNTERS:
+            if getattr(c, name) is not None:
+                _check_float(f"counters.{name}", getattr(c, name), non_negative=True)
+        for name in _LABEL_COUNTERS:
+            _check_str(f"counters.{name}", getattr(c, name), MAX_LABEL_CHARS)
 
     # -- quick checks ----------------------------------------------------------------------
     # For messages whose field types are right: decoded by msgspec (types, tuple lengths,
@@ -1152,12 +1190,14 @@ class WireCodec:
         c = m.counters
         if (m.version != WIRE_VERSION or not 0 <= m.drone < self.n_drones
                 or len(m.detected) != self.n_targets or len(m.qp_status) > MAX_LABEL_CHARS
-                or type(c) is not TelemetryCounters or type(c.mavlink_state) is not str
-                or len(c.mavlink_state) > MAX_LABEL_CHARS):
+                or type(c) is not TelemetryCounters):
             return False
+        for name in _LABEL_COUNTERS:
+            label = getattr(c, name)
+            if type(label) is not str or len(label) > MAX_LABEL_CHARS:
+                return False
         for k in (m.step, m.qp_iterations, m.missing_neighbour_messages, m.rejected_inputs,
-                  c.qp_fallbacks, c.rejected_messages, c.missing_neighbour_messages,
-                  c.stale_neighbour_messages, c.late_steps, c.steps, c.swarm_size):
+                  *(getattr(c, name) for name in _INT_COUNTERS)):
             if type(k) is not int or k < 0:
                 return False
         t, solve, step, p = m.time_s, m.qp_solve_us, m.step_us, m.position_m
@@ -1166,11 +1206,12 @@ class WireCodec:
         total = t + solve + step + p[0] + p[1] + p[2]
         if m.bearing_error is not None:
             total += m.bearing_error
-        age = c.neighbour_age_ms
-        if age is not None:
-            if not (type(age) is float and age >= 0.0):
-                return False
-            total += age
+        for name in _OPTIONAL_FLOAT_COUNTERS:
+            value = getattr(c, name)
+            if value is not None:
+                if not (type(value) is float and value >= 0.0):
+                    return False
+                total += value
         if total - total != 0.0:
             return False
         arrays = [getattr(m, name) for name in TELEMETRY_ARRAYS]

@@ -410,3 +410,48 @@ def test_a_resolved_config_reads_back_equal(tmp_path: Path) -> None:
         with pytest.raises(ConfigError) as info:
             load_config(tmp_path / name)
         assert expect in str(info.value) and "\n" not in str(info.value)
+
+
+def _case1_data() -> dict:
+    return tomllib.loads((CONFIGS / "case1.toml").read_text())
+
+
+def test_tracking_margins_left_out_are_fitted_to_the_vehicles() -> None:
+    """[control] tracking_error_bound_m_s and command_accel_limit_m_s2 left out: 0 (the
+    thesis' QP) on ideal vehicles, the fitted values for the ArduCopter/PX4 responses and for
+    real autopilots of a flavour (``autopilot=``); a value given is kept; a resolved config
+    (every key written) reads back equal whatever the vehicles."""
+    from swarm.config import TRACKING_DEFAULTS, config_to_data
+
+    def tracking(config: ScenarioConfig) -> tuple[float, float]:
+        return (config.control.tracking_error_bound_m_s,
+                config.control.command_accel_limit_m_s2)
+
+    for case in CASES:
+        assert tracking(load_config(CONFIGS / f"{case}.toml")) == (0.0, 0.0)
+    for response in ("arducopter", "px4"):
+        data = _case1_data()
+        data["vehicles"]["response"] = response
+        assert tracking(config_from_dict(data)) == TRACKING_DEFAULTS[response]
+    assert TRACKING_DEFAULTS["px4"][0] > 0 and TRACKING_DEFAULTS["arducopter"][0] > 0
+    for autopilot, response in (("ardupilot", "arducopter"), ("px4", "px4")):
+        fitted = config_from_dict(_case1_data(), autopilot=autopilot)
+        assert tracking(fitted) == TRACKING_DEFAULTS[response]
+        assert config_from_dict(config_to_data(fitted)) == fitted
+    data = _case1_data()
+    data["control"]["tracking_error_bound_m_s"] = 0.05
+    assert tracking(config_from_dict(data, autopilot="px4")) == (0.05, TRACKING_DEFAULTS["px4"][1])
+
+
+@pytest.mark.parametrize(("key", "value", "reason"), [
+    ("tracking_error_bound_m_s", -0.1, "must be a finite number >= 0"),
+    ("tracking_error_bound_m_s", 3.0, "must be below u_max_m_s"),
+    ("command_accel_limit_m_s2", math.nan, "must be a finite number >= 0"),
+])
+def test_bad_tracking_margins_are_one_line_errors(key: str, value: float, reason: str) -> None:
+    data = _case1_data()
+    data["control"][key] = value
+    with pytest.raises(ConfigError) as err:
+        config_from_dict(data)
+    message = str(err.value)
+    assert f"control.{key}" in message and reason in message and "\n" not in message

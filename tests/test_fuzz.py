@@ -335,11 +335,13 @@ def guarded_qp(monkeypatch: pytest.MonkeyPatch) -> list[int]:
     real = LocalQpWorkspace.solve
 
     def solve(self: LocalQpWorkspace, nominal: Any, u_columns: Any, lower: Any,
-              weights: Any) -> Any:
+              weights: Any, u_box: Any = None) -> Any:
         values = [*nominal, *u_columns, *lower, *weights]
+        if u_box is not None:
+            values += [*u_box[0], *u_box[1]]
         assert all(math.isfinite(v) for v in values), f"non-finite QP input: {values}"
         calls.append(len(values))
-        return real(self, nominal, u_columns, lower, weights)
+        return real(self, nominal, u_columns, lower, weights, u_box)
 
     monkeypatch.setattr(LocalQpWorkspace, "solve", solve)
     return calls

@@ -25,12 +25,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from swarm.core import _lapack, icf
-from swarm.core.barrier import localization_barrier_scalars
+from swarm.core.barrier import localization_barrier_scalars, robust_lower_bound
 from swarm.core.formation import bearing_formation_scalars
 from swarm.core.gramian import initial_gramian
 from swarm.core.params import ControlParams, EstimationParams, GramianParams, PerceptionParams
 from swarm.core.perception import perception_constants, perception_scalars, perception_terms
-from swarm.core.qp import INACTIVE_ROW_LOWER, LocalQpWorkspace, QpSolution
+from swarm.core.qp import INACTIVE_ROW_LOWER, LocalQpWorkspace, QpSolution, rate_limited_box
 
 Array = NDArray[np.float64]
 
@@ -111,6 +111,7 @@ class StepDiagnostics:
     qp_status: str
     qp_iterations: int
     qp_fallback: bool  # the QP failed (or hard was infeasible) and a fallback was used
+    rate_limit_released: bool  # no solution within the rate box: solved without it
     qp_solve_us: float
     step_us: float  # compute time of this drone's step, without waiting for neighbours
     bearing_error: float | None
@@ -188,6 +189,9 @@ class DroneAgent:
         self._qp_hard = (LocalQpWorkspace(
             m, setup.n_drones - 1, relaxed=False, slack_weight=ctrl.slack_weight,
             weight_floor=ctrl.weight_floor, u_max=ctrl.u_max_m_s) if ctrl.qp == "hard" else None)
+        # |u_k − u_(k−1)| ≤ a_max·ΔT per component (0: no limit), from the last command.
+        self._max_change = ctrl.command_accel_limit_m_s2 * setup.dt_s
+        self._last_command = _ZERO3
         # Per-step working state.
         self._phase = "idle"
         self._step = -1
@@ -202,6 +206,7 @@ class DroneAgent:
         self._sections = [0.0] * len(SECTIONS)
         # Running totals.
         self.qp_fallbacks = 0
+        self.rate_limit_releases = 0
         self.missing_neighbour_messages = 0
         self.rejected_inputs = 0
 
@@ -400,22 +405,30 @@ class DroneAgent:
         nominal, formation_error = self._nominal_velocity(own, clean_beacons)
         control_active = time_s >= ctrl.start_s
         qp_status, qp_iterations, qp_us, fallback = "inactive", 0, 0.0, False
+        released = False
         t3 = t4 = t2
         slacks = weight_slacks = None
+        box = (rate_limited_box(self._last_command, self._max_change, ctrl.u_max_m_s)
+               if self._max_change > 0.0 else None)
         if control_active:
             u_rows, lower = self._qp_rows(barriers, terms, target_velocities, weight_sums, own,
                                           clean_beacons)
             t3 = time.perf_counter()
-            solution, fallback = self._solve(nominal, u_rows, lower, weights)
+            solution, fallback, released = self._solve(nominal, u_rows, lower, weights, box)
             t4 = time.perf_counter()
-            velocity = solution.z[:3].copy() if solution.found else np.zeros(3)
+            if solution.found:
+                velocity = solution.z[:3].copy()
+            else:  # SPEC §9: the safest input; within the rate box, braking as hard as it lets
+                velocity = np.array(_clip3(_ZERO3, box) if box is not None else _ZERO3)
             if solution.found and solution.z.shape[0] > 3:
                 slacks, weight_slacks = solution.z[3:3 + m].copy(), solution.z[3 + m:].copy()
             qp_status, qp_iterations = solution.status, solution.iterations
             qp_us = solution.solve_time_s * 1e6
         else:
             u_max = ctrl.u_max_m_s
-            velocity = np.array([min(max(u, -u_max), u_max) for u in nominal])
+            velocity = np.array(_clip3(nominal, box if box is not None
+                                       else ([-u_max] * 3, [u_max] * 3)))
+        self._last_command = tuple(velocity.tolist())
 
         # Advance the dynamic consensus (3.30) and the Gramian copies (3.29) to step k + 1,
         # with the neighbours' states at step k from round 0.
@@ -424,6 +437,7 @@ class DroneAgent:
         t6 = time.perf_counter()
 
         self.qp_fallbacks += int(fallback)
+        self.rate_limit_releases += int(released)
         self.missing_neighbour_messages += self._missing
         self.rejected_inputs += self._rejected
         self._phase = "idle"
@@ -441,7 +455,7 @@ class DroneAgent:
             weights=series[3 * m:4 * m], weight_sum_estimate=series[4 * m:],
             slacks=slacks, weight_slacks=weight_slacks, detected=self._detected,
             control_active=control_active, qp_status=qp_status, qp_iterations=qp_iterations,
-            qp_fallback=fallback, qp_solve_us=qp_us,
+            qp_fallback=fallback, rate_limit_released=released, qp_solve_us=qp_us,
             step_us=(self._busy_s + time.perf_counter() - entered) * 1e6,
             bearing_error=formation_error, missing_neighbour_messages=self._missing,
             rejected_inputs=self._rejected,
@@ -618,7 +632,8 @@ class DroneAgent:
     def _qp_rows(self, barriers, terms, target_velocities, weight_sums, position, beacons):
         """Velocity parts (column-major: x, y, z coefficients of every row) and lower bounds
         of the QP rows: localization (3.32), weight-sum (3.34-3.36), collision (4.1-4.2,
-        inactive slots "0 ≥ −1")."""
+        inactive slots "0 ≥ −1"), each bound tightened by ē‖a‖ for the vehicle's tracking
+        error (``robust_lower_bound``; ē = ``control.tracking_error_bound_m_s``)."""
         ctrl, n, slots = self.setup.control, self._swarm_size, self.setup.n_drones - 1
         rows = [b[3] for b in barriers] + [t[1] for t in terms]
         lower = [b[4] for b in barriers]
@@ -640,6 +655,9 @@ class DroneAgent:
                 rows.append((2.0 * ox, 2.0 * oy, 2.0 * oz))
                 lower.append(-0.5 * gain * (square - delta * delta))
                 slot += 1
+        bound = ctrl.tracking_error_bound_m_s
+        if bound > 0.0:
+            lower = [robust_lower_bound(b, a, bound) for a, b in zip(rows, lower, strict=True)]
         for _ in range(slot, slots):
             rows.append(_ZERO3)
             lower.append(INACTIVE_ROW_LOWER)
@@ -647,14 +665,23 @@ class DroneAgent:
         return [*xs, *ys, *zs], lower
 
     def _solve(self, nominal: tuple[float, float, float], u_columns: list[float],
-               lower: list[float], weights: list[float]) -> tuple[QpSolution, bool]:
-        """Hard QP (3.37) or relaxed QP (3.36); hard failures fall back to relaxed (SPEC §9)."""
+               lower: list[float], weights: list[float],
+               box: tuple[list[float], list[float]] | None) -> tuple[QpSolution, bool, bool]:
+        """Hard QP (3.37) or relaxed QP (3.36); hard failures fall back to relaxed (SPEC §9).
+
+        With a rate box: both within it first; if the relaxed QP has no solution there (its
+        only hard rows are the collision rows), it is solved once more in the full box — the
+        barriers before smoothness — and that counts as a release. Returns (solution,
+        fallback, released)."""
         if self._qp_hard is not None:
-            hard = self._qp_hard.solve(nominal, u_columns, lower, weights)
+            hard = self._qp_hard.solve(nominal, u_columns, lower, weights, box)
             if hard.found:
-                return hard, False
-        relaxed = self._qp_relaxed.solve(nominal, u_columns, lower, weights)
-        return relaxed, self._qp_hard is not None or not relaxed.found
+                return hard, False, False
+        relaxed = self._qp_relaxed.solve(nominal, u_columns, lower, weights, box)
+        if box is not None and not relaxed.found:
+            released = self._qp_relaxed.solve(nominal, u_columns, lower, weights)
+            return released, True, True
+        return relaxed, self._qp_hard is not None or not relaxed.found, False
 
 
 _ZERO3 = (0.0, 0.0, 0.0)
@@ -711,6 +738,12 @@ def _consensus_operator(m: int, dt: float, gram: GramianParams,
                 put(4, i, d0 + i, 0.5 * couple)
                 put(5, i, d0 + it, 0.5 * couple)
     return index, coefficients
+
+
+def _clip3(u: tuple[float, float, float] | list[float],
+           box: tuple[list[float], list[float]]) -> tuple[float, float, float]:
+    (l0, l1, l2), (h0, h1, h2) = box
+    return (min(max(u[0], l0), h0), min(max(u[1], l1), h1), min(max(u[2], l2), h2))
 
 
 def _all_finite(values: list[float]) -> bool:

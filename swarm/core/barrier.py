@@ -7,6 +7,7 @@ s_ir of (1/N)Σ_j w_jr Π̂_jr, its estimate (p̂_ir, v̂_ir) and its own positi
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -172,6 +173,26 @@ def weight_sum_row(
     grad = terms.weight_grad_drone
     lower = -(weight_sum_estimate - gamma) / n_agents + float(grad @ target_velocity_estimate)
     return grad, lower
+
+
+def robust_lower_bound(lower: float, coefficients: tuple[float, float, float],
+                       tracking_error_bound: float) -> float:
+    """b + ē‖a‖: the bound of a row a·u ≥ b that must hold for the vehicle as flown.
+
+    The barriers of SPEC §8 are conditions on the drone's velocity ṗ_i, written with ṗ_i = u_i
+    (the thesis' single integrator). A real vehicle flies ṗ_i = u_i + e_i with a tracking
+    error ‖e_i‖ ≤ ē. By Cauchy-Schwarz, a·(u + e) ≥ a·u − ē‖a‖, with equality at the worst
+    error e = −ē a/‖a‖. Hence
+
+        a·u ≥ b + ē‖a‖   ⇒   a·ṗ_i ≥ b   for every ‖ṗ_i − u_i‖ ≤ ē,
+
+    the robust (constant disturbance bound) form of the input-to-state-safe barrier: each
+    condition holds on the flown velocity, not only on the command. A slack, where the row
+    has one, enters as before: a·u + δ ≥ b + ē‖a‖. ē = 0 is the thesis' row; an inactive row
+    (a = 0) is unchanged.
+    """
+    a0, a1, a2 = coefficients
+    return lower + tracking_error_bound * math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
 
 
 def collision_row(

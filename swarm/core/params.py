@@ -143,6 +143,12 @@ class ControlParams:
     collision_gain: float = 1.0  # α_ca of the collision CBF [1/s]
     task: NominalTask = "zero"
     formation_gain: float = 1.0  # k_f of the bearing-only formation law [m/s]
+    # ē, a bound on the vehicle's tracking error ‖ṗ_i − u_i‖: every barrier row a·u ≥ b is
+    # tightened to a·u ≥ b + ē‖a‖ (barrier.robust_lower_bound); 0 = the thesis (ṗ = u) [m/s]
+    tracking_error_bound_m_s: float = 0.0
+    # Bound on the change of each component of u per step, |u_k − u_(k−1)| ≤ a·ΔT, as the
+    # QP's box (qp.rate_limited_box); 0 = none (the thesis) [m/s²]
+    command_accel_limit_m_s2: float = 0.0
 
     def __post_init__(self) -> None:
         require(math.isfinite(self.start_s) and self.start_s >= 0, "start_s",
@@ -162,3 +168,9 @@ class ControlParams:
         require(self.task in ("zero", "bearing_formation"), "task",
                 "must be 'zero' or 'bearing_formation'", self.task)
         require_finite_positive("formation_gain", self.formation_gain)
+        for name in ("tracking_error_bound_m_s", "command_accel_limit_m_s2"):
+            value = getattr(self, name)
+            require(math.isfinite(value) and value >= 0, name,
+                    "must be a finite number >= 0 (0 = off)", value)
+        require(self.tracking_error_bound_m_s < self.u_max_m_s, "tracking_error_bound_m_s",
+                "must be below u_max_m_s", self.tracking_error_bound_m_s)

@@ -171,6 +171,20 @@ class QpSolver:
         )
 
 
+def rate_limited_box(previous: tuple[float, float, float], max_change: float,
+                     u_max: float) -> tuple[list[float], list[float]]:
+    """Bounds of u this step: |u_k − u_prev,k| ≤ a_max·ΔT (``max_change``) and |u_k| ≤ u_max.
+
+    ``previous`` is the command of the last step (inside [−u_max, u_max]), so the box is never
+    empty. As bounds of the QP's variables they are constraints like the barrier rows: a
+    solution meets both, and a QP that cannot is infeasible (the caller's fallback), never a
+    command that jumps.
+    """
+    low = [max(-u_max, u - max_change) for u in previous]
+    high = [min(u_max, u + max_change) for u in previous]
+    return low, high
+
+
 class LocalQpWorkspace:
     """The local QP of one drone in preallocated matrices, with its own PIQP solver.
 
@@ -210,12 +224,16 @@ class LocalQpWorkspace:
         self._penalties: list[float] | None = None
         self._nominal: tuple[float, float, float] | None = None
         self._solver: piqp.DenseSolver | None = None
+        self._u_low = [-self.u_max] * 3  # the box of u of the current solve
+        self._u_high = [self.u_max] * 3
 
     def solve(self, nominal: tuple[float, float, float], u_columns: list[float],
-              lower: list[float], weights: list[float]) -> QpSolution:
+              lower: list[float], weights: list[float],
+              u_box: tuple[list[float], list[float]] | None = None) -> QpSolution:
         """Solve with u_d, the velocity part of the rows (column-major: the x coefficients of
         every row, then y, then z; rows in the order localization, weight-sum, collision),
-        their lower bounds and the weights w_r.
+        their lower bounds and the weights w_r; ``u_box`` = (low, high) bounds of u for this
+        solve (``rate_limited_box``), None: the fixed box |u_k| ≤ u_max.
 
         When u_d itself meets every row with zero slacks and lies in the box, it is the
         optimum: the cost is a sum of squares that is zero there and positive elsewhere (P is
@@ -225,6 +243,9 @@ class LocalQpWorkspace:
         stay as they were at its last update.
         """
         start = time.perf_counter()
+        u_max = self.u_max
+        u_low, u_high = u_box if u_box is not None else ([-u_max] * 3, [u_max] * 3)
+        self._u_low, self._u_high = u_low, u_high
         if self._max_violation(list(nominal), u_columns, lower) == 0.0:
             z = np.zeros(self.linear.shape[0])
             z[:3] = nominal
@@ -247,6 +268,9 @@ class LocalQpWorkspace:
             self.linear[:3] = (-2.0 * nominal[0], -2.0 * nominal[1], -2.0 * nominal[2])
             self._nominal = nominal
             linear_changed = True
+        box_changed = self.z_min[:3].tolist() != u_low or self.z_max[:3].tolist() != u_high
+        if box_changed:
+            self.z_min[:3], self.z_max[:3] = u_low, u_high
         if self._solver is None:
             self._solver = _new_piqp_solver()
             self._solver.setup(self.hessian, self.linear, None, None, self.rows, self.lower,
@@ -254,7 +278,9 @@ class LocalQpWorkspace:
         else:
             self._solver.update(P=self.hessian if hessian_changed else None,
                                 c=self.linear if linear_changed else None,
-                                G=self.rows, h_l=self.lower)
+                                G=self.rows, h_l=self.lower,
+                                x_l=self.z_min if box_changed else None,
+                                x_u=self.z_max if box_changed else None)
         status = self._solver.solve()
         elapsed = time.perf_counter() - start
         result = self._solver.result
@@ -284,9 +310,8 @@ class LocalQpWorkspace:
                 if gap != gap:
                     return gap
                 worst = gap
-        u_max = self.u_max
-        for u in (u0, u1, u2):
-            worst = max(worst, -u_max - u, u - u_max)
+        for u, low, high in zip((u0, u1, u2), self._u_low, self._u_high, strict=True):
+            worst = max(worst, low - u, u - high)
         for slack in z[3:]:
             worst = max(worst, 0.0 - slack)
         return float(worst)

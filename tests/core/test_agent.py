@@ -278,3 +278,39 @@ def test_survivors_of_a_lost_drone_agree_on_the_sum_of_their_weights() -> None:
             assert spread < 0.02 * np.abs(copies).max()
         else:
             assert relative.min() > 0.15  # 6/5 − 1 = 0.2, up to the consensus lag
+
+
+def _with_control(config, **changes):
+    return dataclasses.replace(config, control=dataclasses.replace(config.control, **changes))
+
+
+def test_commands_change_at_most_the_accel_limit_per_step() -> None:
+    """Case 1 on vehicles with ArduCopter's lag, on the agent's own step: the thesis' QP makes
+    the command jump by nearly u_max in one step (before its fallbacks); with
+    ``command_accel_limit_m_s2`` every component changes by at most a·ΔT per step, from the
+    first step on."""
+    config = load_config(CONFIGS / "case1.toml")
+    config = dataclasses.replace(
+        config, vehicles=dataclasses.replace(config.vehicles, response="arducopter"))
+    free = run_reference(config)
+    assert np.abs(np.diff(free.velocities_m_s, axis=0)).max() > 2.0
+
+    accel = 3.0
+    limited = run_reference(_with_control(config, command_accel_limit_m_s2=accel))
+    changes = np.abs(np.diff(limited.velocities_m_s, axis=0, prepend=0.0))
+    assert changes.max() <= accel * config.scenario.dt_s + 1e-9
+
+
+def test_a_rate_box_that_blocks_a_collision_row_is_released_and_counted() -> None:
+    """Two drones 0.62 m apart closing at 2 m/s, each with an acceleration limit far below what
+    stopping in time needs: the QP within the rate box is infeasible, so the step solves it
+    again without the box (the collision row wins), says so and counts it."""
+    control = ControlParams(start_s=0.0, qp="relaxed", command_accel_limit_m_s2=0.5)
+    agent = lone_agent(control, guess=(0.0, 0.0, 0.0))
+    agent._last_command = (2.0, 0.0, 0.0)  # flying at the other drone
+    result = run_alone(agent, 0, [0.0, 0.0, 3.0], beacons={1: np.array([0.62, 0.0, 3.0])})
+    d = result.diagnostics
+    assert d.rate_limit_released and agent.rate_limit_releases == 1
+    row, lower = collision_row(np.array([0.0, 0.0, 3.0]), np.array([0.62, 0.0, 3.0]), 0.5, 1.0)
+    assert float(row @ result.velocity) >= lower - 1e-6
+    assert result.velocity[0] < 2.0 - 0.5 * 0.02  # beyond the box: it brakes harder

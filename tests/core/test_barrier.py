@@ -16,6 +16,7 @@ from swarm.core.barrier import (
     collision_row,
     gramian_rate_model,
     localization_barrier,
+    robust_lower_bound,
     weight_sum_row,
 )
 from swarm.core.params import GramianParams, PerceptionParams
@@ -318,3 +319,135 @@ def test_collision_rows_of_a_pair_enforce_the_centralized_cbf(seed: int) -> None
             u += gap / float(row @ row) * row
     h_rate = 2.0 * float((p_i - p_j) @ (u_i - u_j))
     assert h_rate >= -gain * h - 1e-10
+
+
+def _onto_tightened_boundary(row: np.ndarray, lower: float, bound: float) -> np.ndarray:
+    """A velocity on the boundary of a·u ≥ b + ē‖a‖ (``robust_lower_bound``), random along it."""
+    return (robust_lower_bound(lower, tuple(row.tolist()), bound) / float(row @ row)) * row
+
+
+def _worst_error(row: np.ndarray, bound: float) -> np.ndarray:
+    return -bound * row / np.linalg.norm(row)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_tightened_localization_rows_hold_the_hocbf_on_the_flown_velocity(seed: int) -> None:
+    """The robust margin on 3.32 (SPEC §8 rows tightened by ē‖L_gi ψ1‖), through the whole
+    closed loop: drones whose row matters (‖L_gi ψ1‖ > 0.01) on the boundary of their
+    tightened row, flying u_j + e_j with the worst tracking error e_j = −ē a_j/‖a_j‖, meet their
+    share exactly, so dψ1/dt = −ψ1 + (what the other drones contribute); any error within ē
+    gives more; without the margin the worst error takes Σ_j ē‖a_j‖ off. The others (weights
+    ≈ 0, whose rows only slacks could meet) fly random commands with random errors, the same
+    in every case. Time derivatives as in
+    ``test_lie_derivatives_give_the_closed_loop_rate_of_psi1`` (same tolerance).
+    """
+    rng = np.random.default_rng(500 + seed)
+    exponent, bound = -10.0, 0.3
+    target = np.array([*rng.uniform(-1.0, 1.0, 2), 0.0])
+    drones = _six_drones(rng, target)
+    n_agents = len(drones)
+    target_velocity = np.array([*rng.uniform(-0.5, 0.5, 2), 0.0])
+    gramian = _random_gramian(rng)
+    mean = _information_rate(drones, target) / (INFO_GAIN * n_agents)
+    barriers = [_barrier(gramian, mean, p, target, target_velocity, n_agents, exponent)
+                for p in drones]
+    psi1 = barriers[0].psi1
+    matters = [float(np.linalg.norm(b.lie_g)) > 0.01 for b in barriers]
+    assert any(matters)
+
+    def within_bound(count: int) -> np.ndarray:
+        errors = rng.normal(size=(count, 3))
+        return errors * bound * rng.uniform(0.0, 1.0, (count, 1)) / np.linalg.norm(
+            errors, axis=1, keepdims=True)
+
+    others = rng.uniform(-1.0, 1.0, (n_agents, 3)) + within_bound(n_agents)
+    offset = sum(float(b.lie_g @ v) - b.lower_bound
+                 for b, v, m in zip(barriers, others, matters, strict=True) if not m)
+    random_errors = within_bound(n_agents)
+
+    def flown(command, error) -> np.ndarray:
+        return np.array([command(b) + error(k, b) if m else others[k]
+                         for k, (b, m) in enumerate(zip(barriers, matters, strict=True))])
+
+    def tightened(b) -> np.ndarray:
+        return _onto_tightened_boundary(b.lie_g, b.lower_bound, bound)
+
+    def untightened(b) -> np.ndarray:
+        return (b.lower_bound / float(b.lie_g @ b.lie_g)) * b.lie_g
+
+    def worst(_k: int, b) -> np.ndarray:
+        return _worst_error(b.lie_g, bound)
+
+    shortfall = bound * sum(float(np.linalg.norm(b.lie_g))
+                            for b, m in zip(barriers, matters, strict=True) if m)
+    model_rate = -RHO * gramian + INFO_GAIN * n_agents * mean
+    time_scale = np.linalg.eigvalsh(gramian)[0] / ((1.0 - exponent) * np.linalg.norm(model_rate))
+    step = min(1e-4, 0.05 * time_scale)
+
+    def rate_of_psi1(velocities: np.ndarray) -> float:
+        return richardson_derivative(
+            lambda t: _psi1_along_flow(t, gramian, drones, velocities, target, target_velocity,
+                                       exponent), step)
+
+    on_boundary = flown(tightened, worst)
+    scale = abs(barriers[0].coupling) + sum(abs(b.drift) + abs(float(b.lie_g @ v))
+                                            for b, v in zip(barriers, on_boundary, strict=True))
+    tolerance = 1e-7 * scale
+    assert rate_of_psi1(on_boundary) == pytest.approx(-psi1 + offset, rel=0, abs=tolerance)
+    assert rate_of_psi1(flown(tightened, lambda k, b: random_errors[k])) \
+        >= -psi1 + offset - tolerance
+    assert rate_of_psi1(flown(untightened, worst)) == pytest.approx(
+        -psi1 + offset - shortfall, rel=0, abs=tolerance)
+    assert shortfall > 100 * tolerance  # the margin is not lost in the tolerance
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_tightened_collision_and_weight_rows_hold_on_the_flown_velocity(seed: int) -> None:
+    """Collision halves and weight-sum rows tightened by ē‖a‖: with the worst tracking error
+    the centralized CBFs (ḣ_ij ≥ −α h_ij; d/dt Σw ≥ −(Σw − γ)) hold with equality; with any
+    error within ē they hold; without the margin the worst error breaks them."""
+    rng = np.random.default_rng(700 + seed)
+    bound, distance, gain = 0.4, 0.5, 1.0
+    p_i = rng.uniform(-2.0, 2.0, 3)
+    offset = rng.normal(size=3)
+    p_j = p_i + offset * rng.uniform(0.6, 3.0) / np.linalg.norm(offset)
+    h = float((p_i - p_j) @ (p_i - p_j)) - distance**2
+    flown = []
+    for own, other in ((p_i, p_j), (p_j, p_i)):
+        row, lower = collision_row(own, other, distance, gain)
+        flown.append(_onto_tightened_boundary(row, lower, bound) + _worst_error(row, bound))
+    assert 2.0 * float((p_i - p_j) @ (flown[0] - flown[1])) == pytest.approx(-gain * h,
+                                                                             abs=1e-10)
+    row, lower = collision_row(p_i, p_j, distance, gain)
+    assert robust_lower_bound(lower, tuple(row.tolist()), bound) == pytest.approx(
+        lower + bound * 2.0 * np.linalg.norm(p_i - p_j), rel=1e-14)
+
+    gamma = 0.5
+    target = np.array([*rng.uniform(-1.0, 1.0, 2), 0.0])
+    drones = _six_drones(rng, target)
+    n_agents = len(drones)
+    target_velocity = np.array([*rng.uniform(-0.5, 0.5, 2), 0.0])
+    weight_sum = _weight_sum(drones, target)
+    rows = [weight_sum_row(perception_terms(p, target, PERCEPTION), target_velocity,
+                           weight_sum, gamma, n_agents) for p in drones]
+    active = [(a, lower) for a, lower in rows if float(a @ a) > 1e-4]
+    assert active
+    tight = np.array([_onto_tightened_boundary(a, lower, bound) + _worst_error(a, bound)
+                      if float(a @ a) > 1e-4 else np.zeros(3) for a, lower in rows])
+    loose = np.array([(lower / float(a @ a)) * a + _worst_error(a, bound)
+                      if float(a @ a) > 1e-4 else np.zeros(3) for a, lower in rows])
+    inactive = sum(lower for a, lower in rows if float(a @ a) <= 1e-4)
+
+    def rate_of_weight_sum(velocities: np.ndarray) -> float:
+        step = 1e-6
+        forward = _weight_sum(drones + step * velocities, target + step * target_velocity)
+        backward = _weight_sum(drones - step * velocities, target - step * target_velocity)
+        return (forward - backward) / (2.0 * step)
+
+    # Σ_j (a_j·ṗ_j − lower_j) = d/dt Σw + (S_w − γ) (the test above); on the tightened
+    # boundary with the worst error every active a_j·ṗ_j = lower_j.
+    assert rate_of_weight_sum(tight) == pytest.approx(-(weight_sum - gamma) - inactive,
+                                                      abs=1e-7)
+    shortfall = bound * sum(float(np.linalg.norm(a)) for a, _ in active)
+    assert rate_of_weight_sum(loose) == pytest.approx(
+        -(weight_sum - gamma) - inactive - shortfall, abs=1e-7)

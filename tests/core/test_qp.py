@@ -11,7 +11,7 @@ objective among candidates is the global optimum of the (strictly convex) proble
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import piqp
@@ -39,6 +39,8 @@ class Instance:
     collision_rows: np.ndarray
     collision_lower: np.ndarray
     weights: np.ndarray
+    u_low: np.ndarray = field(default_factory=lambda: np.full(3, -U_MAX))  # box of u
+    u_high: np.ndarray = field(default_factory=lambda: np.full(3, U_MAX))
 
     def build(self, *, relaxed: bool) -> LocalQp:
         return build_local_qp(
@@ -102,7 +104,7 @@ def _hard_constraints(instance: Instance) -> tuple[np.ndarray, np.ndarray]:
     active = np.any(instance.collision_rows != 0.0, axis=1)
     box_rows = np.vstack((np.eye(3), -np.eye(3)))
     return (np.vstack((instance.collision_rows[active], box_rows)),
-            np.concatenate((instance.collision_lower[active], np.full(6, -U_MAX))))
+            np.concatenate((instance.collision_lower[active], instance.u_low, -instance.u_high)))
 
 
 def brute_force_optimum(instance: Instance, *, relaxed: bool) -> tuple[np.ndarray, float] | None:
@@ -380,3 +382,40 @@ def test_workspace_sends_nan_nominal_to_the_solver_not_the_shortcut() -> None:
     solution = workspace.solve((float("nan"), 0.0, 0.0), columns, lower, weights)
     assert solution.status != qp_module.NOMINAL_FEASIBLE
     assert not solution.found  # the agent then falls back (zero velocity), never flies NaN
+
+
+def test_rate_limited_box_bounds_the_change_and_stays_inside_u_max() -> None:
+    low, high = qp_module.rate_limited_box((2.95, -1.0, 0.0), 0.1, 3.0)
+    assert low == pytest.approx([2.85, -1.1, -0.1]) and high == pytest.approx([3.0, -0.9, 0.1])
+    low, high = qp_module.rate_limited_box((-3.0, 3.0, 0.0), 10.0, 3.0)
+    assert low == [-3.0, -3.0, -3.0] and high == [3.0, 3.0, 3.0]
+
+
+@pytest.mark.parametrize("relaxed", [True, False], ids=["relaxed", "hard"])
+def test_workspace_with_a_rate_box_matches_the_brute_force_optimum(relaxed: bool) -> None:
+    """A box that moves every solve (|u − u_prev| ≤ a·ΔT, ``rate_limited_box``) is the QP's box:
+    the workspace finds the brute-force optimum within it, and its solutions never move more
+    than a·ΔT per component from the previous one; a box that cannot meet the hard rows is
+    reported not found (the agent then releases it)."""
+    rng = np.random.default_rng(31 + relaxed)
+    workspace = qp_module.LocalQpWorkspace(2, N_DRONES - 1, relaxed=relaxed,
+                                           slack_weight=SLACK_WEIGHT,
+                                           weight_floor=WEIGHT_FLOOR, u_max=U_MAX)
+    previous, max_change = (0.0, 0.0, 0.0), 0.3 if relaxed else 1.0
+    solved = infeasible = 0
+    for _ in range(30):
+        instance = random_instance(rng, 2, hard_feasible=not relaxed)
+        box = qp_module.rate_limited_box(previous, max_change, U_MAX)
+        instance.u_low, instance.u_high = np.array(box[0]), np.array(box[1])
+        solution = workspace.solve(*_workspace_inputs(instance), u_box=box)
+        reference = brute_force_optimum(instance, relaxed=relaxed)
+        if reference is None:
+            assert not solution.found
+            infeasible += 1
+            continue
+        assert solution.found, solution.status
+        np.testing.assert_allclose(solution.velocity, reference[0], rtol=0, atol=VELOCITY_ATOL)
+        assert np.all(np.abs(solution.velocity - previous) <= max_change + 1e-9)
+        previous = tuple(solution.velocity.tolist())
+        solved += 1
+    assert solved >= 7 and infeasible >= 1, (solved, infeasible)
