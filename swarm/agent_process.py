@@ -28,6 +28,7 @@ from typing import Literal
 
 import numpy as np
 
+from swarm.command_reference import CommandReference
 from swarm.config import ScenarioConfig
 from swarm.core.agent import ConsensusMessage, DroneAgent
 from swarm.mavlink_link import AutopilotLink, LinkError
@@ -48,6 +49,7 @@ from swarm.transport import (
     subscribe,
     zenoh_config,
 )
+from swarm.vehicle_watch import EXIT_END_MISSION, VehicleWatch
 from swarm.wire import (
     BeaconWire,
     CameraFrameWire,
@@ -59,6 +61,10 @@ from swarm.wire import (
 Mode = Literal["lockstep", "realtime"]
 WAIT_SLICE_S = 0.25  # lockstep waits wake at least this often to check their deadline
 ROUTER_RETRY_S = 0.05  # the world's router is not up yet: try again this soon
+
+
+class VehicleNotAsAsked(Exception):
+    """Policy "leave" or "end": the vehicle is not as the agent asked (swarm.vehicle_watch)."""
 
 
 class MissionEnded(Exception):
@@ -115,6 +121,14 @@ class AgentProcess:
         self.late_steps = 0
         self.steps_run = 0
         self._flying = np.zeros(3)  # the velocity setpoint last sent (what the vehicle flies)
+        # vehicles.setpoints = "tracked": the reference the setpoints follow, and when the
+        # last one went out (monotonic s; realtime measures Δt_k, lockstep uses ΔT).
+        self.reference = (CommandReference(cfg.vehicles.reference_reset_m)
+                          if cfg.vehicles.setpoints == "tracked" else None)
+        self._last_setpoint_s: float | None = None
+        self.tracking_error_m: float | None = None
+        self.velocity_error_m_s: float | None = None
+        self.watch = VehicleWatch(cfg.vehicles.flavour)
         self.stale_messages = 0
         self.neighbour_age_ms = float("nan")
         self.members = frozenset(range(self.n))  # realtime: drones heard recently, self included
@@ -377,9 +391,11 @@ class AgentProcess:
         return out
 
     def _step(self, step: int, position: np.ndarray, frame: CameraFrameWire | None,
-              sample_age_s: float = 0.0) -> np.ndarray:
+              sample_age_s: float = 0.0,
+              vehicle_velocity: np.ndarray | None = None) -> np.ndarray:
         """One step of the core, with the exchange done the way the mode wants
-        (``sample_age_s``: how old ``position`` is, realtime only)."""
+        (``sample_age_s``: how old ``position`` is, realtime only; ``vehicle_velocity``: the
+        velocity the autopilot reported with it)."""
         agent = self.agent
         if not self._lockstep:
             self._follow_membership(step)
@@ -410,7 +426,7 @@ class AgentProcess:
         result = agent.finish_step(beacons)
         self.steps_run += 1
         stamp = frame.vehicle_time_ms if frame is not None else 0
-        self.link.send_velocity(result.velocity, stamp)
+        self._send_command(result.velocity, position, vehicle_velocity, stamp)
         self._flying = result.velocity
         self._send(
             self._pub_telemetry, self.codec.encode_telemetry,
@@ -421,8 +437,60 @@ class AgentProcess:
             stale_neighbour_messages=self.stale_messages, late_steps=self.late_steps,
             steps=self.steps_run,
             neighbour_age_ms=self.neighbour_age_ms, swarm_size=agent.swarm_size,
-            mavlink_state=f"{'armed' if self.link.armed else 'disarmed'} {self.link.mode}")
+            mavlink_state=f"{'armed' if self.link.armed else 'disarmed'} {self.link.mode}",
+            rate_limit_releases=agent.rate_limit_releases,
+            reference_resets=self.reference.resets if self.reference is not None else 0,
+            tracking_error_m=self.tracking_error_m,
+            velocity_error_m_s=self.velocity_error_m_s,
+            vehicle_events=self.watch.events, vehicle_status=self._vehicle_status())
+        self._watch_vehicle(step, sample_age_s)
         return result.velocity
+
+    def _vehicle_status(self) -> str:
+        problem = self.watch.problem
+        if not problem:
+            return ""
+        return f"{self.options.config.vehicles.on_vehicle_event}: {problem}"[:64]
+
+    def _watch_vehicle(self, step: int, sample_age_s: float) -> None:
+        """Compare the vehicle with what was asked (swarm.vehicle_watch); log a change with its
+        time and apply ``vehicles.on_vehicle_event``."""
+        link = self.link
+        event = self.watch.update(step * self.options.config.scenario.dt_s, armed=link.armed,
+                                  mode=link.mode, position_age_s=sample_age_s)
+        if event is None:
+            return
+        policy = self.options.config.vehicles.on_vehicle_event
+        self.options.log(event.describe(self.id) + (
+            f"; policy {policy}" if event.problem else ""))
+        if event.problem and policy != "continue":
+            raise VehicleNotAsAsked(policy)
+
+    def _send_command(self, velocity: np.ndarray, position: np.ndarray,
+                      vehicle_velocity: np.ndarray | None, stamp: int) -> None:
+        """The step's command to the autopilot: velocity only, or the setpoint along the
+        command reference (``vehicles.setpoints``); the tracking errors measured on the way."""
+        if vehicle_velocity is not None:
+            self.velocity_error_m_s = float(np.linalg.norm(vehicle_velocity - self._flying))
+        if self.reference is None:
+            self.link.send_velocity(velocity, stamp)
+            return
+        if self.watch.problem:  # the vehicle flies a mode of its own: start again from it
+            self.reference.restart()
+        now = time.monotonic()
+        dt = self.options.config.scenario.dt_s
+        elapsed = dt if self._lockstep or self._last_setpoint_s is None \
+            else max(now - self._last_setpoint_s, 1e-3)
+        self._last_setpoint_s = now
+        p = position.tolist()
+        v = None if vehicle_velocity is None else vehicle_velocity.tolist()
+        sp = self.reference.setpoint((p[0], p[1], p[2]), v, tuple(velocity.tolist()), elapsed)
+        self.tracking_error_m = sp.position_error_m
+        if sp.reset:
+            self.options.log(f"drone {self.id}: vehicle {sp.position_error_m:.2f} m from the "
+                             f"command reference: reference put back on it "
+                             f"({self.reference.resets} resets)")
+        self.link.send_tracked(sp.position_w, sp.velocity_w, sp.acceleration_w, stamp)
 
     # -- phases ------------------------------------------------------------------------------
 
@@ -460,14 +528,14 @@ class AgentProcess:
             frame = self._wait_steps(self.camera_steps, step, 0, {0}, "camera frame")[0]
             sample = self.link.wait_position(frame.vehicle_time_ms,
                                              self.options.config.runtime.lockstep_timeout_s)
-            self._step(step, sample.position_w, frame)
+            self._step(step, sample.position_w, frame, vehicle_velocity=sample.velocity_w)
             step += 1
 
     def run_realtime(self) -> None:
         limiter = RateLimiter(self.options.config.scenario.dt_s)
         n_steps = self.options.config.n_steps
         last_frame_step = -1
-        position = received_s = None
+        position = received_s = vehicle_velocity = None
         # Count steps from the world's step of the first frame: with both loops on the wall
         # clock (RateLimiter keeps phase), step k here is sim time k·ΔT there, so telemetry
         # lines up with truth and the filter predicts exactly as far as the targets moved.
@@ -478,6 +546,7 @@ class AgentProcess:
             sample = self.link.latest_position()
             if sample is not None:
                 position, received_s = sample.position_w, sample.received_s
+                vehicle_velocity = sample.velocity_w
             latest = self.camera_latest.get(0)
             frame = None
             if latest is not None and latest[0].step != last_frame_step:
@@ -488,7 +557,8 @@ class AgentProcess:
             if step >= n_steps:
                 self.link.keepalive()
             elif position is not None:
-                self._step(step, position, frame, max(time.monotonic() - received_s, 0.0))
+                self._step(step, position, frame, max(time.monotonic() - received_s, 0.0),
+                           vehicle_velocity)
                 step += 1
             if limiter.sleep():
                 self.late_steps += 1
@@ -524,6 +594,12 @@ class AgentProcess:
             return 1
         except LinkError as err:
             log(str(err) if str(err).startswith("drone ") else f"drone {self.id}: {err}")
+            return 1
+        except VehicleNotAsAsked as policy:
+            if str(policy) == "end":
+                log(f"drone {self.id}: ending the mission (vehicles.on_vehicle_event = end)")
+                return EXIT_END_MISSION
+            log(f"drone {self.id}: leaving the swarm (vehicles.on_vehicle_event = leave)")
             return 1
         return 0
 

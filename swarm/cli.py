@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import math
 import sys
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -88,6 +89,10 @@ def build_parser() -> OneLineParser:
                              "and stopped here: PATH is the arducopter SITL binary or a PX4 "
                              "SITL build directory (bin/px4, etc/); 'ardupilot' or 'px4' take "
                              f"it from ${ENV_ARDUCOPTER} or ${ENV_PX4} (realtime)")
+    parser.add_argument("--sitl-param", action="append", default=[], metavar="NAME=VALUE",
+                        type=sitl_parameter, dest="sitl_params",
+                        help="--sitl: set this autopilot parameter at boot on every instance, "
+                             "after the swarm's own (repeatable; e.g. a failsafe to try)")
     parser.add_argument("--mavlink", action="append", default=[], metavar="I=URL",
                         type=mavlink_assignment,
                         help="drone I flies the autopilot at this pymavlink URL, started "
@@ -98,6 +103,22 @@ def build_parser() -> OneLineParser:
                              "detections and truth with their sim time, and the resolved "
                              "config (MCAP, JSON; Foxglove reads it)")
     return parser
+
+
+def sitl_parameter(text: str) -> tuple[str, float]:
+    """argparse type of ``--sitl-param NAME=VALUE``."""
+    name, sep, value = text.partition("=")
+    name = name.strip()
+    try:
+        number = float(value)
+    except ValueError:
+        number = math.nan
+    if not sep or not name or not name.replace("_", "").isalnum() or len(name) > 16 \
+            or not math.isfinite(number):
+        raise argparse.ArgumentTypeError(f"expected NAME=VALUE with a parameter name of at "
+                                         f"most 16 letters, digits or _ and a finite number "
+                                         f"(e.g. BATT_LOW_VOLT=11.5), got {text!r}")
+    return name.upper(), number
 
 
 def mavlink_assignment(text: str) -> tuple[int, str]:
@@ -179,6 +200,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                                   external=real)
     if reason is not None:
         return fail(PROG, reason)
+    if args.sitl_params and sitl is None:
+        return fail(PROG, "--sitl-param needs --sitl (it sets parameters on the SITL "
+                          "autopilots launch-swarm starts)")
     if sitl is not None and config.vehicles.mavlink_urls:
         return fail(PROG, "--sitl starts its own autopilots: leave out --mavlink and "
                           "vehicles.mavlink_urls")
@@ -195,7 +219,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 mode=args.mode, run_id=args.run_id or "", mavlink_base=args.mavlink_base,
                 log_dir=Path(args.log_dir) if args.log_dir else None, record_dir=args.record,
                 agent_restarts=args.agent_restarts,
-                agent_restart_delay_s=args.agent_restart_delay, sitl=sitl)
+                agent_restart_delay_s=args.agent_restart_delay, sitl=sitl,
+                sitl_params=tuple(args.sitl_params))
             launcher = SwarmLauncher(options, log=lambda line: console.print(
                 line, highlight=False, markup=False))
             with Dashboard(config, console, headless=args.headless,
@@ -238,7 +263,9 @@ def print_process_counters(collector: TelemetryCollector, console: Console) -> N
         f"{counts['telemetry_received']}), late {counts['late_steps']} "
         f"({100.0 * counts['late_steps'] / steps:.2f} %), stale neighbour messages "
         f"{counts['stale_neighbour_messages']}, rejected messages "
-        f"{counts['rejected_messages']}, QP fallbacks {counts['qp_fallbacks']}",
+        f"{counts['rejected_messages']}, QP fallbacks {counts['qp_fallbacks']}, vehicle "
+        f"events {counts['vehicle_events']}, rate-box releases "
+        f"{counts['rate_limit_releases']}, reference resets {counts['reference_resets']}",
         highlight=False)
 
 

@@ -176,4 +176,7 @@ class TelemetryCollector:
             "stale_neighbour_messages": sum(c.stale_neighbour_messages for c in latest),
             "missing_neighbour_messages": sum(c.missing_neighbour_messages for c in latest),
             "qp_fallbacks": sum(c.qp_fallbacks for c in latest),
+            "vehicle_events": sum(c.vehicle_events for c in latest),
+            "rate_limit_releases": sum(c.rate_limit_releases for c in latest),
+            "reference_resets": sum(c.reference_resets for c in latest),
         }

@@ -46,6 +46,7 @@ from swarm.core.params import (
 )
 from swarm.mavlink_signing import SigningKeyError, read_signing_key
 from swarm.security import OBSERVER_ROLE, SecurityError, TlsIdentity, check_tls_dir
+from swarm.vehicle_watch import VEHICLE_EVENT_POLICIES, VehicleEventPolicy
 
 Vector3 = tuple[float, float, float]
 
@@ -155,6 +156,7 @@ Flavour = Literal["px4", "ardupilot"]
 EndAction = Literal["hold", "land", "rtl"]
 VehicleStart = Literal["air", "ground"]
 ResponseKind = Literal["ideal", "arducopter", "px4", "custom"]
+SetpointKind = Literal["velocity", "tracked"]
 DEFAULT_SETPOINT_TIMEOUT_S = {"px4": 0.5, "ardupilot": 3.0}  # COM_OF_LOSS_T, GUID_TIMEOUT
 
 # What [control] takes for tracking_error_bound_m_s (ē [m/s]) and command_accel_limit_m_s2
@@ -200,6 +202,16 @@ class VehiclesSection:
     # then serves no vehicles and supervises agents flying these); () = emulated vehicles.
     mavlink_urls: tuple[str, ...] = ()
     geo_origin: Vector3 = DEFAULT_GEO_ORIGIN  # W's origin on Earth [deg, deg, m]; SITL homes
+    # What each agent sends its autopilot every step: "velocity" (u only) or "tracked" (the
+    # command reference: position, velocity and acceleration along ṙ = u, so the autopilot's
+    # position loop removes its drift; swarm.command_reference).
+    setpoints: SetpointKind = "tracked"
+    # "tracked": the reference is put back on the vehicle when they are this far apart [m].
+    reference_reset_m: float = 1.0
+    # What an agent does when its vehicle is not as asked during the mission (disarmed,
+    # another mode, no position; swarm.vehicle_watch): "continue" (degraded, in the swarm),
+    # "leave" (the agent ends, the others go on) or "end" (the mission ends).
+    on_vehicle_event: VehicleEventPolicy = "continue"
 
     def __post_init__(self) -> None:
         require(self.flavour in ("px4", "ardupilot"), "flavour", "must be 'px4' or 'ardupilot'",
@@ -213,6 +225,12 @@ class VehiclesSection:
                 "must be 'hold', 'land' or 'rtl'", self.end_action)
         require(self.start in ("air", "ground"), "start", "must be 'air' or 'ground'",
                 self.start)
+        require(self.on_vehicle_event in VEHICLE_EVENT_POLICIES, "on_vehicle_event",
+                "must be 'continue', 'leave' or 'end'", self.on_vehicle_event)
+        require(self.setpoints in ("velocity", "tracked"), "setpoints",
+                "must be 'velocity' or 'tracked'", self.setpoints)
+        require(math.isfinite(self.reference_reset_m) and self.reference_reset_m > 0,
+                "reference_reset_m", "must be a finite number > 0", self.reference_reset_m)
         require(self.response in ("ideal", "arducopter", "px4", "custom"), "response",
                 "must be 'ideal', 'arducopter', 'px4' or 'custom'", self.response)
         for name in ("response_time_constant_s", "response_accel_limit_m_s2"):
@@ -534,7 +552,7 @@ def load_config(path: str | Path, *, autopilot: str | None = None) -> ScenarioCo
     ``config_from_dict``."""
     path = Path(path)
     if path.suffix == ".json":
-        return _load_resolved(path)
+        return _load_resolved(path, autopilot)
     try:
         with path.open("rb") as handle:
             data = tomllib.load(handle)
@@ -559,7 +577,7 @@ def load_config(path: str | Path, *, autopilot: str | None = None) -> ScenarioCo
     return config
 
 
-def _load_resolved(path: Path) -> ScenarioConfig:
+def _load_resolved(path: Path, autopilot: str | None = None) -> ScenarioConfig:
     try:
         data = msgspec.json.decode(path.read_bytes())
     except FileNotFoundError:
@@ -571,7 +589,7 @@ def _load_resolved(path: Path) -> ScenarioConfig:
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a JSON object (a resolved config)")
     try:
-        config = config_from_dict(data, source=str(path))
+        config = config_from_dict(data, source=str(path), autopilot=autopilot)
         config.vehicles.signing_key()
         config.security.check(config.swarm.n_drones)
     except ConfigError as err:

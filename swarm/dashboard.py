@@ -47,10 +47,14 @@ WARNED_COUNTERS: tuple[tuple[str, str], ...] = (
     ("stale_neighbour_messages", "stale neighbour messages"),
     ("qp_fallbacks", "QP fallbacks"),
     ("rejected_messages", "rejected messages"),
+    ("vehicle_events", "vehicle events (not asked for)"),
+    ("rate_limit_releases", "rate-box releases"),
+    ("reference_resets", "reference resets"),
 )
 # Short labels of the same counters in the drone table's "events" column.
 _EVENT_LABELS = {"late_steps": "late", "stale_neighbour_messages": "stale",
-                 "qp_fallbacks": "fb", "rejected_messages": "rej"}
+                 "qp_fallbacks": "fb", "rejected_messages": "rej", "vehicle_events": "veh",
+                 "rate_limit_releases": "rel", "reference_resets": "rst"}
 
 TARGET_COLUMNS = ("target", "min λ̄ (drone)", "λ̄−ε", "min ψ0", "sensing", "spread [m]")
 DRONE_COLUMNS = ("drone", "λ̄", "ψ0", "w", "‖u‖ [m/s]", "slack", "step [µs]", "nbr age [ms]",
@@ -351,8 +355,9 @@ class Dashboard:
                 Text(f"{d.max_slack:.3f}", style="yellow" if d.max_slack > 1e-6 else ""),
                 Text(f"{d.step_us:.0f}"),
                 _age(d.neighbour_age_ms, stale_ms),
-                Text(d.mavlink_state or "—",
-                     style="red" if d.mavlink_state.startswith("disarmed") else ""),
+                Text(d.counters.vehicle_status or d.mavlink_state or "—",
+                     style="red" if d.counters.vehicle_status
+                     or d.mavlink_state.startswith("disarmed") else ""),
                 _events(d.counters)])
         return text_table("drones", DRONE_COLUMNS, cells)
 

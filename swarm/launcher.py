@@ -60,6 +60,7 @@ from swarm.transport import (
     subscribe,
     zenoh_config,
 )
+from swarm.vehicle_watch import EXIT_END_MISSION
 from swarm.wire import BeaconWire, CameraFrameWire, ClockWire, TelemetryWire, TruthWire, WireCodec
 
 # Listen this long for datagrams before taking a block of MAVLink ports: PX4 SITL streams its
@@ -98,6 +99,7 @@ class LaunchOptions:
     # brought up, flown by the agents and stopped by the launcher; realtime only.
     sitl: Firmware | None = None
     sitl_boot_speedup: float = DEFAULT_BOOT_SPEEDUP
+    sitl_params: tuple[tuple[str, float], ...] = ()  # --sitl-param: set at boot on every one
     # Record telemetry, beacons, detections and truth to record_dir/run.mcap (swarm.recording).
     record_dir: Path | None = None
     # Realtime: an agent that dies during the mission is restarted with the same id (it
@@ -453,6 +455,8 @@ class SwarmLauncher:
         drone waits for every other one, nor before the mission starts, nor the last one."""
         alive = [c for c in self.children
                  if c.drone is not None and c is not child and c.process.poll() is None]
+        if child.process.returncode == EXIT_END_MISSION:  # vehicles.on_vehicle_event = end
+            return False
         return (self.options.mode == "realtime" and child.drone is not None
                 and self._mission_state() == "running" and bool(alive))
 
@@ -507,7 +511,8 @@ class SwarmLauncher:
         fleet = SitlFleet(firmware, [geo.moved(g[0], g[1]) for g in ground_w],
                           [base + i for i in range(n)], [base + n + i for i in range(n)],
                           self.log_dir, setpoint_timeout_s=cfg.vehicles.failsafe_timeout_s,
-                          boot_speedup=self.options.sitl_boot_speedup, log=self.log,
+                          boot_speedup=self.options.sitl_boot_speedup,
+                          extra_params=self.options.sitl_params, log=self.log,
                           on_state=self._on_autopilot_state)
         self.sitl_fleet = fleet
         try:

@@ -11,8 +11,9 @@ Positions come from LOCAL_POSITION_NED and are brought into the world frame W wi
 ``frames.world_from_local_ned(ned, origin_w)`` (``origin_w``: the configured per-drone origin
 offset, i.e. the vehicle's local NED origin in W); velocities with ``frames.ned_to_enu``.
 Setpoints are SET_POSITION_TARGET_LOCAL_NED in MAV_FRAME_LOCAL_NED: velocity only (type_mask
-0x0DC7, ``frames.to_link_float(frames.enu_to_ned(velocity_w))``), or position only (0x0DF8)
-for holds and climbs.
+0x0DC7, ``frames.to_link_float(frames.enu_to_ned(velocity_w))``), position + velocity +
+acceleration along the command reference (``send_tracked``, ``TRACKED_TYPE_MASK``), or
+position only (0x0DF8) for holds and climbs.
 
 One vehicle per agent. The link binds to the first autopilot it hears with the vehicle's
 system id (component 1) — over ``udpin`` also to that sender's address, the only address it
@@ -111,6 +112,7 @@ from swarm.mavlink_parse import (
     LOCAL_POSITION_NED,
     POSITION_ONLY_TYPE_MASK,
     SET_POSITION_TARGET_LOCAL_NED,
+    TRACKED_TYPE_MASK,
     VELOCITY_ONLY_TYPE_MASK,
     parse_bytes,
 )
@@ -437,6 +439,20 @@ class AutopilotLink:
         self._commanded = True
         self._send_setpoint(VELOCITY_ONLY_TYPE_MASK, np.zeros(3),
                             frames.to_link_float(frames.enu_to_ned(velocity_w)), stamp)
+
+    def send_tracked(self, position_w: ArrayLike, velocity_w: ArrayLike,
+                     acceleration_w: ArrayLike, time_boot_ms: int) -> None:
+        """One setpoint along the command reference (``swarm.command_reference``): position,
+        velocity and acceleration feed-forward in W, type mask ``TRACKED_TYPE_MASK`` of the
+        flavour; like ``send_velocity`` otherwise (``keepalive`` then sends zero velocity)."""
+        stamp = _stamp(time_boot_ms)
+        self._hold_position_w = None
+        self._commanded = True
+        self._send_setpoint(
+            TRACKED_TYPE_MASK[self._flavour],
+            frames.to_link_float(frames.local_ned_from_world(position_w, self._origin)),
+            frames.to_link_float(frames.enu_to_ned(velocity_w)), stamp,
+            frames.to_link_float(frames.enu_to_ned(acceleration_w)))
 
     def send_position(self, position_w: ArrayLike, time_boot_ms: int) -> None:
         """One position setpoint (W, m; the vehicle's local NED over the link)."""
@@ -843,23 +859,25 @@ class AutopilotLink:
                                 IDLE_STAMP_MS)
 
     def _send_setpoint(self, type_mask: int, position_ned: Array, velocity_ned: Array,
-                       stamp: int) -> None:
+                       stamp: int, acceleration_ned: Array | None = None) -> None:
         if self._second_autopilot is not None and not self._commanded:
             return  # which vehicle is ours was in doubt before we flew one: command none
         x, y, z = (float(c) for c in position_ned)
         vn, ve, vd = (float(c) for c in velocity_ned)
+        an, ae, ad = (0.0, 0.0, 0.0) if acceleration_ned is None else (
+            float(c) for c in acceleration_ned)
         mav = self._conn.mav
         # Fields in wire order (SET_POSITION_TARGET_LOCAL_NED.fields); pymavlink's own send
         # when the fast path does not apply (signing, a send callback).
         frame = SET_POSITION_TARGET_LOCAL_NED.pack(
-            mav, stamp, x, y, z, vn, ve, vd, 0.0, 0.0, 0.0, 0.0, 0.0,
+            mav, stamp, x, y, z, vn, ve, vd, an, ae, ad, 0.0, 0.0,
             type_mask, self._sysid, AUTOPILOT_COMPONENT_ID, mavlink2.MAV_FRAME_LOCAL_NED)
         if frame is not None:
             mav.file.write(frame)
         else:
             mav.set_position_target_local_ned_send(
                 stamp, self._sysid, AUTOPILOT_COMPONENT_ID, mavlink2.MAV_FRAME_LOCAL_NED,
-                type_mask, x, y, z, vn, ve, vd, 0.0, 0.0, 0.0, 0.0, 0.0)
+                type_mask, x, y, z, vn, ve, vd, an, ae, ad, 0.0, 0.0)
         now = self._clock()
         self._last_setpoint_sent_s = now
         if self._last_companion_hb_s is None \

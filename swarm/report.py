@@ -91,6 +91,10 @@ class DroneReport:
     missing_neighbour_messages: int | None
     steps_run: int | None  # as counted by the agent process
     missing_samples: int  # steps whose telemetry never reached the recorder
+    # Changes of the vehicle the agent did not ask for (swarm.vehicle_watch) and what was
+    # still wrong at the end ("" = nothing); None: not measured (in-process run).
+    vehicle_events: int | None = None
+    vehicle_status: str | None = None
 
 
 @dataclass(frozen=True)
@@ -172,6 +176,8 @@ def _drone_reports(record: RunRecord,
             missing_neighbour_messages=c.missing_neighbour_messages if c else None,
             steps_run=c.steps if c else None,
             missing_samples=s.missing_samples,
+            vehicle_events=c.vehicle_events if c else None,
+            vehicle_status=c.vehicle_status if c else None,
         ))
     return tuple(out)
 
@@ -203,6 +209,11 @@ def _warnings(record: RunRecord, mode: str, cov: Coverage, drones: Sequence[Dron
         if silent:
             out.append(f"no counters from drone(s) {', '.join(map(str, silent))}: late steps "
                        f"and rejected messages unknown for them")
+        for d in drones:
+            if d.vehicle_events:
+                out.append(f"drone {d.id}: its vehicle left the state the agent asked for "
+                           f"{d.vehicle_events} time(s) (the agent log has when and why)"
+                           + (f"; at the end: {d.vehicle_status}" if d.vehicle_status else ""))
     return tuple(out)
 
 
@@ -281,6 +292,8 @@ def _drone_json(d: DroneReport) -> dict[str, Any]:
         "missing_neighbour_messages": d.missing_neighbour_messages,
         "steps_run": d.steps_run,
         "missing_samples": d.missing_samples,
+        "vehicle_events": d.vehicle_events,
+        "vehicle_status": d.vehicle_status,
     }
 
 
@@ -366,7 +379,7 @@ def target_table(report: RunReport) -> Table:
 def drone_table(report: RunReport) -> Table:
     table = Table(title="drones", title_justify="left")
     columns = ["drone", "final |u| [m/s]", "final w", "state", "QP fallbacks", "late steps",
-               "rejected", "step µs mean/p99", "bearing err"]
+               "rejected", "step µs mean/p99", "bearing err", "vehicle events"]
     incomplete = not report.coverage.complete
     if incomplete:
         columns.append("missing")
@@ -379,11 +392,19 @@ def drone_table(report: RunReport) -> Table:
         row = [str(d.id), _fmt(d.final_speed_mps, ".3f"), weights, state, str(d.qp_fallbacks),
                _late(d), _count(d.rejected_messages),
                f"{_fmt(d.mean_step_us, '.0f')}/{_fmt(d.p99_step_us, '.0f')}",
-               _fmt(d.final_bearing_error, ".4f")]
+               _fmt(d.final_bearing_error, ".4f"), _vehicle(d)]
         if incomplete:
             row.append(str(d.missing_samples))
         table.add_row(*row)
     return table
+
+
+def _vehicle(d: DroneReport) -> str:
+    """Vehicle events (not asked for), and what was still wrong at the end."""
+    if d.vehicle_events is None:
+        return "—"
+    return f"{d.vehicle_events} ({d.vehicle_status})" if d.vehicle_status \
+        else str(d.vehicle_events)
 
 
 def run_lines(report: RunReport) -> tuple[str, str]:

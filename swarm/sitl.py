@@ -638,15 +638,18 @@ class SitlFleet:
     def __init__(self, firmware: Firmware, homes: Sequence[GeoPoint],
                  companion_ports: Sequence[int], monitor_ports: Sequence[int], log_dir: Path, *,
                  setpoint_timeout_s: float, boot_speedup: float = DEFAULT_BOOT_SPEEDUP,
+                 extra_params: Sequence[tuple[str, float]] = (),
                  log: Callable[[str], None] = print,
                  on_state: Callable[[int, VehicleView], None] | None = None) -> None:
+        """``extra_params``: (name, value) set at boot on every instance after the swarm's own
+        (``default_params``), e.g. a failsafe to try."""
         n = len(homes)
         if not len(companion_ports) == len(monitor_ports) == n:
             raise ValueError("one home, companion port and monitor port per drone")
         self.firmware = firmware
         self.log = log
         self._on_state = on_state
-        params = default_params(firmware.kind, setpoint_timeout_s)
+        params = (*default_params(firmware.kind, setpoint_timeout_s), *extra_params)
         instances = free_instances(firmware.kind, n)
         self.instances = [
             SitlInstance(SitlSpec(firmware, instances[i], i + 1, homes[i], companion_ports[i],

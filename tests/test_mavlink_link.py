@@ -679,3 +679,56 @@ def test_end_mission_refused_is_logged_not_raised(served: Any, logs: list[str]) 
     assert not link.end_mission("land")
     assert any("end action land (LAND) refused (result 2 MAV_RESULT_DENIED)" in line
                for line in logs), logs
+
+
+def test_send_tracked_packet_contents(pair: Any) -> None:
+    """Position (local NED of the vehicle), velocity and acceleration feed-forward in one
+    SET_POSITION_TARGET_LOCAL_NED, type mask 0x0C00 (only yaw and yaw rate ignored)."""
+    link, vehicle, endpoint = pair
+    _introduce(link, vehicle, endpoint)
+    position, velocity, acceleration = (np.array([104.0, -47.0, 4.5]), np.array([0.5, -1.0, 0.1]),
+                                        np.array([2.0, 0.0, -1.0]))
+    link.send_tracked(position, velocity, acceleration, 4_321)
+    (sp,) = [m for m in _received(endpoint, 2) if m.get_type() == "SET_POSITION_TARGET_LOCAL_NED"]
+    assert sp.type_mask == 0x0C00 and sp.time_boot_ms == 4_321
+    np.testing.assert_allclose(
+        frames.world_from_local_ned([sp.x, sp.y, sp.z], ORIGIN), position, atol=1e-5)
+    np.testing.assert_allclose(frames.ned_to_enu([sp.vx, sp.vy, sp.vz]), velocity, atol=1e-6)
+    np.testing.assert_allclose(frames.ned_to_enu([sp.afx, sp.afy, sp.afz]), acceleration,
+                               atol=1e-6)
+
+
+@pytest.mark.parametrize("flavour", ["px4", "ardupilot"])
+def test_tracked_setpoints_pull_a_displaced_vehicle_onto_the_reference(
+        flavour: str, served: Any, logs: list[str]) -> None:
+    """The command reference at work on an emulated autopilot flying itself: a vehicle pushed
+    0.4 m off the reference while it tracks u = 0.5 m/s east comes back onto it (its position
+    loop; a velocity setpoint has nothing that would take the offset out)."""
+    from swarm.command_reference import CommandReference
+
+    link, server = served(flavour, logs)
+    link.handshake(timeout_s=10.0, start_position_w=START)
+    reference = CommandReference(reset_distance_m=1.0)
+    u = (0.5, 0.0, 0.0)
+    errors: list[float] = []
+    pushed = False
+    started = time.monotonic()
+    last = started
+    while time.monotonic() - started < 4.0:
+        link.poll()
+        sample = link.latest_position()
+        now = time.monotonic()
+        if sample is not None and now - last >= DT:
+            if not pushed and now - started > 1.5:
+                with server.lock:  # a gust: 0.4 m north, at once
+                    server.vehicle._position = server.vehicle.position_w + np.array([0.0, 0.4, 0.0])
+                pushed = True
+            p, v = sample.position_w.tolist(), sample.velocity_w.tolist()
+            sp = reference.setpoint((p[0], p[1], p[2]), (v[0], v[1], v[2]), u, now - last)
+            link.send_tracked(sp.position_w, sp.velocity_w, sp.acceleration_w, 5)
+            errors.append(sp.position_error_m)
+            last = now
+        link._wait_readable(0.005)
+    assert pushed and reference.resets == 0
+    assert max(errors) > 0.3  # the push was seen
+    assert errors[-1] < 0.05, errors[-20:]  # and taken out
