@@ -289,7 +289,7 @@ def test_commands_change_at_most_the_accel_limit_per_step() -> None:
     the command jump by nearly u_max in one step (before its fallbacks); with
     ``command_accel_limit_m_s2`` every component changes by at most a·ΔT per step, from the
     first step on."""
-    config = load_config(CONFIGS / "case1.toml")
+    config = load_config(CONFIGS / "case1.toml").with_duration(16.0)  # the jump: t ≈ 15.1 s
     config = dataclasses.replace(
         config, vehicles=dataclasses.replace(config.vehicles, response="arducopter"))
     free = run_reference(config)
