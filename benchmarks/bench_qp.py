@@ -87,7 +87,11 @@ def captured_qps(config: ScenarioConfig) -> Iterator[list[CapturedQp]]:
     n = config.swarm.n_drones
 
     def solve(self: LocalQpWorkspace, nominal: tuple[float, float, float],
-              u_columns: list[float], lower: list[float], weights: list[float]) -> Any:
+              u_columns: list[float], lower: list[float], weights: list[float],
+              u_box: tuple[list[float], list[float]] | None = None) -> Any:
+        if u_box is not None:
+            raise ValueError("bench_qp captures the thesis' QP: no rate box "
+                             "(command_accel_limit_m_s2 must be 0)")
         solution = original(self, nominal, u_columns, lower, weights)
         if solution.found:
             data = QpData(self.m_targets, len(lower) - 2 * self.m_targets,

@@ -132,7 +132,11 @@ class CvxpyRebuiltWorkspace:
         self.slack_weight, self.weight_floor, self.u_max = slack_weight, weight_floor, u_max
 
     def solve(self, nominal: tuple[float, float, float], u_columns: list[float],
-              lower: list[float], weights: list[float]) -> QpSolution:
+              lower: list[float], weights: list[float],
+              u_box: tuple[list[float], list[float]] | None = None) -> QpSolution:
+        if u_box is not None:  # the thesis' QP has the fixed box |u_k| ≤ u_max only
+            raise ValueError("CvxpyRebuiltWorkspace: no rate box (command_accel_limit_m_s2 "
+                             "must be 0 for the CVXPY comparison)")
         qp = QpData(self.m_targets, self.n_collision, tuple(nominal), tuple(u_columns),
                     tuple(lower), tuple(weights), self.slack_weight, self.weight_floor,
                     self.u_max)

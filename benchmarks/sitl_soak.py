@@ -12,7 +12,9 @@ autopilots/`` (or ``$VIGIL_ARDUCOPTER`` / ``$VIGIL_PX4``). From each recording: 
 the smallest pairwise distance, QP fallbacks and rate-box releases, reference resets, and the
 vehicles' tracking errors the agents measured (‖v − u‖ of the velocity against the command
 in effect, ‖p − r‖ against the command reference: RMS and 95th percentile over drones and
-steps after control start). A run that fails to fly (exit code 2 or 130, no recording) is
+steps after control start). ``--keep DIR`` keeps each mission's recording, logs and
+``launch-swarm.log`` (its output) in ``DIR/<autopilot>_<config>_<seed>/``. A run that fails
+to fly (exit code 2 or 130, no recording) is
 counted as failed with its reason. Runs one mission at a time: the SITL instances and the
 agents need both cores.
 """
@@ -124,6 +126,8 @@ def run_mission(config: Path, autopilot: str, firmware: Path, seed: int,
         argv += ["--duration", str(duration)]
     started = time.monotonic()
     done = subprocess.run(argv, capture_output=True, text=True, cwd=ROOT, timeout=900)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "launch-swarm.log").write_text(done.stdout + done.stderr)
     result: dict[str, object] = {"autopilot": autopilot, "seed": seed,
                                  "exit_code": done.returncode,
                                  "wall_s": round(time.monotonic() - started, 1)}

@@ -192,9 +192,10 @@ class LocalQpWorkspace:
     (M targets, ``n_collision`` collision slots, relaxed or hard) never changes: the same
     matrices, the same solver settings, set up on the first solve and updated afterwards, so
     the same solution up to round-off. Only the entries that change are written: the velocity
-    columns of the rows, the bounds, u_d, and the slack penalties; PIQP receives P and c only
-    when they changed (the box and the infinite upper bounds are fixed at setup), which moves
-    its re-scaled data by round-off (seen: 1e-20 in z).
+    columns of the rows, the bounds, u_d, the slack penalties and the box of u (a rate box,
+    ``rate_limited_box``, moves every solve); PIQP receives P, c and the box only when they
+    changed (the infinite upper bounds are fixed at setup), which moves its re-scaled data by
+    round-off (seen: 1e-20 in z).
     """
 
     def __init__(self, m_targets: int, n_collision: int, *, relaxed: bool, slack_weight: float,

@@ -403,7 +403,7 @@ def test_workspace_with_a_rate_box_matches_the_brute_force_optimum(relaxed: bool
                                            weight_floor=WEIGHT_FLOOR, u_max=U_MAX)
     previous, max_change = (0.0, 0.0, 0.0), 0.3 if relaxed else 1.0
     solved = infeasible = 0
-    for _ in range(30):
+    for _ in range(24):
         instance = random_instance(rng, 2, hard_feasible=not relaxed)
         box = qp_module.rate_limited_box(previous, max_change, U_MAX)
         instance.u_low, instance.u_high = np.array(box[0]), np.array(box[1])
