@@ -444,7 +444,8 @@ class AutopilotLink:
                      acceleration_w: ArrayLike, time_boot_ms: int) -> None:
         """One setpoint along the command reference (``swarm.command_reference``): position,
         velocity and acceleration feed-forward in W, type mask ``TRACKED_TYPE_MASK`` of the
-        flavour; like ``send_velocity`` otherwise (``keepalive`` then sends zero velocity)."""
+        flavour (ArduPilot: the acceleration is sent but marked ignored); like
+        ``send_velocity`` otherwise (``keepalive`` then sends zero velocity)."""
         stamp = _stamp(time_boot_ms)
         self._hold_position_w = None
         self._commanded = True

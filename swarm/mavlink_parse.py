@@ -184,8 +184,13 @@ LOCAL_POSITION_NED = FastFrame(mavlink2.MAVLink_local_position_ned_message)
 # SET_POSITION_TARGET_LOCAL_NED type masks the swarm sends (bits set = fields ignored).
 VELOCITY_ONLY_TYPE_MASK = 0x0DC7  # ignore x, y, z, afx, afy, afz, yaw, yaw rate
 POSITION_ONLY_TYPE_MASK = 0x0DF8  # ignore vx, vy, vz, afx, afy, afz, yaw, yaw rate
-# Position + velocity + acceleration feed-forward (the command reference), yaw and yaw rate
-# ignored, per flavour: ArduCopter GUIDED takes all three (its position target then moves on
-# along the velocity between setpoints), PX4 OFFBOARD too (feed-forward to its position loop).
-TRACKED_TYPE_MASK = {"ardupilot": 0x0C00, "px4": 0x0C00}
+# Setpoints along the command reference, per flavour (yaw and yaw rate ignored):
+# - ArduCopter: position + velocity (0x0DC0). GUIDED moves its position target on along the
+#   velocity between setpoints, and would integrate an acceleration into the velocity too:
+#   when the agent is lost, the vehicle must coast at its last velocity until GUID_TIMEOUT
+#   (what the other drones' collision rows assume), not speed up (seen on SITL: 0.17 → 0.29
+#   m/s within 2 s after a kill -9 with acceleration feed-forward).
+# - PX4: position + velocity + acceleration feed-forward (0x0C00); OFFBOARD does not
+#   extrapolate a setpoint and holds after COM_OF_LOSS_T.
+TRACKED_TYPE_MASK = {"ardupilot": 0x0DC0, "px4": 0x0C00}
 SET_POSITION_TARGET_LOCAL_NED = FastFrame(mavlink2.MAVLink_set_position_target_local_ned_message)

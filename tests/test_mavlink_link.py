@@ -683,7 +683,8 @@ def test_end_mission_refused_is_logged_not_raised(served: Any, logs: list[str]) 
 
 def test_send_tracked_packet_contents(pair: Any) -> None:
     """Position (local NED of the vehicle), velocity and acceleration feed-forward in one
-    SET_POSITION_TARGET_LOCAL_NED, type mask 0x0C00 (only yaw and yaw rate ignored)."""
+    SET_POSITION_TARGET_LOCAL_NED; the pair's vehicle is PX4: type mask 0x0C00 (only yaw and
+    yaw rate ignored). ArduPilot's mask ignores the acceleration (mavlink_parse)."""
     link, vehicle, endpoint = pair
     _introduce(link, vehicle, endpoint)
     position, velocity, acceleration = (np.array([104.0, -47.0, 4.5]), np.array([0.5, -1.0, 0.1]),
@@ -732,3 +733,16 @@ def test_tracked_setpoints_pull_a_displaced_vehicle_onto_the_reference(
     assert pushed and reference.resets == 0
     assert max(errors) > 0.3  # the push was seen
     assert errors[-1] < 0.05, errors[-20:]  # and taken out
+
+
+def test_arducopter_is_sent_no_acceleration_a_lost_agent_would_leave_integrating() -> None:
+    """GUIDED integrates an acceleration target into its velocity between setpoints: after a
+    kill -9 the vehicle would speed up until GUID_TIMEOUT instead of coasting at the last
+    velocity the others assume. Position and velocity only for ArduPilot; PX4 takes all."""
+    from swarm.mavlink_parse import TRACKED_TYPE_MASK
+
+    ignore_position, ignore_velocity, ignore_acceleration = 0x007, 0x038, 0x1C0
+    ardupilot, px4 = TRACKED_TYPE_MASK["ardupilot"], TRACKED_TYPE_MASK["px4"]
+    assert ardupilot & ignore_acceleration == ignore_acceleration
+    assert ardupilot & (ignore_position | ignore_velocity) == 0
+    assert px4 & (ignore_position | ignore_velocity | ignore_acceleration) == 0
