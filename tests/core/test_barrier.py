@@ -251,16 +251,10 @@ def _weight_sum(drones: np.ndarray, target: np.ndarray) -> float:
     return float(sum(perception_weight(p, target, PERCEPTION) for p in drones))
 
 
-@pytest.mark.parametrize("seed", range(5))
-def test_weight_sum_rows_together_enforce_the_centralized_cbf(seed: int) -> None:
-    """Σ_j (a_j·u_j − lower_j) = d/dt Σ_j w_j + (S_w − γ) with S_w = Σ_j w_j (exact consensus).
-
-    Hence if every drone satisfies its row (δw = 0), d/dt Σw ≥ −(Σw − γ), the CBF of
-    h = Σ_j w_j − γ. The time derivative is a central difference with h = 1e-6 s (positions
-    move ≤ 3 µm; error budget as in the gradient tests, times N = 6): tolerance 1e-7.
-    """
-    rng = np.random.default_rng(seed)
-    gamma = 0.5
+def _weight_sum_scene(rng: np.random.Generator, gamma: float):
+    """Six drones (one per weight regime) around a moving target, their weight-sum rows
+    (exact consensus: S_w = Σ_j w_j) and d/dt Σw for given drone velocities (central
+    difference, h = 1e-6 s). Returns (weight sum, rows, rate of the weight sum)."""
     target = np.array([*rng.uniform(-1.0, 1.0, 2), 0.0])
     drones = _six_drones(rng, target)
     n_agents = len(drones)
@@ -275,6 +269,21 @@ def test_weight_sum_rows_together_enforce_the_centralized_cbf(seed: int) -> None
         backward = _weight_sum(drones - step * velocities, target - step * target_velocity)
         return (forward - backward) / (2.0 * step)
 
+    return weight_sum, rows, rate_of_weight_sum
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_weight_sum_rows_together_enforce_the_centralized_cbf(seed: int) -> None:
+    """Σ_j (a_j·u_j − lower_j) = d/dt Σ_j w_j + (S_w − γ) with S_w = Σ_j w_j (exact consensus).
+
+    Hence if every drone satisfies its row (δw = 0), d/dt Σw ≥ −(Σw − γ), the CBF of
+    h = Σ_j w_j − γ. The time derivative is a central difference with h = 1e-6 s (positions
+    move ≤ 3 µm; error budget as in the gradient tests, times N = 6): tolerance 1e-7.
+    """
+    rng = np.random.default_rng(seed)
+    gamma = 0.5
+    weight_sum, rows, rate_of_weight_sum = _weight_sum_scene(rng, gamma)
+    n_agents = len(rows)
     velocities = rng.uniform(-3.0, 3.0, size=(n_agents, 3))
     margins = sum(float(a @ u) - lower for (a, lower), u in zip(rows, velocities, strict=True))
     assert margins == pytest.approx(rate_of_weight_sum(velocities) + weight_sum - gamma,
@@ -423,13 +432,7 @@ def test_tightened_collision_and_weight_rows_hold_on_the_flown_velocity(seed: in
         lower + bound * 2.0 * np.linalg.norm(p_i - p_j), rel=1e-14)
 
     gamma = 0.5
-    target = np.array([*rng.uniform(-1.0, 1.0, 2), 0.0])
-    drones = _six_drones(rng, target)
-    n_agents = len(drones)
-    target_velocity = np.array([*rng.uniform(-0.5, 0.5, 2), 0.0])
-    weight_sum = _weight_sum(drones, target)
-    rows = [weight_sum_row(perception_terms(p, target, PERCEPTION), target_velocity,
-                           weight_sum, gamma, n_agents) for p in drones]
+    weight_sum, rows, rate_of_weight_sum = _weight_sum_scene(rng, gamma)
     active = [(a, lower) for a, lower in rows if float(a @ a) > 1e-4]
     assert active
     tight = np.array([_onto_tightened_boundary(a, lower, bound) + _worst_error(a, bound)
@@ -437,12 +440,6 @@ def test_tightened_collision_and_weight_rows_hold_on_the_flown_velocity(seed: in
     loose = np.array([(lower / float(a @ a)) * a + _worst_error(a, bound)
                       if float(a @ a) > 1e-4 else np.zeros(3) for a, lower in rows])
     inactive = sum(lower for a, lower in rows if float(a @ a) <= 1e-4)
-
-    def rate_of_weight_sum(velocities: np.ndarray) -> float:
-        step = 1e-6
-        forward = _weight_sum(drones + step * velocities, target + step * target_velocity)
-        backward = _weight_sum(drones - step * velocities, target - step * target_velocity)
-        return (forward - backward) / (2.0 * step)
 
     # Σ_j (a_j·ṗ_j − lower_j) = d/dt Σw + (S_w − γ) (the test above); on the tightened
     # boundary with the worst error every active a_j·ṗ_j = lower_j.
