@@ -128,7 +128,6 @@ class AgentProcess:
         self._last_setpoint_s: float | None = None
         self.tracking_error_m: float | None = None
         self.velocity_error_m_s: float | None = None
-        self.watch = VehicleWatch(cfg.vehicles.flavour)
         self.stale_messages = 0
         self.neighbour_age_ms = float("nan")
         self.members = frozenset(range(self.n))  # realtime: drones heard recently, self included
@@ -144,6 +143,7 @@ class AgentProcess:
         self.link = AutopilotLink(options.mavlink_url, self.id, cfg.vehicles.flavour,
                                   cfg.vehicles.origin_w(self.id), log=options.log,
                                   signing_key=cfg.vehicles.signing_key())
+        self.watch = VehicleWatch(self.link.setpoint_mode)
         try:
             self.session = self._open_session()
         except BaseException:

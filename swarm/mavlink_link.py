@@ -353,6 +353,13 @@ class AutopilotLink:
         return self._mode_name
 
     @property
+    def setpoint_mode(self) -> str:
+        """The name of the mode the agent flies its vehicle in (GUIDED, OFFBOARD), as
+        ``mode`` shows it."""
+        return _MODE_NAME[(self._flavour, "guided" if self._flavour == "ardupilot"
+                           else "offboard")]
+
+    @property
     def custom_mode(self) -> int | None:
         return None if self._heartbeat is None else int(self._heartbeat.custom_mode)
 

@@ -26,7 +26,6 @@ from typing import Literal
 
 VehicleEventPolicy = Literal["continue", "leave", "end"]
 VEHICLE_EVENT_POLICIES: tuple[VehicleEventPolicy, ...] = ("continue", "leave", "end")
-SETPOINT_MODE = {"ardupilot": "GUIDED", "px4": "OFFBOARD"}  # the mode the agent asks for
 # A position sample older than this is a lost estimate (both firmwares stream at 50 Hz here;
 # PX4's own offboard-loss timeout, COM_OF_LOSS_T, is 0.5 s as well).
 POSITION_TIMEOUT_S = 0.5
@@ -51,16 +50,17 @@ class VehicleEvent:
 
 
 class VehicleWatch:
-    """Expected: armed, in ``SETPOINT_MODE[flavour]``, position samples younger than
-    ``position_timeout_s``."""
+    """Expected: armed, in ``expected_mode`` (the link's ``setpoint_mode``), position samples
+    younger than ``position_timeout_s``."""
 
-    def __init__(self, flavour: str, position_timeout_s: float = POSITION_TIMEOUT_S) -> None:
-        if flavour not in SETPOINT_MODE:
-            raise ValueError(f"flavour must be one of {sorted(SETPOINT_MODE)} (got {flavour!r})")
+    def __init__(self, expected_mode: str,
+                 position_timeout_s: float = POSITION_TIMEOUT_S) -> None:
+        if not expected_mode:
+            raise ValueError("expected_mode must name a mode (got an empty string)")
         if not (math.isfinite(position_timeout_s) and position_timeout_s > 0):
             raise ValueError(f"position_timeout_s must be a finite number > 0 "
                              f"(got {position_timeout_s!r})")
-        self.expected_mode = SETPOINT_MODE[flavour]
+        self.expected_mode = expected_mode
         self.position_timeout_s = float(position_timeout_s)
         self.problem = ""  # what is wrong now ("" = nothing)
         self.events = 0  # changes into or between problems (returns are logged, not counted)
