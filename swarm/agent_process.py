@@ -30,7 +30,8 @@ import numpy as np
 
 from swarm.command_reference import CommandReference
 from swarm.config import ScenarioConfig
-from swarm.core.agent import ConsensusMessage, DroneAgent
+from swarm.core.agent import ConsensusMessage, DroneAgent, StepDiagnostics
+from swarm.localization_watch import LocalizationWatch
 from swarm.mavlink_link import AutopilotLink, LinkError
 from swarm.rate import RateLimiter, freeze_heap
 from swarm.reference import build_agent, initial_drone_positions
@@ -144,6 +145,8 @@ class AgentProcess:
                                   cfg.vehicles.origin_w(self.id), log=options.log,
                                   signing_key=cfg.vehicles.signing_key())
         self.watch = VehicleWatch(self.link.setpoint_mode)
+        self.localization = LocalizationWatch(len(cfg.targets), cfg.gramian.epsilon,
+                                              cfg.checks.lambda_tolerance)
         try:
             self.session = self._open_session()
         except BaseException:
@@ -428,6 +431,7 @@ class AgentProcess:
         stamp = frame.vehicle_time_ms if frame is not None else 0
         self._send_command(result.velocity, position, vehicle_velocity, stamp)
         self._flying = result.velocity
+        self._watch_localization(result.diagnostics)
         self._send(
             self._pub_telemetry, self.codec.encode_telemetry,
             result.diagnostics, position, qp_fallbacks=agent.qp_fallbacks,
@@ -442,7 +446,10 @@ class AgentProcess:
             reference_resets=self.reference.resets if self.reference is not None else 0,
             tracking_error_m=self.tracking_error_m,
             velocity_error_m_s=self.velocity_error_m_s,
-            vehicle_events=self.watch.events, vehicle_status=self._vehicle_status())
+            vehicle_events=self.watch.events, vehicle_status=self._vehicle_status(),
+            lambda_breaches=self.localization.breaches,
+            first_lambda_breach_s=self.localization.first_breach_s,
+            localization_status=self.localization.status())
         self._watch_vehicle(step, sample_age_s)
         return result.velocity
 
@@ -451,6 +458,14 @@ class AgentProcess:
         if not problem:
             return ""
         return f"{self.options.config.vehicles.on_vehicle_event}: {problem}"[:64]
+
+    def _watch_localization(self, diag: StepDiagnostics) -> None:
+        """Say at once when an own λ̄ copy goes below ε − tol, or comes back
+        (swarm.localization_watch): a log line now, the counters in this step's telemetry."""
+        for event in self.localization.update(diag.time_s, diag.lambda_bar,
+                                              control_active=diag.control_active,
+                                              swarm_size=self.agent.swarm_size):
+            self.options.log(event.describe(self.id))
 
     def _watch_vehicle(self, step: int, sample_age_s: float) -> None:
         """Compare the vehicle with what was asked (swarm.vehicle_watch); log a change with its

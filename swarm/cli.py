@@ -84,6 +84,11 @@ def build_parser() -> OneLineParser:
                              "goes on without it)")
     parser.add_argument("--agent-restart-delay", type=positive_float, default=2.0, metavar="S",
                         help="seconds between an agent's loss and its restart (default 2)")
+    parser.add_argument("--kill-agent", action="append", default=[], metavar="I@S",
+                        type=agent_kill, dest="kill_agents",
+                        help="realtime fault injection: SIGKILL drone I's agent at mission time "
+                             "S seconds, as if its companion computer died (repeatable; with "
+                             "--agent-restarts it comes back)")
     parser.add_argument("--sitl", default=None, metavar="PATH",
                         help="fly real autopilot firmware: one SITL instance per drone, started "
                              "and stopped here: PATH is the arducopter SITL binary or a PX4 "
@@ -119,6 +124,19 @@ def sitl_parameter(text: str) -> tuple[str, float]:
                                          f"most 16 letters, digits or _ and a finite number "
                                          f"(e.g. BATT_LOW_VOLT=11.5), got {text!r}")
     return name.upper(), number
+
+
+def agent_kill(text: str) -> tuple[int, float]:
+    """argparse type of ``--kill-agent I@S``."""
+    drone, sep, when = text.partition("@")
+    try:
+        time_s = float(when)
+    except ValueError:
+        time_s = math.nan
+    if not sep or not drone.strip().isdigit() or not (math.isfinite(time_s) and time_s > 0):
+        raise argparse.ArgumentTypeError(f"expected I@S, a drone id and a mission time in "
+                                         f"seconds > 0 (e.g. 1@12.5), got {text!r}")
+    return int(drone), time_s
 
 
 def mavlink_assignment(text: str) -> tuple[int, str]:
@@ -180,9 +198,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ConfigError as err:
         return fail(PROG, f"config error: {err}")
     seed_value = config.scenario.seed if args.seed is None else args.seed
-    if args.agent_restarts and (args.inprocess or args.mode != "realtime"):
-        return fail(PROG, "--agent-restarts needs --mode realtime (in lockstep every drone "
-                          "waits for every other one)")
+    for flag, given in (("--agent-restarts", args.agent_restarts),
+                        ("--kill-agent", args.kill_agents)):
+        if given and (args.inprocess or args.mode != "realtime"):
+            return fail(PROG, f"{flag} needs --mode realtime (in lockstep every drone waits "
+                              f"for every other one)")
     try:
         sitl = sitl_firmware(args.sitl)
         config = with_mavlink_urls(config, dict(args.mavlink))
@@ -206,6 +226,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     if sitl is not None and config.vehicles.mavlink_urls:
         return fail(PROG, "--sitl starts its own autopilots: leave out --mavlink and "
                           "vehicles.mavlink_urls")
+    options = None
+    if not args.inprocess:
+        try:
+            options = LaunchOptions(
+                config=config, config_path=str(Path(args.config).resolve()), seed=seed_value,
+                mode=args.mode, run_id=args.run_id or "", mavlink_base=args.mavlink_base,
+                log_dir=Path(args.log_dir) if args.log_dir else None, record_dir=args.record,
+                agent_restarts=args.agent_restarts,
+                agent_restart_delay_s=args.agent_restart_delay, sitl=sitl,
+                sitl_params=tuple(args.sitl_params), kill_agents=tuple(args.kill_agents))
+        except ValueError as err:
+            return fail(PROG, str(err))
     terminate_on_sigterm()
     try:
         if args.inprocess:
@@ -214,13 +246,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 record = run_reference(config, seed_value, on_step=InProcessFeed(dashboard),
                                        record_dir=args.record)
         else:
-            options = LaunchOptions(
-                config=config, config_path=str(Path(args.config).resolve()), seed=seed_value,
-                mode=args.mode, run_id=args.run_id or "", mavlink_base=args.mavlink_base,
-                log_dir=Path(args.log_dir) if args.log_dir else None, record_dir=args.record,
-                agent_restarts=args.agent_restarts,
-                agent_restart_delay_s=args.agent_restart_delay, sitl=sitl,
-                sitl_params=tuple(args.sitl_params))
+            assert options is not None
             launcher = SwarmLauncher(options, log=lambda line: console.print(
                 line, highlight=False, markup=False))
             with Dashboard(config, console, headless=args.headless,
@@ -265,7 +291,8 @@ def print_process_counters(collector: TelemetryCollector, console: Console) -> N
         f"{counts['stale_neighbour_messages']}, rejected messages "
         f"{counts['rejected_messages']}, QP fallbacks {counts['qp_fallbacks']}, vehicle "
         f"events {counts['vehicle_events']}, rate-box releases "
-        f"{counts['rate_limit_releases']}, reference resets {counts['reference_resets']}",
+        f"{counts['rate_limit_releases']}, reference resets {counts['reference_resets']}, "
+        f"λ̄ breaches said by the agents {counts['lambda_breaches']}",
         highlight=False)
 
 

@@ -179,4 +179,5 @@ class TelemetryCollector:
             "vehicle_events": sum(c.vehicle_events for c in latest),
             "rate_limit_releases": sum(c.rate_limit_releases for c in latest),
             "reference_resets": sum(c.reference_resets for c in latest),
+            "lambda_breaches": sum(c.lambda_breaches for c in latest),
         }

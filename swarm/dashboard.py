@@ -50,11 +50,13 @@ WARNED_COUNTERS: tuple[tuple[str, str], ...] = (
     ("vehicle_events", "vehicle events (not asked for)"),
     ("rate_limit_releases", "rate-box releases"),
     ("reference_resets", "reference resets"),
+    ("lambda_breaches", "targets its λ̄ copy let fall below ε − tol"),
 )
 # Short labels of the same counters in the drone table's "events" column.
 _EVENT_LABELS = {"late_steps": "late", "stale_neighbour_messages": "stale",
                  "qp_fallbacks": "fb", "rejected_messages": "rej", "vehicle_events": "veh",
-                 "rate_limit_releases": "rel", "reference_resets": "rst"}
+                 "rate_limit_releases": "rel", "reference_resets": "rst",
+                 "lambda_breaches": "λ̄"}
 
 TARGET_COLUMNS = ("target", "min λ̄ (drone)", "λ̄−ε", "min ψ0", "sensing", "spread [m]")
 DRONE_COLUMNS = ("drone", "λ̄", "ψ0", "w", "‖u‖ [m/s]", "slack", "step [µs]", "nbr age [ms]",
@@ -272,7 +274,9 @@ class Dashboard:
                     continue
                 self._reported[drone] = tel.counters
                 self._last_warning[drone] = now
-                lines.append(warning_line(drone, tel.time_s, increases))
+                status = "; ".join(filter(None, (tel.counters.localization_status,
+                                                 tel.counters.vehicle_status)))
+                lines.append(warning_line(drone, tel.time_s, increases, status))
             self._warning_lines += len(lines)
         for line in lines:
             self.console.print(line, highlight=False)
@@ -487,12 +491,16 @@ def _events(counters: TelemetryCounters) -> Text:
     return Text(" ".join(parts), style="yellow" if parts else "")
 
 
-def warning_line(drone: int, time_s: float, increases: list[tuple[str, int, int]]) -> Text:
-    """``t=  12.34s  warning: drone 3: +5 late steps (12 total), +1 QP fallbacks (1 total)``."""
+def warning_line(drone: int, time_s: float, increases: list[tuple[str, int, int]],
+                 status: str = "") -> Text:
+    """``t=  12.34s  warning: drone 3: +5 late steps (12 total), +1 QP fallbacks (1 total)``,
+    then what the drone says is wrong now (``status``), if anything."""
     what = ", ".join(f"+{inc} {label} ({total} total)" for label, inc, total in increases)
     line = Text(f"t={time_s:6.2f}s  ")
     line.append("warning:", style="bold yellow")
     line.append(f" drone {drone}: {what}")
+    if status:
+        line.append(f"; now: {status}", style="bold red")
     return line
 
 

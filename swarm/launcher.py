@@ -15,6 +15,7 @@ import contextlib
 import ctypes
 import dataclasses
 import fcntl
+import math
 import os
 import secrets
 import select
@@ -106,6 +107,9 @@ class LaunchOptions:
     # rejoins the swarm) this many times at most, each restart this long after the loss.
     agent_restarts: int = 0
     agent_restart_delay_s: float = 2.0
+    # Fault injection (realtime): (drone, t) = SIGKILL that drone's agent when the mission
+    # clock reaches t [s], as if its companion computer died (``--kill-agent``).
+    kill_agents: tuple[tuple[int, float], ...] = ()
 
     def __post_init__(self) -> None:
         if self.agent_restarts < 0 or not self.agent_restart_delay_s >= 0:
@@ -113,6 +117,18 @@ class LaunchOptions:
         if self.agent_restarts and self.mode != "realtime":
             raise ValueError("restarting agents needs realtime mode: in lockstep every drone "
                              "waits for every other one")
+        for drone, time_s in self.kill_agents:
+            if self.mode != "realtime":
+                raise ValueError("killing an agent needs realtime mode: in lockstep every "
+                                 "drone waits for every other one")
+            if not 0 <= drone < self.config.swarm.n_drones:
+                raise ValueError(f"--kill-agent {drone}@{time_s:g}: no drone {drone} (the "
+                                 f"swarm has 0..{self.config.swarm.n_drones - 1})")
+            if not (math.isfinite(time_s) and 0 < time_s < self.config.scenario.duration_s):
+                raise ValueError(f"--kill-agent {drone}@{time_s:g}: the time must be within "
+                                 f"the mission (0, {self.config.scenario.duration_s:g}) s")
+        if len({drone for drone, _ in self.kill_agents}) < len(self.kill_agents):
+            raise ValueError("--kill-agent: one kill per drone")
         if self.mode != "realtime" and (self.sitl is not None or self.external_vehicles
                                         or self.config.vehicles.mavlink_urls):
             raise ValueError("real or external autopilots need --mode realtime: they cannot "
@@ -334,6 +350,7 @@ class SwarmLauncher:
         self.telemetry_listeners: tuple[TelemetryListener, ...] = ()
         self.agent_losses: list[AgentLoss] = []
         self._restarts_due: dict[int, float] = {}  # drone → monotonic time of its restart
+        self._killed: set[int] = set()  # drones killed by kill_agents
         self._restarts_done: dict[int, int] = {}
 
     # -- children ---------------------------------------------------------------------------
@@ -474,6 +491,24 @@ class SwarmLauncher:
                  f"{self._ending(child)}\n  the mission goes on without it; {then}")
         if restart:
             self._restarts_due[drone] = time.monotonic() + self.options.agent_restart_delay_s
+
+    def _kill_due_agents(self) -> None:
+        """``kill_agents``: SIGKILL each agent whose time has come (once); the loss is then
+        found and handled like any other (``_lose_agent``)."""
+        time_s = max(self.collector.last_truth_step, 0) * self.options.config.scenario.dt_s
+        for drone, due_s in self.options.kill_agents:
+            if drone in self._killed or time_s < due_s:
+                continue
+            self._killed.add(drone)
+            child = next((c for c in self.children if c.drone == drone
+                          and c.process.poll() is None), None)
+            if child is None:
+                self.log(f"launch-swarm: --kill-agent {drone}@{due_s:g}: it is not running")
+                continue
+            self.log(f"launch-swarm: t = {time_s:.2f} s: killing drone {drone}'s agent "
+                     f"(pid {child.process.pid}) as asked (--kill-agent)")
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(child.process.pid, signal.SIGKILL)
 
     def _restart_due_agents(self) -> None:
         now = time.monotonic()
@@ -692,6 +727,7 @@ class SwarmLauncher:
                     self._lose_agent(dead)
                     dead = self._dead_child()
                 if self._mission_state() == "running":
+                    self._kill_due_agents()
                     self._restart_due_agents()
                 state = self._mission_state()
                 if state == "running" and not announced:

@@ -234,7 +234,9 @@ _ADDED_LATER: Final = {"rate_limit_released": False,
                        **{name: getattr(TelemetryCounters(), name)
                           for name in ("rate_limit_releases", "reference_resets",
                                        "vehicle_events", "tracking_error_m",
-                                       "velocity_error_m_s", "vehicle_status")}}
+                                       "velocity_error_m_s", "vehicle_status",
+                                       "lambda_breaches", "first_lambda_breach_s",
+                                       "localization_status")}}
 
 
 def telemetry_to_json(tel: TelemetryWire) -> dict[str, Any]:
@@ -412,7 +414,9 @@ def schemas(n_targets: int, n_state: int) -> dict[str, dict[str, Any]]:
                                          "vehicle_events")},
             **{name: {"type": ["number", "null"]} for name in ("tracking_error_m",
                                                                "velocity_error_m_s")},
-            "vehicle_status": {"type": "string"}}),
+            "vehicle_status": {"type": "string"}, "lambda_breaches": _COUNT,
+            "first_lambda_breach_s": {"type": ["number", "null"]},
+            "localization_status": {"type": "string"}}),
     }
     return {
         "telemetry": _object(telemetry, "vigil.Telemetry",

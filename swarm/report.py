@@ -95,6 +95,11 @@ class DroneReport:
     # still wrong at the end ("" = nothing); None: not measured (in-process run).
     vehicle_events: int | None = None
     vehicle_status: str | None = None
+    # Breaches of λ̄ ≥ ε − tol the agent saw in its own copies and said at once
+    # (swarm.localization_watch), when the first began [s], and what was still below at the end.
+    lambda_breaches: int | None = None
+    first_lambda_breach_s: float | None = None
+    localization_status: str | None = None
 
 
 @dataclass(frozen=True)
@@ -178,6 +183,9 @@ def _drone_reports(record: RunRecord,
             missing_samples=s.missing_samples,
             vehicle_events=c.vehicle_events if c else None,
             vehicle_status=c.vehicle_status if c else None,
+            lambda_breaches=c.lambda_breaches if c else None,
+            first_lambda_breach_s=c.first_lambda_breach_s if c else None,
+            localization_status=c.localization_status if c else None,
         ))
     return tuple(out)
 
@@ -214,6 +222,12 @@ def _warnings(record: RunRecord, mode: str, cov: Coverage, drones: Sequence[Dron
                 out.append(f"drone {d.id}: its vehicle left the state the agent asked for "
                            f"{d.vehicle_events} time(s) (the agent log has when and why)"
                            + (f"; at the end: {d.vehicle_status}" if d.vehicle_status else ""))
+            if d.lambda_breaches:
+                out.append(f"drone {d.id}: said it could not hold λ̄ ≥ ε − tol from t = "
+                           f"{_fmt(d.first_lambda_breach_s, '.2f')} s ({d.lambda_breaches} "
+                           f"breach(es) by target; the agent log has each)"
+                           + (f"; at the end: {d.localization_status}"
+                              if d.localization_status else ""))
     return tuple(out)
 
 
@@ -294,6 +308,9 @@ def _drone_json(d: DroneReport) -> dict[str, Any]:
         "missing_samples": d.missing_samples,
         "vehicle_events": d.vehicle_events,
         "vehicle_status": d.vehicle_status,
+        "lambda_breaches": d.lambda_breaches,
+        "first_lambda_breach_s": d.first_lambda_breach_s,
+        "localization_status": d.localization_status,
     }
 
 
@@ -379,7 +396,7 @@ def target_table(report: RunReport) -> Table:
 def drone_table(report: RunReport) -> Table:
     table = Table(title="drones", title_justify="left")
     columns = ["drone", "final |u| [m/s]", "final w", "state", "QP fallbacks", "late steps",
-               "rejected", "step µs mean/p99", "bearing err", "vehicle events"]
+               "rejected", "step µs mean/p99", "bearing err", "vehicle events", "λ̄ breaches"]
     incomplete = not report.coverage.complete
     if incomplete:
         columns.append("missing")
@@ -392,7 +409,7 @@ def drone_table(report: RunReport) -> Table:
         row = [str(d.id), _fmt(d.final_speed_mps, ".3f"), weights, state, str(d.qp_fallbacks),
                _late(d), _count(d.rejected_messages),
                f"{_fmt(d.mean_step_us, '.0f')}/{_fmt(d.p99_step_us, '.0f')}",
-               _fmt(d.final_bearing_error, ".4f"), _vehicle(d)]
+               _fmt(d.final_bearing_error, ".4f"), _vehicle(d), _breaches(d)]
         if incomplete:
             row.append(str(d.missing_samples))
         table.add_row(*row)
@@ -405,6 +422,15 @@ def _vehicle(d: DroneReport) -> str:
         return "—"
     return f"{d.vehicle_events} ({d.vehicle_status})" if d.vehicle_status \
         else str(d.vehicle_events)
+
+
+def _breaches(d: DroneReport) -> str:
+    """λ̄ breaches the agent said, and from when."""
+    if d.lambda_breaches is None:
+        return "—"
+    if not d.lambda_breaches:
+        return "0"
+    return f"{d.lambda_breaches} (from {_fmt(d.first_lambda_breach_s, '.2f')} s)"
 
 
 def run_lines(report: RunReport) -> tuple[str, str]:

@@ -353,14 +353,22 @@ class TelemetryCounters(msgspec.Struct, frozen=True, array_like=True,
     # What the agent does about its vehicle (``vehicles.on_vehicle_event``): "" = flying as
     # asked; otherwise the policy in effect and why, e.g. "degraded: mode Hold".
     vehicle_status: Label = ""
+    # Localization guarantee (swarm.localization_watch): breaches of λ̄ ≥ ε − tol by this
+    # drone's own copies so far (one per target and episode), when the first began [s of
+    # mission time; None: none yet], and the targets below the floor now ("" = none).
+    lambda_breaches: NonNegativeInt = 0
+    first_lambda_breach_s: float | None = None
+    localization_status: Label = ""
 
 
 # The counters that are integers >= 0, and those that are floats >= 0 or None.
 _INT_COUNTERS: Final = ("qp_fallbacks", "rejected_messages", "missing_neighbour_messages",
                         "stale_neighbour_messages", "late_steps", "steps", "swarm_size",
-                        "rate_limit_releases", "reference_resets", "vehicle_events")
-_OPTIONAL_FLOAT_COUNTERS: Final = ("neighbour_age_ms", "tracking_error_m", "velocity_error_m_s")
-_LABEL_COUNTERS: Final = ("mavlink_state", "vehicle_status")
+                        "rate_limit_releases", "reference_resets", "vehicle_events",
+                        "lambda_breaches")
+_OPTIONAL_FLOAT_COUNTERS: Final = ("neighbour_age_ms", "tracking_error_m", "velocity_error_m_s",
+                                   "first_lambda_breach_s")
+_LABEL_COUNTERS: Final = ("mavlink_state", "vehicle_status", "localization_status")
 
 
 class TelemetryWire(_Wire, tag="telemetry", kw_only=True):
