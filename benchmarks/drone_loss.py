@@ -16,7 +16,9 @@ From each recording, over the survivors and the steps from the loss on: the smal
 (per target), how long some survivor's copy stayed below ε − tol, the verdict of the run's
 checks, the smallest pairwise distance, the survivors' final estimate error; and what the
 survivors said (``lambda_breaches`` in their telemetry) against what their copies did: the
-delay from the first copy below ε − tol to the first agent saying so (0 s = the same step).
+delay from the first copy below ε − tol to the first agent saying so (0 s = the same step);
+and the first survivor QP fallback from the loss on (the hard QP had no solution: the barrier
+was no longer enforced), which comes before a breach.
 """
 
 from __future__ import annotations
@@ -70,19 +72,24 @@ def measure(recording: Path, victim: int | None) -> dict[str, object]:
     said_step: dict[int, int] = {}
     last: dict[int, object] = {}
     victim_last = -1
+    fallback_steps: list[int] = []
     for item in iter_messages(recording, ("telemetry",)):
         tel = item.message
         last[tel.drone] = tel.counters
         if tel.drone == victim:
             victim_last = max(victim_last, tel.step)
-        elif tel.counters.lambda_breaches and tel.drone not in said_step:
+            continue
+        if tel.counters.lambda_breaches and tel.drone not in said_step:
             said_step[tel.drone] = tel.step
+        if tel.qp_fallback:
+            fallback_steps.append(tel.step)
     loss = victim_last + 1 if victim is not None else start_index(record)
     lam = record.lambda_bar[loss:, survivors, :]  # (K', S, M)
     margins = [float(np.nanmin(lam[:, :, r]) - eps) for r in range(lam.shape[2])]
     below = np.any(lam < eps - tol, axis=(1, 2))
     first_below = int(np.argmax(below)) + loss if below.any() else None
     first_said = min((k for i, k in said_step.items() if i in survivors), default=None)
+    first_fallback = min((k for k in fallback_steps if k >= loss), default=None)
     end = record.n_steps - 1
     errors = [float(np.linalg.norm(record.estimates[end, i, r, :3]
                                    - record.target_positions_m[end, r]))
@@ -99,6 +106,7 @@ def measure(recording: Path, victim: int | None) -> dict[str, object]:
         "first_said_s": None if first_said is None else round(first_said * dt, 2),
         "said_delay_s": (None if first_below is None or first_said is None
                          else round((first_said - first_below) * dt, 2)),
+        "first_fallback_s": None if first_fallback is None else round(first_fallback * dt, 2),
         "breaches_said": int(sum(last[i].lambda_breaches for i in survivors if i in last)),
         "ok": not violations,
         "violations": [f"{v.invariant}: {v.detail}" for v in violations],
@@ -108,15 +116,15 @@ def measure(recording: Path, victim: int | None) -> dict[str, object]:
     }
 
 
-def run_mission(config: Path, vehicles: str, victim: int | None, kill_at: float, seed: int,
-                directory: Path) -> dict[str, object]:
+def run_mission(config: Path, vehicles: str, firmware: Path | None, victim: int | None,
+                kill_at: float, seed: int, directory: Path) -> dict[str, object]:
     name = f"{vehicles}_{config.stem}_{'none' if victim is None else victim}"
     out_dir = directory / name
     argv = [sys.executable, "-m", "swarm.cli", str(config), "--mode", "realtime",
             "--headless", "--seed", str(seed), "--record", str(out_dir / "rec"),
             "--log-dir", str(out_dir / "logs")]
-    if vehicles != "emulator":
-        argv += ["--sitl", vehicles]
+    if firmware is not None:
+        argv += ["--sitl", str(firmware)]
     if victim is not None:
         argv += ["--kill-agent", f"{victim}@{kill_at:g}"]
     started = time.monotonic()
@@ -182,10 +190,16 @@ def main(argv: list[str] | None = None) -> int:
                         help="keep recordings and logs here (default: a temporary directory)")
     args = parser.parse_args(argv)
     console = Console(width=180)
+    builds: dict[str, Path | None] = {"emulator": None}
     for vehicles in args.vehicles:
-        if vehicles != "emulator" and find_firmware(vehicles) is None:
-            console.print(f"drone_loss: no {vehicles} SITL build (../shared/autopilots/)")
+        if vehicles == "emulator":
+            continue
+        firmware = find_firmware(vehicles)
+        if firmware is None:
+            console.print(f"drone_loss: no {vehicles} SITL build (../shared/autopilots/ or "
+                          f"$VIGIL_{'ARDUCOPTER' if vehicles == 'ardupilot' else 'PX4'})")
             return 2
+        builds[vehicles] = firmware.path
     results: list[dict[str, object]] = []
     with tempfile.TemporaryDirectory(prefix="vigil-loss-") as scratch:
         directory = args.keep or Path(scratch)
@@ -196,8 +210,8 @@ def main(argv: list[str] | None = None) -> int:
                     config = write_config(case, n, args.duration, directory)
                     victims = [v for v in (args.victims or range(n)) if v < n]
                     for victim in ([None] if args.baseline else []) + victims:
-                        result = run_mission(config, vehicles, victim, args.kill_at,
-                                             args.seed, directory)
+                        result = run_mission(config, vehicles, builds[vehicles], victim,
+                                             args.kill_at, args.seed, directory)
                         results.append(result)
                         console.print(
                             f"{vehicles} {config.stem} lost {result['victim']}: "

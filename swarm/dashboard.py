@@ -52,6 +52,9 @@ WARNED_COUNTERS: tuple[tuple[str, str], ...] = (
     ("reference_resets", "reference resets"),
     ("lambda_breaches", "targets its λ̄ copy let fall below ε − tol"),
 )
+# Of those, the ones whose every increase is printed at once (not held back by
+# ``warning_period_s``): a drone saying it cannot hold a target, its vehicle not as asked.
+URGENT_COUNTERS: frozenset[str] = frozenset({"lambda_breaches", "vehicle_events"})
 # Short labels of the same counters in the drone table's "events" column.
 _EVENT_LABELS = {"late_steps": "late", "stale_neighbour_messages": "stale",
                  "qp_fallbacks": "fb", "rejected_messages": "rej", "vehicle_events": "veh",
@@ -259,7 +262,8 @@ class Dashboard:
 
     def flush_warnings(self, *, force: bool = False) -> None:
         """Print a line per drone whose counters went up, unless that drone had a line less
-        than ``warning_period_s`` ago (``force``: regardless); increases add up meanwhile."""
+        than ``warning_period_s`` ago and none of the increases is urgent (``URGENT_COUNTERS``;
+        ``force``: regardless); increases add up meanwhile."""
         now = self._clock()
         lines = []
         with self._lock:
@@ -269,7 +273,10 @@ class Dashboard:
                 if not increases:
                     continue
                 last = self._last_warning.get(drone)
-                if not force and last is not None and (
+                urgent = any(getattr(tel.counters, name) > (
+                    getattr(self._reported[drone], name) if drone in self._reported else 0)
+                    for name in URGENT_COUNTERS)
+                if not (force or urgent) and last is not None and (
                         now - last < self.settings.warning_period_s):
                     continue
                 self._reported[drone] = tel.counters

@@ -5,10 +5,13 @@ on; the lost drone's vehicle holds within its failsafe time; its neighbours leav
 their consensus sums within the stale timeout; every survivor's N drops to 5 within the
 membership timeout; λ̄ of the target it mattered most for comes back to ≥ ε − 0.04 within
 15 s; the launcher restarts it with the same id and it rejoins (N back to 6 everywhere).
+Throughout, every drone's telemetry says at the very step one of its λ̄ copies is below
+ε − tol, and only then (``swarm.localization_watch``, issue 14 point 5).
 """
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import threading
@@ -37,12 +40,17 @@ class TelemetryLog:
         self.lambda_bar: dict[int, dict[int, np.ndarray]] = defaultdict(dict)
         self.swarm_size: dict[int, dict[int, int]] = defaultdict(dict)
         self.missing: dict[int, dict[int, int]] = defaultdict(dict)
+        # (said, truly below): the drone's telemetry says a copy is below ε − tol, and it is.
+        self.said: dict[int, dict[int, tuple[bool, bool]]] = defaultdict(dict)
+        self.floor = math.nan
 
     def __call__(self, tel: TelemetryWire) -> None:
         with self.lock:
             self.lambda_bar[tel.drone][tel.step] = tel.arrays()["lambda_bar"]
             self.swarm_size[tel.drone][tel.step] = tel.counters.swarm_size
             self.missing[tel.drone][tel.step] = tel.missing_neighbour_messages
+            below = tel.control_active and bool(np.any(tel.arrays()["lambda_bar"] < self.floor))
+            self.said[tel.drone][tel.step] = (bool(tel.counters.localization_status), below)
 
     def steps(self, drone: int, first: int, last: int) -> list[int]:
         return sorted(k for k in self.swarm_size[drone] if first <= k <= last)
@@ -59,6 +67,7 @@ def test_a_killed_agent_leaves_the_swarm_which_recovers_and_it_rejoins(tmp_path:
         config=config, config_path=str(path), seed=0, mode="realtime", log_dir=tmp_path,
         agent_restarts=1, agent_restart_delay_s=OUTAGE_S), log=lines.append)
     telemetry = TelemetryLog()
+    telemetry.floor = epsilon - config.checks.lambda_tolerance
     outcome: dict = {}
 
     def run() -> None:
@@ -127,6 +136,12 @@ def test_a_killed_agent_leaves_the_swarm_which_recovers_and_it_rejoins(tmp_path:
     # against 0.008-0.014 among all six before the loss).
     tail = copies[-round(1.0 / dt):]
     assert np.ptp(tail, axis=1).max() <= config.checks.lambda_tolerance
+
+    # Every drone says it at the very step one of its λ̄ copies is below ε − tol, and only
+    # then (swarm.localization_watch), before, during and after the loss.
+    for i in range(config.swarm.n_drones):
+        wrong = [k for k, (said, below) in telemetry.said[i].items() if said != below]
+        assert not wrong, (i, wrong[:5])
 
     # The restarted agent rejoins: it steps again and everyone counts six drones again.
     end = record.n_steps - 1

@@ -223,6 +223,33 @@ def test_warnings_appear_exactly_when_a_counter_increases(
     assert dashboard.stats.warning_lines == 5
 
 
+def test_a_drone_saying_it_cannot_hold_a_target_is_printed_at_once(
+        config: ScenarioConfig, final_diagnostics: list[StepDiagnostics]) -> None:
+    """A λ̄ breach (or a vehicle event) is not held back by the warning period: its line
+    comes at its step, with what the drone says is wrong now; other counters wait."""
+    dt = config.scenario.dt_s
+    console = recording_console(terminal=False)
+    clock = FakeClock()
+    dashboard = Dashboard(config, console, wall_clock=clock,
+                          settings=DashboardSettings(log_period_s=1000.0))
+    tel = telemetry(final_diagnostics[2])
+    dashboard.on_telemetry(at_step(tel, 1, dt, qp_fallbacks=1))
+    dashboard.advance(1)
+    assert warnings_in(console) == ["t=  0.02s  warning: drone 2: +1 QP fallbacks (1 total)"]
+    dashboard.on_telemetry(at_step(tel, 2, dt, qp_fallbacks=2))
+    dashboard.advance(2)  # within the period: held back
+    assert len(warnings_in(console)) == 1
+    dashboard.on_telemetry(at_step(
+        tel, 3, dt, qp_fallbacks=3, lambda_breaches=1, first_lambda_breach_s=0.06,
+        localization_status="λ̄ < ε − tol: target 1 since 0.1 s"))
+    dashboard.advance(3)  # a breach: at once, with the pending fallbacks
+    assert warnings_in(console)[1:] == [
+        "t=  0.06s  warning: drone 2: +2 QP fallbacks (3 total), +1 targets its λ̄ copy let "
+        "fall below ε − tol (1 total); now: λ̄ < ε − tol: target 1 since 0.1 s"]
+    console.print(dashboard.render())
+    assert "fb 3 λ̄ 1" in console.export_text()  # the drone's events column
+
+
 def test_inprocess_feed_counts_fallbacks_and_warns(
         config: ScenarioConfig, final_diagnostics: list[StepDiagnostics]) -> None:
     console = recording_console(terminal=False)

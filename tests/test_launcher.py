@@ -1,4 +1,5 @@
-"""How ``launch-swarm`` places its children for the scheduler (``launcher._placement``).
+"""How ``launch-swarm`` places its children for the scheduler (``launcher._placement``), and
+which fault injections it accepts.
 
 The world (physics and the mission clock) must not wait for CPU behind the agents: it gets
 a session of its own, so Linux's per-session scheduling group (autogroup) gives it up to a
@@ -10,7 +11,10 @@ its own (stopped as one) and runs at the launcher's niceness.
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
+
+import pytest
 
 from swarm.config import load_config
 from swarm.launcher import LaunchOptions, SwarmLauncher
@@ -45,3 +49,19 @@ def test_the_world_has_a_session_of_its_own_and_the_agents_share_the_launchers(
             assert sid == pids[name]  # its own session: it leads it
         else:
             assert sid == os.getsid(0), name
+
+
+@pytest.mark.parametrize(("mode", "kills", "message"), [
+    ("lockstep", ((1, 5.0),), "needs realtime mode"),
+    ("realtime", ((6, 5.0),), "no drone 6 (the swarm has 0..5)"),
+    ("realtime", ((1, 31.0),), "within the mission (0, 30) s"),
+    ("realtime", ((1, 0.0),), "within the mission"),
+    ("realtime", ((1, 5.0), (1, 9.0)), "one kill per drone"),
+])
+def test_agent_kills_outside_the_mission_are_refused(mode: str, kills: tuple, message: str
+                                                     ) -> None:
+    """``--kill-agent``: a drone of the swarm, inside the mission, once, in realtime."""
+    config = load_config(CASE1)
+    with pytest.raises(ValueError, match=re.escape(message)):
+        LaunchOptions(config=config, config_path=str(CASE1), seed=0, mode=mode,
+                      kill_agents=kills)

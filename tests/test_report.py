@@ -154,6 +154,23 @@ def test_counters_of_a_process_run_are_summed(case2: RunRecord) -> None:
         build_report(case2, "bogus")
 
 
+def test_drones_that_said_they_could_not_hold_a_target_are_named(case2: RunRecord) -> None:
+    counters = {i: TelemetryCounters(steps=100) for i in range(6)}
+    counters[4] = TelemetryCounters(steps=100, lambda_breaches=2, first_lambda_breach_s=21.54,
+                                    localization_status="λ̄ < ε − tol: target 1 since 30.2 s")
+    report = build_report(case2, "realtime", counters)
+    said = [w for w in report.warnings if "could not hold" in w]
+    assert said == ["drone 4: said it could not hold λ̄ ≥ ε − tol from t = 21.54 s (2 breach(es) "
+                    "by target; the agent log has each); at the end: λ̄ < ε − tol: target 1 "
+                    "since 30.2 s"]
+    assert [d.lambda_breaches for d in report.drones] == [0, 0, 0, 0, 2, 0]
+    assert report_to_json(report)["drones"][4]["first_lambda_breach_s"] == 21.54
+    console = Console(record=True, width=250)
+    render_report(report, console)
+    assert "2 (from 21.54 s)" in console.export_text()
+    assert build_report(case2).drones[4].lambda_breaches is None  # in-process: not measured
+
+
 # -- violated invariants -------------------------------------------------------------------
 
 
@@ -332,7 +349,6 @@ def run_main(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str, 
                                   "no_argument", "unknown_option"])
 def test_unreadable_recordings_and_bad_usage_exit_2_with_one_line(
         case: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    pytest.importorskip("swarm.recording")
     empty = tmp_path / "empty"
     empty.mkdir()
     garbage = tmp_path / "garbage" / "run.mcap"
@@ -350,7 +366,6 @@ def test_unreadable_recordings_and_bad_usage_exit_2_with_one_line(
 
 
 def test_garbage_recording_exits_2_without_traceback_as_a_process(tmp_path: Path) -> None:
-    pytest.importorskip("swarm.recording")
     (tmp_path / "run.mcap").write_bytes(b"\x00garbage" * 50)
     assert_usage_error(cli(str(tmp_path)))
 
@@ -367,14 +382,11 @@ def test_unwritable_plot_directory_exits_2(recorded_run: Path, tmp_path: Path,
 @pytest.fixture(scope="module")
 def recorded_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A 3 s Case 1 recorded by launch-swarm (in-process)."""
-    pytest.importorskip("swarm.recording")
     directory = tmp_path_factory.mktemp("recorded") / "case1"
     result = subprocess.run(
         [sys.executable, "-m", "swarm.cli", "configs/case1.toml", "--inprocess", "--headless",
          "--duration", "3", "--record", str(directory)],
         cwd=ROOT, capture_output=True, text=True, timeout=120, check=False)
-    if "unrecognized arguments: --record" in result.stderr:
-        pytest.skip("launch-swarm has no --record yet")
     assert result.returncode == 0, result.stderr
     assert (directory / "run.mcap").is_file()
     return directory

@@ -197,6 +197,14 @@ def test_agent_killed_mid_mission_its_arducopter_holds_the_others_go_on(tmp_path
         late = [t for t in tel[drone] if t.time_s >= killed_at + 2.0]
         assert late and all(t.counters.swarm_size == 2 for t in late), drone
 
+    # Each survivor says it at the very step one of its own λ̄ copies is below ε − tol, and
+    # only then (swarm.localization_watch; the copies are those its telemetry carries).
+    floor = config.gramian.epsilon - config.checks.lambda_tolerance
+    for drone in survivors:
+        for t in tel[drone]:
+            below = t.control_active and bool(np.any(t.arrays()["lambda_bar"] < floor))
+            assert bool(t.counters.localization_status) == below, (drone, t.step)
+
     # What the killed drone's autopilot did, from its own link: on at the last command for
     # GUID_TIMEOUT, then stopped and holding where it stopped, armed in GUIDED throughout.
     states = [s for s in autopilot_states(tmp_path / "rec")[killed] if s.time_s >= killed_at]
