@@ -10,6 +10,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from swarm.errors import VigilError
+
 Array = NDArray[np.float64]
 
 
@@ -104,7 +106,7 @@ def step_vehicle(position_m: Array, velocity_m_s: Array, command_m_s: Array, u_m
     return position_m + dt_s * velocity, velocity
 
 
-class InitialPlacementError(ValueError):
+class InitialPlacementError(VigilError, ValueError):
     """The start box cannot hold the drones at the requested separation."""
 
 

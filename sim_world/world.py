@@ -27,6 +27,7 @@ from sim_world.camera import detect
 from sim_world.fleet import VehicleFleet
 from swarm.cli_common import DEFAULT_MAVLINK_BASE
 from swarm.config import ScenarioConfig, realtime_only_reason
+from swarm.errors import VigilError
 from swarm.rate import RateLimiter, freeze_heap
 from swarm.reference import STREAM_CAMERA, initial_drone_positions, stream
 from swarm.security import WORLD_ROLE, router_access_control
@@ -57,7 +58,7 @@ MISSION_TIME_OFFSET_MS = 1000  # mission stamps start this far past every pre-mi
 DONE_LINGER_S = 10.0  # the world stays up this long after the mission unless stopped
 
 
-class WorldAbortError(RuntimeError):
+class WorldAbortError(VigilError, RuntimeError):
     """The mission cannot go on (a vehicle never armed, an agent went silent in lockstep)."""
 
 

@@ -31,6 +31,7 @@ import numpy as np
 from swarm.command_reference import CommandReference
 from swarm.config import ScenarioConfig
 from swarm.core.agent import ConsensusMessage, DroneAgent, StepDiagnostics
+from swarm.errors import VigilError
 from swarm.localization_watch import LocalizationWatch
 from swarm.mavlink_link import AutopilotLink, LinkError
 from swarm.rate import RateLimiter, freeze_heap
@@ -64,7 +65,7 @@ WAIT_SLICE_S = 0.25  # lockstep waits wake at least this often to check their de
 ROUTER_RETRY_S = 0.05  # the world's router is not up yet: try again this soon
 
 
-class VehicleNotAsAsked(Exception):
+class VehicleNotAsAsked(VigilError):
     """Policy "leave" or "end": the vehicle is not as the agent asked (swarm.vehicle_watch)."""
 
 

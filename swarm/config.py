@@ -44,6 +44,7 @@ from swarm.core.params import (
     require_finite,
     require_finite_positive,
 )
+from swarm.errors import VigilError
 from swarm.mavlink_signing import SigningKeyError, read_signing_key
 from swarm.security import OBSERVER_ROLE, SecurityError, TlsIdentity, check_tls_dir
 from swarm.vehicle_watch import VEHICLE_EVENT_POLICIES, VehicleEventPolicy
@@ -51,7 +52,7 @@ from swarm.vehicle_watch import VEHICLE_EVENT_POLICIES, VehicleEventPolicy
 Vector3 = tuple[float, float, float]
 
 
-class ConfigError(ValueError):
+class ConfigError(VigilError, ValueError):
     """A scenario file that cannot be used; ``str()`` is one line naming key and reason."""
 
 

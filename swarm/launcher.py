@@ -40,6 +40,7 @@ from swarm import frames
 from swarm.cli_common import DEFAULT_MAVLINK_BASE
 from swarm.collector import TelemetryCollector
 from swarm.config import ScenarioConfig, write_resolved_config
+from swarm.errors import VigilError
 from swarm.recording import AutopilotState, Recorder, RecordingError, RecordingMetadata
 from swarm.reference import RunRecord, initial_drone_positions
 from swarm.security import OBSERVER_ROLE
@@ -77,7 +78,7 @@ PR_SET_PDEATHSIG = 1
 BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
 
-class MissionError(RuntimeError):
+class MissionError(VigilError, RuntimeError):
     """The swarm could not run the mission; the message says which process and why."""
 
 

@@ -108,6 +108,7 @@ from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from swarm import frames, px4_events
+from swarm.errors import VigilError
 from swarm.mavlink_parse import (
     LOCAL_POSITION_NED,
     POSITION_ONLY_TYPE_MASK,
@@ -194,7 +195,7 @@ class PositionSample:
     received_s: float
 
 
-class LinkError(RuntimeError):
+class LinkError(VigilError, RuntimeError):
     """The autopilot link failed; the message is one line saying what to check."""
 
 

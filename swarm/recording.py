@@ -53,6 +53,7 @@ from mcap.writer import CompressionType, Writer
 
 from swarm.collector import TelemetryCollector, state_dimension
 from swarm.config import ConfigError, ScenarioConfig, config_from_dict, config_to_data
+from swarm.errors import VigilError
 from swarm.reference import RunRecord
 from swarm.wire import (
     BeaconWire,
@@ -106,7 +107,7 @@ class AutopilotState(msgspec.Struct, frozen=True, kw_only=True, forbid_unknown_f
 Recordable = TelemetryWire | BeaconWire | CameraFrameWire | TruthWire | AutopilotState
 
 
-class RecordingError(RuntimeError):
+class RecordingError(VigilError, RuntimeError):
     """A recording that cannot be written or read; ``str()`` is one line naming the file."""
 
 

@@ -32,6 +32,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final
 
+from swarm.errors import VigilError
+
 CA_FILE: Final = "ca.pem"
 WORLD_ROLE: Final = "world"
 OBSERVER_ROLE: Final = "observer"
@@ -40,7 +42,7 @@ _PEM_CERTIFICATE: Final = b"-----BEGIN CERTIFICATE-----"
 _PEM_KEY_END: Final = b"PRIVATE KEY-----"
 
 
-class SecurityError(ValueError):
+class SecurityError(VigilError, ValueError):
     """An unusable TLS directory (one line: which file and why)."""
 
 

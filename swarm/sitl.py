@@ -57,6 +57,8 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from swarm.errors import VigilError
+
 Kind = Literal["ardupilot", "px4"]
 KINDS: tuple[Kind, ...] = ("ardupilot", "px4")
 ENV_ARDUCOPTER = "VIGIL_ARDUCOPTER"
@@ -72,7 +74,7 @@ MEAN_EARTH_RADIUS_M = 6_371_008.8  # IUGG mean radius; offsets of metres, errors
 Array = NDArray[np.float64]
 
 
-class SitlError(RuntimeError):
+class SitlError(VigilError, RuntimeError):
     """An autopilot SITL instance could not be found, started or brought up; one line."""
 
 

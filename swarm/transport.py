@@ -48,6 +48,7 @@ from typing import Any, Final, Generic, Literal, TypeVar
 
 import zenoh
 
+from swarm.errors import VigilError
 from swarm.security import TlsIdentity
 from swarm.wire import WireError
 
@@ -65,7 +66,7 @@ _MAX_REASON_CHARS: Final = 300
 TX_DATA_QUEUE_BATCHES: Final = 16  # per link and priority; zenoh allocates batches lazily
 
 
-class TransportError(RuntimeError):
+class TransportError(VigilError, RuntimeError):
     """A Zenoh session could not be opened (one line: what and why)."""
 
 

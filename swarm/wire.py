@@ -49,6 +49,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from swarm.core.agent import ConsensusMessage, Detection, StepDiagnostics
+from swarm.errors import VigilError
 
 Array = NDArray[np.float64]
 _W = TypeVar("_W")
@@ -84,7 +85,7 @@ Text = Annotated[str, msgspec.Meta(max_length=MAX_TEXT_CHARS)]
 Vector3 = tuple[float, float, float]
 
 
-class WireError(ValueError):
+class WireError(VigilError, ValueError):
     """A payload (or an outgoing message) that is not a valid wire message.
 
     ``reason`` (also ``str(error)``) is a single line.

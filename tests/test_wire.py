@@ -449,7 +449,8 @@ def test_fuzz_mutated_valid_payloads_only_raise_wire_error(base: int, mutations)
 
 @pytest.mark.parametrize("kind", list(DECODERS))
 def test_bulk_seeded_mutations_only_raise_wire_error(kind: str) -> None:
-    """A cheaper, larger sweep: 10 000 seeded random mutations of this kind's payloads."""
+    """A cheaper, larger sweep: 10 000 seeded random mutations of this kind's payloads. What
+    decodes is a valid message: encoded again it decodes to the same bytes' message."""
     rng = np.random.default_rng(list(DECODERS).index(kind))
     own = [p for name, p in PAYLOADS.items() if KIND_OF[name] == kind]
     ops = ["flip", "set", "truncate", "insert", "delete", "dup"]
@@ -459,39 +460,17 @@ def test_bulk_seeded_mutations_only_raise_wire_error(kind: str) -> None:
                       rng.bytes(int(rng.integers(1, 17)))) for _ in range(rng.integers(1, 4))]
         payload = mutate(own[rng.integers(len(own))], mutations)
         try:
-            DECODERS[kind](payload)
-            accepted += 1
+            message = DECODERS[kind](payload)
         except WireError as err:
             assert not err.reason.startswith("internal"), err.reason
-    assert accepted < 10_000  # mutations that only touch float bits legitimately decode
-
-
-# -- speed (printed, not asserted) ---------------------------------------------------------------
-
-
-def test_encode_decode_speed_is_printed(capsys) -> None:
-    rounds = 2000
-    lines = []
-    for name in ("consensus", "beacon", "telemetry"):
-        message, decode = MESSAGES[name], DECODERS[KIND_OF[name]]
-        started = time.perf_counter()
-        for _ in range(rounds):
-            payload = CODEC.encode(message)
-        encode_us = (time.perf_counter() - started) / rounds * 1e6
-        started = time.perf_counter()
-        for _ in range(rounds):
-            decode(payload)
-        decode_us = (time.perf_counter() - started) / rounds * 1e6
-        lines.append(f"{name}: {len(payload)} B, encode {encode_us:.1f} µs, "
-                     f"decode {decode_us:.1f} µs")
-    message = consensus_message()
-    started = time.perf_counter()
-    for _ in range(rounds):
-        CODEC.encode(message)
-    lines.append(f"ConsensusMessage→bytes incl. conversion: "
-                 f"{(time.perf_counter() - started) / rounds * 1e6:.1f} µs")
-    with capsys.disabled():
-        print("\n[wire speed] " + "; ".join(lines))
+            continue
+        accepted += 1
+        canonical = CODEC.encode(message)
+        assert CODEC.encode(DECODERS[kind](canonical)) == canonical
+    # Measured with these seeds: 290 (clock) to 1 493 (consensus) of 10 000 decode — the
+    # mutations that only change a number's bits, or leave the bytes as they were. A decoder
+    # that let malformed structure through would accept far more.
+    assert accepted < 2_000, accepted
 
 
 def test_clock_and_camera_types() -> None:

@@ -31,6 +31,7 @@ from swarm.core.gramian import initial_gramian
 from swarm.core.params import ControlParams, EstimationParams, GramianParams, PerceptionParams
 from swarm.core.perception import perception_constants, perception_scalars, perception_terms
 from swarm.core.qp import INACTIVE_ROW_LOWER, LocalQpWorkspace, QpSolution, rate_limited_box
+from swarm.errors import VigilError
 
 Array = NDArray[np.float64]
 
@@ -125,7 +126,7 @@ class StepResult:
     diagnostics: StepDiagnostics
 
 
-class AgentStateError(RuntimeError):
+class AgentStateError(VigilError, RuntimeError):
     """The step API was called out of order (a bug in the caller, not bad data)."""
 
 
