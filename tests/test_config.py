@@ -7,7 +7,9 @@ first line ``# expect: <substring>`` that the error message must contain.
 
 from __future__ import annotations
 
+import contextlib
 import copy
+import io
 import math
 import os
 import re
@@ -285,12 +287,40 @@ def test_corpus_file_is_refused_with_a_one_line_message_naming_the_key(path: Pat
     assert isinstance(info.value, ValueError)
 
 
+def _main_in_process(path: Path) -> subprocess.CompletedProcess[str]:
+    """``launch-swarm <file> --inprocess`` through ``swarm.cli.main`` in this process, its exit
+    code and what it wrote; an exception escaping ``main`` fails the test that asked."""
+    from swarm import cli
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            code = cli.main([str(path), "--inprocess"])
+        except SystemExit as stop:  # argparse
+            code = stop.code if isinstance(stop.code, int) else 2
+    return subprocess.CompletedProcess([str(path)], code, out.getvalue(), err.getvalue())
+
+
 @pytest.fixture(scope="module")
 def corpus_cli_results() -> dict[Path, subprocess.CompletedProcess[str]]:
-    """``python -m swarm.cli <file> --inprocess`` for every corpus file, two at a time."""
-    with ThreadPoolExecutor(max_workers=max(2, min(4, os.cpu_count() or 2))) as pool:
-        results = pool.map(lambda p: run_cli(str(p), "--inprocess", timeout=60.0), CORPUS)
-        return dict(zip(CORPUS, results, strict=True))
+    """``launch-swarm <file> --inprocess`` for every corpus file, run by its ``main`` here (a
+    process each cost 17-26 s of suite; ``test_corpus_files_fail_the_same_way_as_processes``
+    shows a process answers the same)."""
+    return {path: _main_in_process(path) for path in CORPUS}
+
+
+def test_corpus_files_fail_the_same_way_as_processes(
+        corpus_cli_results: dict[Path, subprocess.CompletedProcess[str]]) -> None:
+    """``python -m swarm.cli <file> --inprocess`` as a process, for a few corpus files: the
+    same exit code, the same line, nothing else (the process boundary adds nothing)."""
+    sample = CORPUS[::max(1, len(CORPUS) // 3)][:3]
+    with ThreadPoolExecutor(max_workers=len(sample)) as pool:
+        results = dict(zip(sample, pool.map(
+            lambda p: run_cli(str(p), "--inprocess", timeout=60.0), sample), strict=True))
+    for path, result in results.items():
+        here = corpus_cli_results[path]
+        assert (result.returncode, result.stdout, result.stderr) == (
+            here.returncode, here.stdout, here.stderr), path
 
 
 def _unwrapped(text: str) -> str:
