@@ -26,10 +26,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import subprocess
 import sys
 import tempfile
-import time
 import tomllib
 from pathlib import Path
 
@@ -40,6 +38,7 @@ from rich.table import Table
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from benchmarks.sitl_soak import fly_and_measure  # noqa: E402
 from swarm.checks import check_invariants, min_pairwise_distance, start_index  # noqa: E402
 from swarm.recording import iter_messages, read_recording  # noqa: E402
 from tests.sitl_tools import find_firmware  # noqa: E402
@@ -118,32 +117,15 @@ def measure(recording: Path, victim: int | None) -> dict[str, object]:
 
 def run_mission(config: Path, vehicles: str, firmware: Path | None, victim: int | None,
                 kill_at: float, seed: int, directory: Path) -> dict[str, object]:
-    name = f"{vehicles}_{config.stem}_{'none' if victim is None else victim}"
-    out_dir = directory / name
-    argv = [sys.executable, "-m", "swarm.cli", str(config), "--mode", "realtime",
-            "--headless", "--seed", str(seed), "--record", str(out_dir / "rec"),
-            "--log-dir", str(out_dir / "logs")]
+    victim_name = "none" if victim is None else victim
+    options = ["--seed", str(seed)]
     if firmware is not None:
-        argv += ["--sitl", str(firmware)]
+        options += ["--sitl", str(firmware)]
     if victim is not None:
-        argv += ["--kill-agent", f"{victim}@{kill_at:g}"]
-    started = time.monotonic()
-    done = subprocess.run(argv, capture_output=True, text=True, cwd=ROOT, timeout=900)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "launch-swarm.log").write_text(done.stdout + done.stderr)
-    result: dict[str, object] = {"vehicles": vehicles, "config": config.stem,
-                                 "victim": "none" if victim is None else victim,
-                                 "exit_code": done.returncode,
-                                 "wall_s": round(time.monotonic() - started, 1)}
-    if "verdict:" not in done.stdout or not (out_dir / "rec").exists():
-        tail = (done.stdout + done.stderr).strip().splitlines()[-3:]
-        result.update(ok=False, failed=" | ".join(tail))
-        return result
-    try:
-        result.update(measure(out_dir / "rec", victim))
-    except Exception as err:  # an unreadable recording is a failed run, not a crash
-        result.update(ok=False, failed=f"recording unreadable: {err}")
-    return result
+        options += ["--kill-agent", f"{victim}@{kill_at:g}"]
+    return fly_and_measure(config, directory / f"{vehicles}_{config.stem}_{victim_name}",
+                           options, lambda recording: measure(recording, victim),
+                           {"vehicles": vehicles, "config": config.stem, "victim": victim_name})
 
 
 def _num(value: object, spec: str) -> str:

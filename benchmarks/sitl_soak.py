@@ -29,6 +29,7 @@ import sys
 import tempfile
 import time
 import tomllib
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -116,30 +117,38 @@ def measure(recording: Path) -> dict[str, object]:
     }
 
 
-def run_mission(config: Path, autopilot: str, firmware: Path, seed: int,
-                duration: float | None, directory: Path) -> dict[str, object]:
-    out_dir = directory / f"{autopilot}_{config.stem}_{seed}"
-    argv = [sys.executable, "-m", "swarm.cli", str(config), "--mode", "realtime", "--sitl",
-            str(firmware), "--headless", "--seed", str(seed), "--record", str(out_dir / "rec"),
-            "--log-dir", str(out_dir / "logs")]
-    if duration is not None:
-        argv += ["--duration", str(duration)]
+def fly_and_measure(config: Path, out_dir: Path, options: list[str],
+                    measure_recording: Callable[[Path], dict[str, object]],
+                    result: dict[str, object]) -> dict[str, object]:
+    """One ``launch-swarm CONFIG --mode realtime --headless --record out_dir/rec`` mission
+    (``options`` added), its output kept in ``out_dir/launch-swarm.log``; ``result`` updated
+    with its exit code, wall time and ``measure_recording``'s figures, or ok=False and why it
+    did not fly (exit code 2 or 130, no recording) or could not be read."""
+    argv = [sys.executable, "-m", "swarm.cli", str(config), "--mode", "realtime", "--headless",
+            "--record", str(out_dir / "rec"), "--log-dir", str(out_dir / "logs"), *options]
     started = time.monotonic()
     done = subprocess.run(argv, capture_output=True, text=True, cwd=ROOT, timeout=900)
     out_dir.mkdir(parents=True, exist_ok=True)
     (out_dir / "launch-swarm.log").write_text(done.stdout + done.stderr)
-    result: dict[str, object] = {"autopilot": autopilot, "seed": seed,
-                                 "exit_code": done.returncode,
-                                 "wall_s": round(time.monotonic() - started, 1)}
+    result.update(exit_code=done.returncode, wall_s=round(time.monotonic() - started, 1))
     if "verdict:" not in done.stdout or not (out_dir / "rec").exists():
         tail = (done.stdout + done.stderr).strip().splitlines()[-3:]
         result.update(ok=False, failed=" | ".join(tail))
         return result
     try:
-        result.update(measure(out_dir / "rec"))
+        result.update(measure_recording(out_dir / "rec"))
     except Exception as err:  # an unreadable recording is a failed run, not a crash
         result.update(ok=False, failed=f"recording unreadable: {err}")
     return result
+
+
+def run_mission(config: Path, autopilot: str, firmware: Path, seed: int,
+                duration: float | None, directory: Path) -> dict[str, object]:
+    options = ["--sitl", str(firmware), "--seed", str(seed)]
+    if duration is not None:
+        options += ["--duration", str(duration)]
+    return fly_and_measure(config, directory / f"{autopilot}_{config.stem}_{seed}", options,
+                           measure, {"autopilot": autopilot, "seed": seed})
 
 
 def _fmt(value: object, digits: int = 3) -> str:

@@ -55,6 +55,7 @@ WARNED_COUNTERS: tuple[tuple[str, str], ...] = (
 # Of those, the ones whose every increase is printed at once (not held back by
 # ``warning_period_s``): a drone saying it cannot hold a target, its vehicle not as asked.
 URGENT_COUNTERS: frozenset[str] = frozenset({"lambda_breaches", "vehicle_events"})
+_URGENT_LABELS = frozenset(label for name, label in WARNED_COUNTERS if name in URGENT_COUNTERS)
 # Short labels of the same counters in the drone table's "events" column.
 _EVENT_LABELS = {"late_steps": "late", "stale_neighbour_messages": "stale",
                  "qp_fallbacks": "fb", "rejected_messages": "rej", "vehicle_events": "veh",
@@ -273,9 +274,7 @@ class Dashboard:
                 if not increases:
                     continue
                 last = self._last_warning.get(drone)
-                urgent = any(getattr(tel.counters, name) > (
-                    getattr(self._reported[drone], name) if drone in self._reported else 0)
-                    for name in URGENT_COUNTERS)
+                urgent = any(label in _URGENT_LABELS for label, _, _ in increases)
                 if not (force or urgent) and last is not None and (
                         now - last < self.settings.warning_period_s):
                     continue

@@ -11,7 +11,6 @@ Throughout, every drone's telemetry says at the very step one of its λ̄ copies
 
 from __future__ import annotations
 
-import math
 import os
 import signal
 import threading
@@ -35,14 +34,14 @@ DURATION_S = 42.0
 class TelemetryLog:
     """Per drone, per step: λ̄ copies, N in use, consensus sums run without a neighbour."""
 
-    def __init__(self) -> None:
+    def __init__(self, floor: float) -> None:
+        self.floor = floor  # ε − tol: a λ̄ copy below it is a breach its drone must say
         self.lock = threading.Lock()
         self.lambda_bar: dict[int, dict[int, np.ndarray]] = defaultdict(dict)
         self.swarm_size: dict[int, dict[int, int]] = defaultdict(dict)
         self.missing: dict[int, dict[int, int]] = defaultdict(dict)
         # (said, truly below): the drone's telemetry says a copy is below ε − tol, and it is.
         self.said: dict[int, dict[int, tuple[bool, bool]]] = defaultdict(dict)
-        self.floor = math.nan
 
     def __call__(self, tel: TelemetryWire) -> None:
         with self.lock:
@@ -66,8 +65,7 @@ def test_a_killed_agent_leaves_the_swarm_which_recovers_and_it_rejoins(tmp_path:
     launcher = SwarmLauncher(LaunchOptions(
         config=config, config_path=str(path), seed=0, mode="realtime", log_dir=tmp_path,
         agent_restarts=1, agent_restart_delay_s=OUTAGE_S), log=lines.append)
-    telemetry = TelemetryLog()
-    telemetry.floor = epsilon - config.checks.lambda_tolerance
+    telemetry = TelemetryLog(epsilon - config.checks.lambda_tolerance)
     outcome: dict = {}
 
     def run() -> None:
