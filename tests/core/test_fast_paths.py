@@ -2,7 +2,9 @@
 finite-difference tests check (issue 15, point 1): ``perception_scalars`` ↔
 ``perception_terms``, ``smooth_min_scalars`` ↔ ``smooth_min_eigenvalue``,
 ``localization_barrier_scalars`` ↔ ``localization_barrier`` and ``bearing_formation_scalars``
-↔ ``bearing_formation_velocity`` / ``bearing_error``, on random states in every regime: each
+↔ ``bearing_formation_velocity`` / ``bearing_error``, ``icf.StackedFilter`` ↔ ``posterior`` then
+``predict`` per target, and the agent's packed consensus operator ↔ ``pi_consensus_step`` and
+``gramian_step``, on random states in every regime: each
 side of every perception threshold and right at it, eigenvalues far apart, nearly repeated
 (gaps down to 1e-12 relative) and below the clipping floor.
 
@@ -10,7 +12,9 @@ Tolerance: both forms evaluate the same formulas in a different order (the fast 
 eigenbasis of G, where Γ is never formed), so they agree to round-off: 1e-9 of each
 quantity's scale (measured over these examples: 7e-15 for the barrier, 4e-16 for the
 formation, bit for bit for the perception terms and λ̄); a factor of 1.0001 on one term of the
-fast barrier fails it.
+fast barrier fails it; so does a factor of 1.0001 on Q in the stacked filter or on one
+coefficient of the consensus operator. The stacked filter's bound scales with the condition
+number of V (its inverses are formed in another order).
 """
 
 from __future__ import annotations
@@ -21,13 +25,17 @@ import numpy as np
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
+from swarm.core import icf
+from swarm.core.agent import _consensus_operator
 from swarm.core.barrier import localization_barrier, localization_barrier_scalars
+from swarm.core.dynamic_consensus import pi_consensus_step
 from swarm.core.formation import (
     bearing_error,
     bearing_formation_scalars,
     bearing_formation_velocity,
 )
-from swarm.core.params import PerceptionParams
+from swarm.core.gramian import gramian_step
+from swarm.core.params import ConsensusGains, GramianParams, PerceptionParams
 from swarm.core.perception import perception_constants, perception_scalars, perception_terms
 from swarm.core.smooth_min import EIGENVALUE_FLOOR, smooth_min_eigenvalue, smooth_min_scalars
 
@@ -172,3 +180,103 @@ def test_bearing_formation_scalars_equal_the_array_forms(own, neighbours, gain) 
     velocity, error = bearing_formation_scalars(own, listed, gain)
     _close(velocity, bearing_formation_velocity(own_p, positions, desired, gain), gain)
     _close(error, bearing_error(own_p, positions, desired), 1.0)
+
+
+# -- the stacked ICF step and the packed consensus operator --------------------------------------
+
+
+def _spd_stack(rng: np.random.Generator, m: int, n: int, condition: float) -> np.ndarray:
+    """M symmetric positive-definite n×n matrices with eigenvalues spread over ``condition``."""
+    stack = np.empty((m, n, n))
+    for r in range(m):
+        q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+        eigenvalues = np.geomspace(1.0, condition, n) * rng.uniform(0.5, 20.0)
+        stack[r] = (q * eigenvalues) @ q.T
+        stack[r] = 0.5 * (stack[r] + stack[r].T)
+    return stack
+
+
+@settings(max_examples=150, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), m=st.integers(1, 3),
+       model=st.sampled_from(["double_integrator", "single_integrator"]),
+       n_agents=st.integers(2, 12), dt=st.floats(0.005, 0.1),
+       noise=st.floats(1e-4, 1.0), condition=st.sampled_from([1.0, 10.0, 1e3, 1e5]))
+def test_stacked_filter_equals_posterior_then_predict_per_target(
+        seed, m, model, n_agents, dt, noise, condition) -> None:
+    """``icf.StackedFilter`` (one LAPACK call for the stack, pinv(W⁺) from pinv(V)/N, the
+    Kronecker product for A pinv(W⁺) Aᵀ) against ``posterior`` then ``predict`` (2.8-2.11,
+    2.21-2.22) target by target, with and without the communicated velocity."""
+    rng = np.random.default_rng(seed)
+    n = icf.state_dimension(model)
+    information = _spd_stack(rng, m, n, condition)
+    vector = rng.normal(size=(m, n)) * 10.0
+    velocity = rng.normal(size=(m, 3)) if model == "single_integrator" else None
+    transition = icf.transition_matrix(model, dt)
+    fast = icf.StackedFilter(transition, noise, n_agents, dt)(information, vector, velocity)
+    for r in range(m):
+        state, info = icf.posterior(information[r], vector[r], n_agents)
+        prior_state, prior_info = icf.predict(
+            state, info, transition, noise,
+            communicated_velocity=None if velocity is None else velocity[r], dt_s=dt)
+        scale = condition * max(1.0, float(np.max(np.abs(state))))
+        _close(fast[0][r], state, scale)
+        _close(fast[1][r], prior_state, scale)
+        _close(fast[2][r], prior_info, condition * float(np.max(np.abs(prior_info))))
+
+
+def test_stacked_filter_takes_the_readable_path_for_a_singular_information() -> None:
+    """One V not positive definite: every target goes through ``posterior``/``predict`` with
+    the SVD pseudo-inverse, so the result is theirs exactly."""
+    rng = np.random.default_rng(5)
+    information = _spd_stack(rng, 2, 6, 10.0)
+    information[1] = np.diag([1.0, 2.0, 3.0, 0.0, 0.0, 0.0])  # velocity never seen
+    vector = rng.normal(size=(2, 6))
+    transition = icf.transition_matrix("double_integrator", 0.02)
+    fast = icf.StackedFilter(transition, 0.01, 3, 0.02)(information, vector)
+    for r in range(2):
+        state, info = icf.posterior(information[r], vector[r], 3)
+        prior_state, prior_info = icf.predict(state, info, transition, 0.01)
+        assert np.array_equal(fast[0][r], state) and np.array_equal(fast[1][r], prior_state)
+        assert np.array_equal(fast[2][r], prior_info)
+
+
+@settings(max_examples=150, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), m=st.integers(1, 3), n_neighbours=st.integers(0, 4),
+       dt=st.floats(0.005, 0.1), rate_gain=st.floats(0.1, 20.0),
+       forgetting=st.floats(0.05, 2.0), coupling=st.floats(0.1, 3.0))
+def test_consensus_operator_equals_the_pi_consensus_and_gramian_steps(
+        seed, m, n_neighbours, dt, rate_gain, forgetting, coupling) -> None:
+    """The agent's packed consensus step (``_consensus_operator``: one gather, one product,
+    one sum over z = [x, Σ_j (x − x_j), u, 0]) against ``pi_consensus_step`` (3.30) for wΠ̂
+    and w with their own gains, and ``gramian_step`` (3.29) for the Gramian copies, whose
+    source term is the consensus estimate s before the step."""
+    rng = np.random.default_rng(seed)
+    gram = GramianParams(forgetting=forgetting, consensus_gain=coupling,
+                         projector_consensus=ConsensusGains(*rng.uniform(0.5, 10.0, 3)),
+                         weight_consensus=ConsensusGains(*rng.uniform(0.5, 10.0, 3)))
+    layout = [9 * m, m, 9 * m, m, 9 * m]  # s_Π, s_w, η_Π, η_w, G: the agent's packed state
+    own = rng.normal(size=29 * m)
+    others = [rng.normal(size=29 * m) for _ in range(n_neighbours)]
+    local_input = rng.normal(size=10 * m)
+    index, coefficients = _consensus_operator(m, dt, gram, rate_gain)
+    disagreement = sum((own - x for x in others), np.zeros(29 * m))
+    z = np.concatenate((own, disagreement, local_input, [0.0]))
+    fast = np.add.reduce(z[index] * coefficients, axis=0)
+
+    def parts(x: np.ndarray) -> list[np.ndarray]:
+        return np.split(x, np.cumsum(layout)[:-1])
+
+    s_p, s_w, eta_p, eta_w, g = parts(own)
+    neighbour_parts = [parts(x) for x in others]
+    new_s_p, new_eta_p = pi_consensus_step(
+        s_p, eta_p, local_input[:9 * m], [p[0] for p in neighbour_parts],
+        [p[2] for p in neighbour_parts], gram.projector_consensus, dt)
+    new_s_w, new_eta_w = pi_consensus_step(
+        s_w, eta_w, local_input[9 * m:], [p[1] for p in neighbour_parts],
+        [p[3] for p in neighbour_parts], gram.weight_consensus, dt)
+    new_g = gramian_step(g.reshape(m, 3, 3), s_p.reshape(m, 3, 3),
+                         [p[4].reshape(m, 3, 3) for p in neighbour_parts], n_agents=1,
+                         forgetting=forgetting, info_gain=rate_gain, consensus_gain=coupling,
+                         dt_s=dt)
+    readable = np.concatenate((new_s_p, new_s_w, new_eta_p, new_eta_w, new_g.ravel()))
+    _close(fast, readable, max(1.0, float(np.max(np.abs(z)))) * (1 + n_neighbours))
