@@ -53,10 +53,10 @@ from cvxpy_qp import ParametrizedQp, QpData, solve_rebuilt
 from rich.table import Table
 from rich.text import Text
 
-from swarm.config import ScenarioConfig, load_config
 from swarm.core import qp as qp_module
 from swarm.core.qp import LocalQpWorkspace
-from swarm.reference import run_reference
+from swarm.runs.reference import run_reference
+from swarm.scenario.config import ScenarioConfig, load_config
 
 SOLVERS = ("PIQP", "CLARABEL", "OSQP")
 ACTIVE_TOLERANCE = 1e-6

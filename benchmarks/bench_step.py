@@ -6,7 +6,7 @@
 Scenarios: Case 1 (M = 1, hard QP), Case 2 (M = 2, relaxed QP), Case 2 with a third target
 added in code (M = 3), and Case 2 with the QP rebuilt in CVXPY at every step as the thesis
 did (``cvxpy_qp.CvxpyRebuiltWorkspace``, PIQP underneath). Each runs in process
-(``swarm.reference.run_reference``, 6 drones, seed 0); every drone and every step with the
+(``swarm.runs.reference.run_reference``, 6 drones, seed 0); every drone and every step with the
 barrier QP active (t ≥ ``control.start_s``) is one sample. The CVXPY scenario flies our path
 until ``cvxpy_step_start_s`` (12 s: from about then on Case 2's QP rows are active), then
 alternates step by step between the QP rebuilt in CVXPY and ours: the ratio compares the two
@@ -19,7 +19,7 @@ Per sample, wall clock (``time.perf_counter``):
   estimation (ICF local steps), consensus (the K rounds and the PI-consensus/Gramian update),
   barrier (perception weights, HOCBF terms, constraint rows), qp (solver matrices, PIQP update
   and solve, feasibility check) and other;
-- encode: what ``swarm.agent_process`` encodes for that step with ``swarm.wire.WireCodec``:
+- encode: what ``swarm.agent.process`` encodes for that step with ``swarm.messages.wire.WireCodec``:
   the consensus message of every round, the beacon and the telemetry (``encode_consensus``,
   ``encode_beacon``, ``encode_telemetry``: built from the core's types and checked);
 - decode: what it decodes for that step: the camera frame (and its detections), every
@@ -59,10 +59,10 @@ from cvxpy_qp import CvxpyRebuiltWorkspace
 from rich.table import Table
 from rich.text import Text
 
-import swarm.reference as reference
-from swarm.config import ScenarioConfig, TargetSection, load_config
+import swarm.runs.reference as reference
 from swarm.core.agent import ConsensusMessage, Detection, DroneAgent, StepResult
-from swarm.wire import CameraFrameWire, WireCodec
+from swarm.messages.wire import CameraFrameWire, WireCodec
+from swarm.scenario.config import ScenarioConfig, TargetSection, load_config
 
 CORE_SECTIONS = ("estimation", "consensus", "barrier", "qp", "other")
 # The wire work of one drone step, by message (all rounds, all neighbours, all beacons).
@@ -114,7 +114,7 @@ class WireBus:
 
 class StepProbe:
     """Wraps one agent's step methods: runs them on decoded messages and encodes what they
-    send, as ``swarm.agent_process`` does, timing the agent and the wire work apart.
+    send, as ``swarm.agent.process`` does, timing the agent and the wire work apart.
 
     After each ``finish_step``: ``core_cpu_s`` (thread CPU of the agent's calls),
     ``encode_s`` / ``decode_s`` (wall), ``wire_s`` (wall, by message: ``WIRE_KINDS``) and
@@ -311,7 +311,7 @@ def run_once(scenario: Scenario) -> dict[str, Any]:
                 for name in CORE_SECTIONS:
                     samples[name].append(timing[name])
 
-        # As an agent process does after its set-up (swarm.rate.freeze_heap): the long-lived
+        # As an agent process does after its set-up (swarm.net.rate.freeze_heap): the long-lived
         # objects leave the collector's reach, so a collection does not walk them mid-step.
         gc.collect()
         gc.freeze()

@@ -18,9 +18,9 @@ from pathlib import Path
 
 from rich.console import Console
 
-from swarm.config import load_config
-from swarm.dashboard import Dashboard, DashboardSettings
-from swarm.launcher import LaunchOptions, SwarmLauncher
+from swarm.launch.launcher import LaunchOptions, SwarmLauncher
+from swarm.observe.dashboard import Dashboard, DashboardSettings
+from swarm.scenario.config import load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 

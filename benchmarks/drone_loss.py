@@ -39,9 +39,9 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from benchmarks.sitl_soak import fly_and_measure  # noqa: E402
-from swarm.checks import check_invariants, min_pairwise_distance, start_index  # noqa: E402
-from swarm.recording import iter_messages, read_recording  # noqa: E402
-from tests.sitl_tools import find_firmware  # noqa: E402
+from swarm.observe.recording import iter_messages, read_recording  # noqa: E402
+from swarm.runs.checks import check_invariants, min_pairwise_distance, start_index  # noqa: E402
+from tests.helpers.sitl_tools import find_firmware  # noqa: E402
 
 TRIANGLE = [[0, 1], [1, 2], [2, 0]]
 

@@ -4,11 +4,11 @@
                                               [--out DIR] [--from-log FILE]
 
 Our emulated vehicles and the in-process reference move a drone's velocity v towards its
-velocity command u with ``sim_world.kinematics.VelocityResponse(τ, a_max)``: per 20 ms step
+velocity command u with ``swarm.models.kinematics.VelocityResponse(τ, a_max)``: per 20 ms step
 Δ = (1 − e^(−ΔT/τ))·(u − v), limited to ‖Δ‖ ≤ a_max·ΔT. This script measures what the real
 flight code does with the same commands, and fits τ and a_max to it:
 
-1. Flight. One SITL (ArduCopter, or PX4 with SIH) through ``swarm.sitl``; over its companion
+1. Flight. One SITL (ArduCopter, or PX4 with SIH) through ``swarm.mavlink.sitl``; over its companion
    link (pymavlink, ``udpin``, system 1 component 191, as an agent) LOCAL_POSITION_NED is
    requested at 50 Hz; ArduPilot: GUIDED, ARM, NAV_TAKEOFF to 5 m; PX4: position setpoints
    5 m up streamed at 20 Hz, OFFBOARD, ARM. Then ``SEQUENCE``: velocity setpoints every 20 ms
@@ -62,9 +62,8 @@ from numpy.typing import NDArray
 from rich.table import Table
 from scipy.optimize import minimize
 
-from sim_world.kinematics import VelocityResponse
-from swarm.mavlink_parse import POSITION_ONLY_TYPE_MASK, VELOCITY_ONLY_TYPE_MASK
-from swarm.sitl import (
+from swarm.mavlink.parse import POSITION_ONLY_TYPE_MASK, VELOCITY_ONLY_TYPE_MASK
+from swarm.mavlink.sitl import (
     KINDS,
     Firmware,
     GeoPoint,
@@ -78,6 +77,7 @@ from swarm.sitl import (
     free_instances,
     free_udp_port,
 )
+from swarm.models.kinematics import VelocityResponse
 
 Array = NDArray[np.float64]
 Ned = tuple[float, float, float]
@@ -760,7 +760,7 @@ def analyse(log: FlightLog) -> dict[str, Any]:
     latency = clock.latency_s
     return {
         "autopilot": log.autopilot, "firmware": log.firmware,
-        "model": "sim_world.kinematics.VelocityResponse, ΔT = 20 ms; RMS = sqrt(mean ‖Δv‖²)",
+        "model": "swarm.models.kinematics.VelocityResponse, ΔT = 20 ms; RMS = sqrt(mean ‖Δv‖²)",
         "groups": groups,
         "clock": {"autopilot_s_per_wall_s": clock.rate,
                   "receipt_latency_s": {"median": float(np.median(latency)),

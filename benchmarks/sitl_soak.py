@@ -39,9 +39,9 @@ from rich.table import Table
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from swarm.checks import check_invariants, min_pairwise_distance, nanmin, start_index  # noqa: E402
-from swarm.recording import iter_messages, read_recording  # noqa: E402
-from tests.sitl_tools import find_firmware  # noqa: E402
+from swarm.observe.recording import iter_messages, read_recording  # noqa: E402
+from swarm.runs.checks import check_invariants, min_pairwise_distance, nanmin, start_index  # noqa: E402
+from tests.helpers.sitl_tools import find_firmware  # noqa: E402
 
 DEFAULT_CONFIG = ROOT / "tests" / "configs" / "case1_three.toml"
 
@@ -124,7 +124,8 @@ def fly_and_measure(config: Path, out_dir: Path, options: list[str],
     (``options`` added), its output kept in ``out_dir/launch-swarm.log``; ``result`` updated
     with its exit code, wall time and ``measure_recording``'s figures, or ok=False and why it
     did not fly (exit code 2 or 130, no recording) or could not be read."""
-    argv = [sys.executable, "-m", "swarm.cli", str(config), "--mode", "realtime", "--headless",
+    argv = [sys.executable, "-m", "swarm.launch.cli", str(config), "--mode", "realtime",
+            "--headless",
             "--record", str(out_dir / "rec"), "--log-dir", str(out_dir / "logs"), *options]
     started = time.monotonic()
     done = subprocess.run(argv, capture_output=True, text=True, cwd=ROOT, timeout=900)

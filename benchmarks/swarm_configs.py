@@ -22,7 +22,7 @@ from pathlib import Path
 
 from common import CONFIGS
 
-from swarm.config import ScenarioConfig, load_config
+from swarm.scenario.config import ScenarioConfig, load_config
 
 BENCH_CONFIGS = CONFIGS / "bench"
 CASE2 = CONFIGS / "case2.toml"

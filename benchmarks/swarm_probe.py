@@ -43,9 +43,9 @@ from typing import Any
 from common import SectionClock, load_average, progress, stats
 from swarm_configs import load_scaled
 
-from swarm.checks import check_invariants, summarize_targets
-from swarm.launcher import Child, LaunchOptions, MissionError, SwarmLauncher, udp_ports_free
-from swarm.wire import ClockWire, TelemetryWire
+from swarm.launch.launcher import Child, LaunchOptions, MissionError, SwarmLauncher, udp_ports_free
+from swarm.messages.wire import ClockWire, TelemetryWire
+from swarm.runs.checks import check_invariants, summarize_targets
 
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 SAMPLE_PERIOD_S = 0.2

@@ -1,5 +1,5 @@
 """The thesis cases with the vehicles' velocity response: ideal (the thesis) against the lag and
-acceleration limit fitted to ArduCopter SITL (``sim_world.kinematics.ARDUCOPTER_SITL_RESPONSE``,
+acceleration limit fitted to ArduCopter SITL (``swarm.models.kinematics.ARDUCOPTER_SITL_RESPONSE``,
 ``[vehicles] response = "arducopter"``), side by side, in-process (the reference simulator; a
 lockstep process swarm gives the same numbers bit for bit).
 
@@ -21,9 +21,9 @@ from common import CONFIGS
 from rich.console import Console
 from rich.table import Table
 
-from swarm.checks import check_invariants, min_pairwise_distance, nanmin, start_index
-from swarm.config import load_config
-from swarm.reference import run_reference
+from swarm.runs.checks import check_invariants, min_pairwise_distance, nanmin, start_index
+from swarm.runs.reference import run_reference
+from swarm.scenario.config import load_config
 
 
 def run_case(case: str, response: str, seed: int) -> dict[str, object]:

@@ -7,7 +7,8 @@ from collections.abc import Sequence
 
 from sim_world.fleet import mavlink_hosts
 from sim_world.world import World, WorldOptions
-from swarm.cli_common import (
+from swarm.net.transport import check_tls_endpoints, local_endpoint
+from swarm.scenario.cli_common import (
     DEFAULT_MAVLINK_BASE,
     EXIT_INTERRUPTED,
     ConfigError,
@@ -18,8 +19,7 @@ from swarm.cli_common import (
     port,
     terminate_on_sigterm,
 )
-from swarm.config import realtime_only_reason
-from swarm.transport import check_tls_endpoints, local_endpoint
+from swarm.scenario.config import realtime_only_reason
 
 PROG = "sim-world"
 

@@ -30,9 +30,9 @@ from collections.abc import Callable, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from sim_world.kinematics import VelocityResponse
 from sim_world.mavlink_endpoint import VehicleEndpoint
 from sim_world.vehicle import EmulatedVehicle, Flavour, Start
+from swarm.models.kinematics import VelocityResponse
 
 HEARTBEAT_PERIOD_S = 1.0
 

@@ -8,7 +8,7 @@ starts, e.g. wall time until then and that instant plus sim time after). Bytes i
 out, so the same object is driven by ``sim-world`` in both time modes and by tests without
 any network. Encoding and parsing use pymavlink's generated MAVLink 2 module
 (``pymavlink.dialects.v20.ardupilotmega``); the per-step LOCAL_POSITION_NED out and setpoints
-in go through ``swarm.mavlink_parse.FastFrame`` (pymavlink's formats and checksum,
+in go through ``swarm.mavlink.parse.FastFrame`` (pymavlink's formats and checksum,
 byte-identical frames, without its per-byte parser). Not thread-safe.
 
 Where the behaviour comes from: the real firmware, flown over its companion link by hand and
@@ -25,7 +25,7 @@ Public API
 ``VehicleEndpoint`` (the UDP socket, defined in ``sim_world.mavlink_endpoint``) is re-exported.
 ``FlightModel`` (frozen dataclass: the measured timings and speeds of one flavour) with
 ``FLIGHT_MODELS[flavour]``; ``MEASURED_RESPONSE[flavour]``: the velocity response
-(``sim_world.kinematics.VelocityResponse``) fitted to each SITL's velocity steps.
+(``swarm.models.kinematics.VelocityResponse``) fitted to each SITL's velocity steps.
 
 ``EmulatedVehicle(drone_id, flavour, position_w, origin_w, *, u_max_m_s=3.0,
 setpoint_timeout_s=None, start="air", response=VelocityResponse(), flight_model=None,
@@ -47,7 +47,7 @@ datagram_framing=True, signing_key=None, signing_clock=time.time)``
     incomplete packet left at its end are counted as a truncated frame and dropped (they can
     never complete a packet); with False the input is a byte stream (serial/TCP) and a packet
     may span calls.
-    ``signing_key``: the 32-byte MAVLink 2 signing secret (``swarm.mavlink_signing``; None:
+    ``signing_key``: the 32-byte MAVLink 2 signing secret (``swarm.mavlink.signing``; None:
     off). With it, every frame the vehicle sends is signed (pymavlink's ``sign_packet``,
     link id 0) and only correctly signed frames are accepted (pymavlink's
     ``check_signature``: right key, signing timestamp newer than the last of that stream);
@@ -69,7 +69,7 @@ datagram_framing=True, signing_key=None, signing_clock=time.time)``
 ``fly(dt_s, now_s)``
     Realtime: the vehicle flies itself for ``dt_s`` ending at ``now_s``: the guidance of its
     mode and state (setpoints, takeoff climb, hold, land, return, spool-up) gives a velocity
-    command u, then ``sim_world.kinematics.step_vehicle`` (u clamped to ±``u_max_m_s`` per
+    command u, then ``swarm.models.kinematics.step_vehicle`` (u clamped to ±``u_max_m_s`` per
     axis, then ``response``), then the ground; then landing detection and auto-disarm.
 ``commanded_velocity_w(now_s) -> ndarray``
     Lockstep: the velocity the vehicle applies now for its last accepted setpoint, in W:
@@ -212,17 +212,17 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
-from sim_world.kinematics import (
+from sim_world.mavlink_endpoint import VehicleEndpoint
+from swarm.mavlink.parse import LOCAL_POSITION_NED, SET_POSITION_TARGET_LOCAL_NED, parse_bytes
+from swarm.mavlink.signing import enable_signing, refresh_signing_timestamp
+from swarm.models import frames
+from swarm.models.kinematics import (
     ARDUCOPTER_SITL_RESPONSE,
     PX4_SITL_RESPONSE,
     VelocityResponse,
     clamp_velocity,
     step_vehicle,
 )
-from sim_world.mavlink_endpoint import VehicleEndpoint
-from swarm import frames
-from swarm.mavlink_parse import LOCAL_POSITION_NED, SET_POSITION_TARGET_LOCAL_NED, parse_bytes
-from swarm.mavlink_signing import enable_signing, refresh_signing_timestamp
 
 Array = NDArray[np.float64]
 Flavour = Literal["px4", "ardupilot"]
@@ -375,7 +375,7 @@ FLIGHT_MODELS: Final[dict[Flavour, FlightModel]] = {
         return_climb_m_s=3.0, return_descent_m_s=1.5, return_speed_m_s=5.0),
 }
 
-# τ and a_max of ``sim_world.kinematics.VelocityResponse`` fitted (all three axes together) to
+# τ and a_max of ``swarm.models.kinematics.VelocityResponse`` fitted (all three axes together) to
 # each SITL's velocity steps by benchmarks/fit_vehicle_response.py.
 MEASURED_RESPONSE: Final[dict[Flavour, VelocityResponse]] = {
     "ardupilot": ARDUCOPTER_SITL_RESPONSE, "px4": PX4_SITL_RESPONSE}

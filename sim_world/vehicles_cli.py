@@ -13,7 +13,8 @@ import time
 from collections.abc import Sequence
 
 from sim_world.fleet import VehicleFleet, serve_forever
-from swarm.cli_common import (
+from swarm.runs.reference import initial_drone_positions
+from swarm.scenario.cli_common import (
     DEFAULT_MAVLINK_BASE,
     EXIT_INTERRUPTED,
     ConfigError,
@@ -24,7 +25,6 @@ from swarm.cli_common import (
     seed,
     terminate_on_sigterm,
 )
-from swarm.reference import initial_drone_positions
 
 PROG = "sim-vehicles"
 

@@ -23,15 +23,19 @@ from typing import Literal
 
 import numpy as np
 
-from sim_world.camera import detect
 from sim_world.fleet import VehicleFleet
-from swarm.cli_common import DEFAULT_MAVLINK_BASE
-from swarm.config import ScenarioConfig, realtime_only_reason
 from swarm.errors import VigilError
-from swarm.rate import RateLimiter, freeze_heap
-from swarm.reference import STREAM_CAMERA, initial_drone_positions, stream
-from swarm.security import WORLD_ROLE, router_access_control
-from swarm.transport import (
+from swarm.messages.wire import (
+    BeaconWire,
+    CameraFrameWire,
+    ClockWire,
+    TruthWire,
+    WireCodec,
+)
+from swarm.models.camera import detect
+from swarm.net.rate import RateLimiter, freeze_heap
+from swarm.net.security import WORLD_ROLE, router_access_control
+from swarm.net.transport import (
     Keys,
     LatestValues,
     RejectionCounter,
@@ -40,13 +44,9 @@ from swarm.transport import (
     subscribe,
     zenoh_config,
 )
-from swarm.wire import (
-    BeaconWire,
-    CameraFrameWire,
-    ClockWire,
-    TruthWire,
-    WireCodec,
-)
+from swarm.runs.reference import STREAM_CAMERA, initial_drone_positions, stream
+from swarm.scenario.cli_common import DEFAULT_MAVLINK_BASE
+from swarm.scenario.config import ScenarioConfig, realtime_only_reason
 
 Mode = Literal["lockstep", "realtime"]
 VehicleSource = Literal["sim", "external"]

@@ -33,9 +33,9 @@ def test_importtime_lines_are_parsed_with_their_importer() -> None:
     text = ("import time: self [us] | cumulative | imported package\n"
             "import time:       100 |        100 |     numpy.core\n"
             "import time:        50 |        150 |   numpy\n"
-            "import time:        10 |        160 | swarm.agent_cli\n")
+            "import time:        10 |        160 | swarm.agent.cli\n")
     entries = {e["module"]: e for e in bench_startup.parse_importtime(text)}
-    assert entries["numpy"]["parent"] == "swarm.agent_cli"
+    assert entries["numpy"]["parent"] == "swarm.agent.cli"
     assert entries["numpy.core"]["parent"] == "numpy"
     assert entries["numpy"]["cumulative_us"] == 150 and entries["numpy"]["self_us"] == 50
 

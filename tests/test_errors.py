@@ -11,7 +11,7 @@ import swarm
 from swarm.errors import VigilError
 
 # Control flow, not errors: the world said the mission is over (the agent's loop ends).
-NOT_ERRORS = {"swarm.agent_process.MissionEnded"}
+NOT_ERRORS = {"swarm.agent.process.MissionEnded"}
 
 
 def _project_modules() -> list[str]:

@@ -1,9 +1,10 @@
-"""Write ``swarm/px4_event_names.py``: PX4's event names by event id, from a PX4 checkout.
+"""Write ``swarm/mavlink/px4_event_names.py``: PX4's event names by event id, from a PX4 checkout.
 
 PX4 sends events (MAVLink EVENT) by id only; the id is a hash of the event's name, computed
 at compile time from ``events::ID("name")`` in its source. This script finds every such name
 under the checkout's ``src/`` (commander with its arming and health checks and its failsafe
-code, navigator, ekf2, drivers, ...), computes the ids with ``swarm.px4_events.px4_event_id``
+code, navigator, ekf2, drivers, ...), computes the ids with
+``swarm.mavlink.px4_events.px4_event_id``
 and writes the table. Names only: nothing else of PX4's source (no message texts) is kept.
 
     python tools/px4_event_names.py PX4_CHECKOUT [--px4-commit SHA] [--px4-version TAG]
@@ -22,7 +23,7 @@ import sys
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
-from swarm.px4_events import px4_event_id
+from swarm.mavlink.px4_events import px4_event_id
 
 DEFAULT_OUTPUT = Path(__file__).resolve().parent.parent / "swarm" / "px4_event_names.py"
 SOURCE_SUFFIXES = (".c", ".cpp", ".h", ".hpp")
@@ -72,7 +73,8 @@ def render(table: Mapping[int, str], *, px4_version: str, px4_commit: str) -> st
         '"""PX4 event names by event id. GENERATED: do not edit.',
         "",
         f"From PX4-Autopilot {px4_version} (commit {px4_commit}): every",
-        '``events::ID("name")`` under its ``src/``, id = ``swarm.px4_events.px4_event_id(name)``.',
+        '``events::ID("name")`` under its ``src/``,',
+        'id = ``swarm.mavlink.px4_events.px4_event_id(name)``.',
         "Names only. Regenerate from a PX4 checkout with",
         "",
         "    python tools/px4_event_names.py PX4_CHECKOUT",

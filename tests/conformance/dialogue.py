@@ -157,7 +157,7 @@ def _landing(pilot: Pilot, record: Record, ground_ned: np.ndarray, rate_band: tu
 
 def _arm_when_ready(pilot: Pilot, record: Record) -> None:
     """ARM once a second until ACCEPTED: the real PX4 says TEMPORARILY_REJECTED until its
-    pre-arm checks pass (~37 s after boot; ``swarm.sitl`` calls it ready a little earlier);
+    pre-arm checks pass (~37 s after boot; ``swarm.mavlink.sitl`` calls it ready a little earlier);
     the emulator is ready at once. Any other answer fails."""
     deadline = pilot.now() + ARM_READY_TIMEOUT_S
     while (result := pilot.arm()) == TEMPORARILY_REJECTED and pilot.now() < deadline:

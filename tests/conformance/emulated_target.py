@@ -4,7 +4,8 @@
 id 1) starting on the ground (``start="ground"``) with the firmware's measured velocity
 response (``MEASURED_RESPONSE``), served by ``sim_world.fleet.serve_forever`` at 50 Hz on
 the wall clock in a thread of its own; it sends its companion link to a free UDP port on
-127.0.0.1 and yields that port's pymavlink ``udpin`` URL, as ``tests.sitl_tools.running_sitl``
+127.0.0.1 and yields that port's pymavlink ``udpin`` URL, as
+``tests.helpers.sitl_tools.running_sitl``
 does for a real autopilot. The thread and the sockets are stopped and closed on the way out.
 """
 
@@ -19,7 +20,7 @@ import numpy as np
 
 from sim_world.fleet import VehicleFleet, serve_forever
 from sim_world.vehicle import MEASURED_RESPONSE, Flavour
-from swarm.sitl import free_udp_port
+from swarm.mavlink.sitl import free_udp_port
 
 TICK_S = 0.02  # 50 Hz, as sim-world and sim-vehicles run
 ORIGIN_W = np.array([0.0, 0.0, 0.0])

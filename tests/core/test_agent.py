@@ -8,12 +8,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from swarm.config import load_config
 from swarm.core.agent import AgentSetup, AgentStateError, ConsensusMessage, Detection, DroneAgent
 from swarm.core.barrier import collision_row
 from swarm.core.params import ControlParams, EstimationParams, GramianParams, PerceptionParams
 from swarm.core.qp import QpSolver, build_local_qp
-from swarm.reference import build_agent, run_reference
+from swarm.runs.reference import build_agent, run_reference
+from swarm.scenario.config import load_config
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
@@ -222,9 +222,9 @@ def run_case2_with_a_drone_lost(lost: int, lose_at: int, steps: int, *, follow_m
     beacon); the survivors take N = 5 from then on if ``follow_membership``. Returns the
     agents, each survivor's weights w_ir of the last step, (N, M), and its estimate of their
     sum S_w (the step's diagnostics), (N, M) (lost rows: NaN)."""
-    from sim_world.camera import detect
-    from sim_world.kinematics import step_drone
-    from swarm.reference import STREAM_CAMERA, initial_drone_positions, stream
+    from swarm.models.camera import detect
+    from swarm.models.kinematics import step_drone
+    from swarm.runs.reference import STREAM_CAMERA, initial_drone_positions, stream
 
     config = load_config(CONFIGS / "case2.toml")
     n, dt = config.swarm.n_drones, config.scenario.dt_s

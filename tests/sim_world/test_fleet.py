@@ -12,8 +12,8 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from sim_world.fleet import VehicleFleet
-from sim_world.kinematics import VelocityResponse
-from tests.sim_world.test_vehicle import Agent
+from swarm.models.kinematics import VelocityResponse
+from tests.helpers.vehicle_tools import Agent
 
 
 def _one(sock: socket.socket, timeout: float = 2.0) -> bytes | None:

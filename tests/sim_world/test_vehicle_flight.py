@@ -22,10 +22,10 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
-from sim_world.kinematics import VelocityResponse, clamp_velocity, step_vehicle
 from sim_world.vehicle import FLIGHT_MODELS, MEASURED_RESPONSE, EmulatedVehicle
-from swarm import frames
-from tests.sim_world.test_vehicle import (
+from swarm.models import frames
+from swarm.models.kinematics import VelocityResponse, clamp_velocity, step_vehicle
+from tests.helpers.vehicle_tools import (
     DRONE,
     DT,
     FULL_MASK,

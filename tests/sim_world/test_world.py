@@ -13,10 +13,10 @@ import pytest
 
 import sim_world.world as world_module
 from sim_world.world import CLOCK_PERIOD_S, World, WorldOptions
-from swarm.config import load_config
-from swarm.launcher import choose_mavlink_base, free_tcp_port
-from swarm.transport import open_session, zenoh_config
-from swarm.wire import BeaconWire
+from swarm.launch.launcher import choose_mavlink_base, free_tcp_port
+from swarm.messages.wire import BeaconWire
+from swarm.net.transport import open_session, zenoh_config
+from swarm.scenario.config import load_config
 
 CASE1 = Path(__file__).resolve().parents[2] / "configs" / "case1.toml"
 
@@ -135,7 +135,7 @@ def test_a_stalled_realtime_tick_counts_queued_setpoints_before_the_failsafe(
 
     import numpy as np
 
-    from swarm.mavlink_link import AutopilotLink
+    from swarm.mavlink.link import AutopilotLink
 
     assert world.fleet is not None
     vehicle = world.fleet.vehicles[0]

@@ -1,0 +1,107 @@
+"""``swarm-agent``: one drone's process (the core's step between Zenoh and MAVLink)."""
+
+from __future__ import annotations
+
+import os
+import sys
+from collections.abc import Sequence
+
+# pymavlink.mavutil imports its MAVLink 1 "all" dialect (every dialect in one module) at import
+# time only so that PyInstaller bundles it: ~6 MB of RSS and ~0.1 s of CPU per agent, which
+# speaks MAVLink 2 ardupilotmega only. None in sys.modules makes that optional import fail
+# quietly (mavutil allows for its absence), and mavutil's own default dialect becomes ours.
+sys.modules.setdefault("pymavlink.dialects.v10.all", None)  # type: ignore[arg-type]
+os.environ.setdefault("MAVLINK20", "1")
+os.environ.setdefault("MAVLINK_DIALECT", "ardupilotmega")
+
+from swarm.agent.process import AgentOptions, AgentProcess  # noqa: E402
+from swarm.mavlink.link import LinkError  # noqa: E402
+from swarm.net.transport import LinkFaults, check_tls_endpoints, local_endpoint  # noqa: E402
+from swarm.scenario.cli_common import (  # noqa: E402
+    DEFAULT_MAVLINK_BASE,
+    EXIT_INTERRUPTED,
+    ConfigError,
+    OneLineParser,
+    add_run_arguments,
+    fail,
+    fraction,
+    load_scenario,
+    step_count,
+    terminate_on_sigterm,
+)
+
+PROG = "swarm-agent"
+
+
+def build_parser() -> OneLineParser:
+    parser = OneLineParser(prog=PROG, description=(
+        "Run drone I: estimate and keep every target localized, talking to graph neighbours "
+        "over Zenoh and commanding the autopilot over MAVLink."))
+    parser.add_argument("--id", type=int, required=True, metavar="I", help="drone id, 0..N-1")
+    parser.add_argument("--config", required=True, metavar="FILE", help="scenario file")
+    parser.add_argument("--mavlink", default=None, metavar="URL",
+                        help="pymavlink connection string (default "
+                             f"udpin:127.0.0.1:<{DEFAULT_MAVLINK_BASE}+I>)")
+    parser.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
+                        help="Zenoh endpoint of the world's router (default tcp/127.0.0.1:7447; "
+                             "tls/... with [security])")
+    parser.add_argument("--listen", action="append", default=[], metavar="ENDPOINT")
+    add_run_arguments(parser, run_id_help="the world's --run-id (default: vigil)")
+    faults = parser.add_argument_group(
+        "fault injection (tests; realtime only; off by default)")
+    faults.add_argument("--drop-consensus", type=fraction, default=0.0, metavar="P",
+                        help="lose each outgoing consensus message with probability P")
+    faults.add_argument("--delay-consensus", type=step_count, default=0, metavar="K",
+                        help="send each outgoing consensus message K steps late")
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        config = load_scenario(args.config, args.duration)
+    except ConfigError as err:
+        return fail(PROG, f"config error: {err}")
+    if not 0 <= args.id < config.swarm.n_drones:
+        return fail(PROG, f"--id {args.id} is out of range 0..{config.swarm.n_drones - 1} "
+                          f"for {config.source}")
+    if config.security.enabled and args.listen:
+        return fail(PROG, "--listen (peer mode) is not available with [security]: agents join "
+                          "the world's router as clients")
+    try:
+        check_tls_endpoints([*args.listen, *(args.connect or [])], tls=config.security.enabled)
+    except ValueError as err:
+        return fail(PROG, str(err))
+    faults = LinkFaults(drop_rate=args.drop_consensus, delay_steps=args.delay_consensus,
+                        seed=(args.seed or 0) * 1000 + args.id)
+    if faults.active and args.mode != "realtime":
+        return fail(PROG, "--drop-consensus and --delay-consensus need --mode realtime (in "
+                          "lockstep a lost message stalls every neighbour)")
+    terminate_on_sigterm()
+    options = AgentOptions(
+        config=config, drone_id=args.id,
+        seed=config.scenario.seed if args.seed is None else args.seed,
+        run_id=args.run_id,
+        mavlink_url=args.mavlink or f"udpin:127.0.0.1:{DEFAULT_MAVLINK_BASE + args.id}",
+        connect=tuple(args.connect or [local_endpoint(7447, tls=config.security.enabled)]),
+        listen=tuple(args.listen),
+        mode=args.mode, log=lambda line: print(line, flush=True), consensus_faults=faults)
+    process = None
+    try:
+        process = AgentProcess(options)
+        return process.run()
+    except KeyboardInterrupt:
+        return EXIT_INTERRUPTED
+    except LinkError as err:
+        return fail(PROG, str(err), 1)
+    except ConfigError as err:  # the signing key file, read again when the link opens
+        return fail(PROG, f"config error: {err}")
+    except OSError as err:
+        return fail(PROG, f"drone {args.id}: {err}", 1)
+    finally:
+        if process is not None:
+            process.close()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,628 @@
+"""One drone as an OS process: the core's per-drone step between Zenoh and MAVLink (SPEC §12).
+
+Inputs: its own position from the autopilot (LOCAL_POSITION_NED, converted in
+``swarm.models.frames``), its camera frames (``world/camera/<i>``), its graph neighbours' consensus
+messages and every drone's beacon (collision rows). Outputs: velocity setpoints to the
+autopilot, its own consensus messages, beacon and telemetry. It never reads ``world/truth``.
+
+``lockstep``: step k waits for the camera frame of step k, the position sample stamped with
+that frame's ``vehicle_time_ms``, every neighbour's round messages and every beacon of step k
+— deterministic. ``realtime``: a 50 Hz loop with the latest of everything; neighbour data
+older than ``runtime.stale_timeout_s`` is left out of the consensus sums and counted.
+
+Realtime membership: the swarm is the own drone and every drone whose beacon was heard within
+``runtime.member_timeout_s``; its size is the N of the formulas (``DroneAgent.
+set_swarm_size``), so a drone that is lost (its process killed, its link gone) leaves every
+survivor's consensus and a restarted one rejoins. A lost drone's vehicle holds where its last
+beacon put it, so it stays in the collision rows there (moving on with its last velocity for
+at most the vehicle's setpoint-loss failsafe time).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from swarm.core.agent import ConsensusMessage, DroneAgent, StepDiagnostics
+from swarm.errors import VigilError
+from swarm.mavlink.link import AutopilotLink, LinkError
+from swarm.messages.wire import (
+    BeaconWire,
+    CameraFrameWire,
+    ClockWire,
+    WireCodec,
+    WireError,
+)
+from swarm.net.rate import RateLimiter, freeze_heap
+from swarm.net.security import agent_role
+from swarm.net.transport import (
+    FaultyPublisher,
+    Keys,
+    LatestValues,
+    LinkFaults,
+    RejectionCounter,
+    StepMailbox,
+    TransportError,
+    declare_publisher,
+    open_session,
+    put_stamped,
+    subscribe,
+    zenoh_config,
+)
+from swarm.runs.reference import build_agent, initial_drone_positions
+from swarm.scenario.config import ScenarioConfig
+from swarm.watch.command_reference import CommandReference
+from swarm.watch.localization_watch import LocalizationWatch
+from swarm.watch.vehicle_watch import EXIT_END_MISSION, VehicleWatch
+
+Mode = Literal["lockstep", "realtime"]
+WAIT_SLICE_S = 0.25  # lockstep waits wake at least this often to check their deadline
+ROUTER_RETRY_S = 0.05  # the world's router is not up yet: try again this soon
+
+
+class VehicleNotAsAsked(VigilError):
+    """Policy "leave" or "end": the vehicle is not as the agent asked
+    (swarm.watch.vehicle_watch)."""
+
+
+class MissionEnded(Exception):
+    """The world said the mission is done (or aborted); leave the loop."""
+
+    def __init__(self, state: str, detail: str = "") -> None:
+        super().__init__(f"{state}: {detail}" if detail else state)
+        self.state = state
+
+
+@dataclass(frozen=True)
+class AgentOptions:
+    config: ScenarioConfig
+    drone_id: int
+    seed: int
+    run_id: str
+    mavlink_url: str
+    connect: tuple[str, ...]
+    listen: tuple[str, ...] = ()
+    mode: Mode = "lockstep"
+    log: Callable[[str], None] = field(default=print)
+    # Test option (realtime): lose or delay this drone's outgoing consensus messages.
+    consensus_faults: LinkFaults = field(default_factory=LinkFaults)
+
+
+class AgentProcess:
+    """Zenoh subscriptions, the MAVLink link and the loop around one ``DroneAgent``."""
+
+    def __init__(self, options: AgentOptions) -> None:
+        self.options = options
+        cfg = options.config
+        self.id = options.drone_id
+        self.n = cfg.swarm.n_drones
+        self.neighbours = set(cfg.swarm.graph.neighbours[self.id])
+        self.others = set(range(self.n)) - {self.id}
+        self.agent: DroneAgent = build_agent(cfg, options.seed, self.id)
+        n_state = self.agent.target_estimates.shape[1]
+        self.codec = WireCodec(self.n, len(cfg.targets), n_state)
+        self.keys = Keys(options.run_id)
+        self.rejections = RejectionCounter()
+        # Each sender's own keys (the codec bounds ids to 0..N-1): a string compare per
+        # message, not a key parse.
+        self._consensus_keys = [self.keys.consensus(j) for j in range(self.n)]
+        self._beacon_keys = [self.keys.beacon(j) for j in range(self.n)]
+        lockstep = options.mode == "lockstep"
+        # Lockstep keys everything by (step, round); realtime keeps only the latest value.
+        self.camera_steps: StepMailbox[CameraFrameWire] = StepMailbox()
+        self.camera_latest: LatestValues[CameraFrameWire] = LatestValues()
+        self.consensus_steps: StepMailbox[ConsensusMessage] = StepMailbox()
+        self.consensus_latest: LatestValues[ConsensusMessage] = LatestValues()
+        self.beacon_steps: StepMailbox[BeaconWire] = StepMailbox()
+        self.beacon_latest: LatestValues[BeaconWire] = LatestValues()
+        self.clock: LatestValues[ClockWire] = LatestValues()
+        self.late_steps = 0
+        self.steps_run = 0
+        self._flying = np.zeros(3)  # the velocity setpoint last sent (what the vehicle flies)
+        # vehicles.setpoints = "tracked": the reference the setpoints follow, and when the
+        # last one went out (monotonic s; realtime measures Δt_k, lockstep uses ΔT).
+        self.reference = (CommandReference(cfg.vehicles.reference_reset_m)
+                          if cfg.vehicles.setpoints == "tracked" else None)
+        self._last_setpoint_s: float | None = None
+        self.tracking_error_m: float | None = None
+        self.velocity_error_m_s: float | None = None
+        self.stale_messages = 0
+        self.neighbour_age_ms = float("nan")
+        self.members = frozenset(range(self.n))  # realtime: drones heard recently, self included
+        self._first_step_s: float | None = None
+        # Realtime: when each neighbour's newest consensus message of each round left it (its
+        # Zenoh timestamp, Unix s): the reported neighbour age includes the hop, not only the
+        # wait. Lockstep reports no age, so its hot path skips reading the timestamps.
+        self._consensus_sent: dict[tuple[int, int], float] = {}
+
+        self._lockstep = lockstep  # before the subscriptions: their callbacks read it
+        # The link first: it listens for a second autopilot on its port (EXCLUSIVE_LISTEN_S)
+        # while the Zenoh session and subscriptions are set up.
+        self.link = AutopilotLink(options.mavlink_url, self.id, cfg.vehicles.flavour,
+                                  cfg.vehicles.origin_w(self.id), log=options.log,
+                                  signing_key=cfg.vehicles.signing_key())
+        self.watch = VehicleWatch(self.link.setpoint_mode)
+        self.localization = LocalizationWatch(len(cfg.targets), cfg.gramian.epsilon,
+                                              cfg.checks.lambda_tolerance)
+        try:
+            self.session = self._open_session()
+        except BaseException:
+            self.link.close()
+            raise
+        # Lockstep: direct callbacks (on zenoh's receiving thread): every step waits on these,
+        # and each only decodes and stores. Realtime: callbacks on a Python thread of their
+        # own (zenoh queues samples without the GIL), so a receiving thread never stalls on
+        # the GIL while the step computes: Case 2 scaled to N = 12, three interleaved pairs
+        # of 10 s runs, 11-13 % late steps against 21-38 % with direct callbacks (lockstep
+        # throughput the same within the noise). Our own beacon never comes back to us.
+        # Realtime wants the newest data only: bounded rings (a few steps' worth of every
+        # source) instead of zenoh's unbounded queue, which on an overloaded machine grew
+        # by ~300 kB/s per agent (Case 2 at N = 24) while the agents fell ever further behind.
+        direct = lockstep
+        rounds = self.agent.n_rounds
+
+        def ring(per_step: int) -> int | None:
+            return None if lockstep else 4 * per_step
+
+        subs = [
+            subscribe(self.session, self.keys.camera(self.id), self.codec.decode_camera,
+                      self._on_camera, self.rejections, "camera", direct=direct,
+                      keep_latest=ring(1)),
+            subscribe(self.session, self.keys.all_beacons, self.codec.decode_beacon,
+                      self._on_beacon, self.rejections, "beacon", direct=direct,
+                      remote_only=True, keep_latest=ring(self.n)),
+            subscribe(self.session, self.keys.clock, self.codec.decode_clock,
+                      self._on_clock, self.rejections, "clock", direct=direct,
+                      keep_latest=ring(1)),
+        ]
+        subs += [subscribe(self.session, self.keys.consensus(j), self.codec.decode_consensus,
+                           self._on_consensus, self.rejections, "consensus", direct=direct,
+                           on_sent_time=None if lockstep else self._on_consensus_sent,
+                           keep_latest=ring(rounds))
+                 for j in sorted(self.neighbours)]
+        self._subscribers = subs
+        # Consensus: lockstep peers wait for every message, realtime wants the newest (drop).
+        # Beacons and telemetry never drop: the recorder keeps every one (in realtime, ~2-4 %
+        # of the telemetry used to be dropped in zenoh's tx queues on a loaded machine), and
+        # a blocked put waits only while a link's queue is full, i.e. well under a step.
+        self._pub_consensus = declare_publisher(self.session, self.keys.consensus(self.id),
+                                                block=lockstep)
+        faults = options.consensus_faults
+        if faults.active and lockstep:
+            raise LinkError(f"drone {self.id}: consensus fault injection needs realtime mode "
+                            "(in lockstep a lost message stalls every neighbour)")
+        self._faulty = (FaultyPublisher(self.session, self._pub_consensus, faults)
+                        if faults.active else None)
+        self._pub_beacon = declare_publisher(self.session, self.keys.beacon(self.id), block=True)
+        self._pub_telemetry = declare_publisher(self.session, self.keys.telemetry(self.id),
+                                                block=True)
+
+    def _open_session(self):
+        """Join the world's router, waiting for it if the world is not up yet."""
+        opts = self.options
+        mode = "peer" if opts.listen else "client"
+        security = opts.config.security
+        if security.enabled and opts.listen:
+            # Links between peers would bypass the router's access control.
+            raise LinkError(f"drone {self.id}: --listen (peer mode) is not available with "
+                            "[security]: agents join the world's router as clients")
+        tls = security.identity(agent_role(self.id))
+        deadline = time.monotonic() + opts.config.runtime.start_timeout_s
+        announced = False
+        while True:
+            try:
+                return open_session(zenoh_config(mode=mode, listen=opts.listen,
+                                                 connect=opts.connect, tls=tls))
+            except TransportError as err:
+                if time.monotonic() > deadline:
+                    raise LinkError(
+                        f"drone {self.id}: cannot reach the world's Zenoh router at "
+                        f"{', '.join(opts.connect)} within "
+                        f"{opts.config.runtime.start_timeout_s} s: is sim-world running? "
+                        f"({err})") from None
+                if not announced:
+                    announced = True
+                    opts.log(f"drone {self.id}: waiting for the world's Zenoh router at "
+                             f"{', '.join(opts.connect)}")
+                time.sleep(ROUTER_RETRY_S)
+
+    # -- subscriptions (zenoh threads) ------------------------------------------------------
+
+    def _on_clock(self, _key: str, clock: ClockWire) -> None:
+        self.clock.put(0, clock)
+        if clock.state in ("done", "aborted"):  # whatever the loop waits for is not coming
+            for mailbox in (self.camera_steps, self.consensus_steps, self.beacon_steps):
+                mailbox.close()
+
+    def _on_camera(self, _key: str, frame: CameraFrameWire) -> None:
+        if frame.drone != self.id:
+            self.rejections.reject("camera", f"frame for drone {frame.drone} on drone {self.id}")
+            return
+        if self._lockstep:
+            self.camera_steps.put(frame.step, 0, 0, frame)
+        self.camera_latest.put(0, frame)  # both modes: start() waits on it
+
+    def _on_consensus(self, key: str, msg: ConsensusMessage) -> None:
+        if msg.sender not in self.neighbours:
+            self.rejections.reject("consensus", f"message from non-neighbour {msg.sender}")
+            return
+        if key != self._consensus_keys[msg.sender]:  # j's data on another drone's key
+            self.rejections.reject("consensus", f"sender {msg.sender} on {key}")
+            return
+        # One store per mode: a step mailbox nobody waits on is never pruned (realtime agents
+        # piled up to its 65 536 entries, ~100 MB, over a long mission).
+        if self._lockstep:
+            self.consensus_steps.put(msg.step, msg.round, msg.sender, msg)
+        else:
+            self.consensus_latest.put((msg.sender, msg.round), msg)
+
+    def _on_consensus_sent(self, msg: ConsensusMessage, sent_unix_s: float) -> None:
+        if msg.sender in self.neighbours:
+            self._consensus_sent[(msg.sender, msg.round)] = sent_unix_s
+
+    def _on_beacon(self, key: str, beacon: BeaconWire) -> None:
+        # Our own beacons never come back (remote only): one with our id is another process
+        # claiming to be this drone, or a replay.
+        if beacon.sender == self.id or key != self._beacon_keys[beacon.sender]:
+            self.rejections.reject("beacon", f"sender {beacon.sender} on {key} (drone "
+                                             f"{self.id})")
+            return
+        if self._lockstep:
+            self.beacon_steps.put(beacon.step, 0, beacon.sender, beacon)
+        else:
+            self.beacon_latest.put(beacon.sender, beacon)
+
+    # -- helpers ------------------------------------------------------------------------------
+
+    def _check_clock(self) -> None:
+        latest = self.clock.get(0)
+        if latest is not None and latest[0].state in ("done", "aborted"):
+            raise MissionEnded(latest[0].state, latest[0].detail)
+
+    def _wait_steps(self, mailbox: StepMailbox, step: int, rnd: int, senders: set[int],
+                    what: str) -> dict:
+        """Lockstep wait for (step, round) from every sender, watching for the mission end."""
+        deadline = time.monotonic() + self.options.config.runtime.lockstep_timeout_s
+        got: dict = {}
+        while True:
+            got = mailbox.wait_for(step, rnd, senders, WAIT_SLICE_S)
+            if len(got) == len(senders):
+                return got
+            self._check_clock()
+            if time.monotonic() > deadline:
+                missing = sorted(senders - set(got))
+                raise LinkError(f"drone {self.id}: step {step}: no {what} from {missing} within "
+                                f"{self.options.config.runtime.lockstep_timeout_s} s")
+
+    def _publish(self, publisher, message) -> None:
+        """Encode (validated: peers would reject what fails) and send; count failures."""
+        self._send(publisher, self.codec.encode, message)
+
+    def _encode(self, encode: Callable[..., bytes], *args, **kwargs) -> bytes | None:
+        """``encode(*args, **kwargs)`` (one of the codec's checked encoders); None, counted,
+        if it refuses the message."""
+        try:
+            return encode(*args, **kwargs)
+        except WireError as err:
+            self.rejections.reject("outgoing", err.reason)
+            return None
+
+    def _send(self, publisher, encode: Callable[..., bytes], *args, **kwargs) -> None:
+        """Encode with ``encode`` and send; count failures."""
+        payload = self._encode(encode, *args, **kwargs)
+        if payload is not None:
+            publisher.put(payload)
+
+    def _publish_consensus(self, msg: ConsensusMessage | None) -> None:
+        payload = None if msg is None else self._encode(self.codec.encode_consensus, msg)
+        if payload is None:
+            return
+        if self._faulty is not None:
+            self._faulty.put(payload)
+        else:
+            put_stamped(self.session, self._pub_consensus, payload)
+
+    def _fresh_inbox(self, rnd: int) -> dict[int, ConsensusMessage]:
+        """Realtime: each neighbour's newest message of this round, if fresh enough."""
+        stale_after = self.options.config.runtime.stale_timeout_s
+        inbox: dict[int, ConsensusMessage] = {}
+        ages = []
+        now_unix = time.time()
+        for j in self.neighbours:
+            latest = self.consensus_latest.get((j, rnd))
+            if latest is None:
+                continue
+            msg, age = latest
+            if age > stale_after:
+                self.stale_messages += 1
+                continue
+            inbox[j] = msg
+            # From the neighbour's put to now (the hop included); without a timestamp, from
+            # its arrival. A skewed clock never makes an age negative.
+            sent = self._consensus_sent.get((j, rnd))
+            ages.append(max(now_unix - sent, age) if sent is not None else age)
+        self.neighbour_age_ms = 1000.0 * min(ages) if ages else float("nan")
+        return inbox
+
+    def _follow_membership(self, step: int) -> None:
+        """Realtime: N = the own drone and the drones heard within ``member_timeout_s``.
+
+        The mission starts once every vehicle is ready, which most agents learn before their
+        first beacon goes out: a drone not heard at all yet counts as present until
+        ``member_timeout_s`` after our first step."""
+        timeout = self.options.config.runtime.member_timeout_s
+        now = time.monotonic()
+        if self._first_step_s is None:
+            self._first_step_s = now
+        heard = set(self.beacon_latest.fresh(timeout))
+        if now - self._first_step_s <= timeout:
+            heard |= {j for j in self.others if self.beacon_latest.get(j) is None}
+        members = frozenset(heard) | {self.id}
+        if members == self.members:
+            return
+        left, joined = sorted(self.members - members), sorted(members - self.members)
+        self.members = members
+        self.agent.set_swarm_size(len(members))
+        changes = []
+        if left:
+            changes.append(f"drones {left} not heard for "
+                           f"{self.options.config.runtime.member_timeout_s} s left")
+        if joined:
+            changes.append(f"drones {joined} joined")
+        self.options.log(f"drone {self.id}: step {step}: {'; '.join(changes)}: swarm of "
+                         f"{len(members)} now")
+
+    def _realtime_beacons(self, own_sample_age_s: float) -> dict[int, np.ndarray]:
+        """Realtime: the other drones' latest beacons, each position carried forward to the
+        instant of our own position sample (p_j + v_j·a_j − v_i·a_i, a = age of the sample):
+        the collision rows see the relative position as it is, not as it was up to a step
+        ago. Lockstep needs none of it: every position there belongs to the same step.
+
+        A beacon older than the stale timeout belongs to a drone that is late or lost; its
+        vehicle flies the last setpoint until its failsafe holds it, so it is carried forward
+        for at most that long and kept there: nobody flies into a hovering drone."""
+        hold_after = self.options.config.vehicles.failsafe_timeout_s
+        own_shift = own_sample_age_s * self._flying
+        out: dict[int, np.ndarray] = {}
+        for j, (beacon, age) in self.beacon_latest.fresh_with_ages(math.inf).items():
+            lead = min(beacon.sample_age_s + age, hold_after)
+            out[j] = (np.asarray(beacon.position_m, dtype=float)
+                      + lead * np.asarray(beacon.velocity_m_s, dtype=float) - own_shift)
+        return out
+
+    def _step(self, step: int, position: np.ndarray, frame: CameraFrameWire | None,
+              sample_age_s: float = 0.0,
+              vehicle_velocity: np.ndarray | None = None) -> np.ndarray:
+        """One step of the core, with the exchange done the way the mode wants
+        (``sample_age_s``: how old ``position`` is, realtime only; ``vehicle_velocity``: the
+        velocity the autopilot reported with it)."""
+        agent = self.agent
+        if not self._lockstep:
+            self._follow_membership(step)
+        if self._faulty is not None:
+            self._faulty.advance(step)
+        detections = frame.detection_list() if frame is not None else []
+        communicated = frame.target_velocity_array() if frame is not None else None
+        msg = agent.begin_step(step, position, detections, communicated)
+        # Consensus first: the neighbours wait for it before anything else of this step.
+        self._publish_consensus(msg)
+        self._send(self._pub_beacon, self.codec.encode_beacon, self.id, step,
+                   step * self.options.config.scenario.dt_s, position,
+                   velocity_m_s=self._flying, sample_age_s=sample_age_s)
+        for rnd in range(agent.n_rounds):
+            if self._lockstep:
+                inbox = self._wait_steps(self.consensus_steps, step, rnd, self.neighbours,
+                                         f"round-{rnd} consensus")
+            else:
+                inbox = self._fresh_inbox(rnd)
+            msg = agent.consensus_round(inbox)
+            self._publish_consensus(msg)
+        if self._lockstep:
+            beacons = {j: np.asarray(b.position_m, dtype=float) for j, b in
+                       self._wait_steps(self.beacon_steps, step, 0, self.others,
+                                        "beacon").items()}
+        else:
+            beacons = self._realtime_beacons(sample_age_s)
+        result = agent.finish_step(beacons)
+        self.steps_run += 1
+        stamp = frame.vehicle_time_ms if frame is not None else 0
+        self._send_command(result.velocity, position, vehicle_velocity, stamp)
+        self._flying = result.velocity
+        self._watch_localization(result.diagnostics)
+        self._send(
+            self._pub_telemetry, self.codec.encode_telemetry,
+            result.diagnostics, position, qp_fallbacks=agent.qp_fallbacks,
+            rejected_messages=agent.rejected_inputs + self.rejections.total()
+            + self.link.rejected_frames,
+            missing_neighbour_messages=agent.missing_neighbour_messages,
+            stale_neighbour_messages=self.stale_messages, late_steps=self.late_steps,
+            steps=self.steps_run,
+            neighbour_age_ms=self.neighbour_age_ms, swarm_size=agent.swarm_size,
+            mavlink_state=f"{'armed' if self.link.armed else 'disarmed'} {self.link.mode}",
+            rate_limit_releases=agent.rate_limit_releases,
+            reference_resets=self.reference.resets if self.reference is not None else 0,
+            tracking_error_m=self.tracking_error_m,
+            velocity_error_m_s=self.velocity_error_m_s,
+            vehicle_events=self.watch.events, vehicle_status=self._vehicle_status(),
+            lambda_breaches=self.localization.breaches,
+            first_lambda_breach_s=self.localization.first_breach_s,
+            localization_status=self.localization.status())
+        self._watch_vehicle(step, sample_age_s)
+        return result.velocity
+
+    def _vehicle_status(self) -> str:
+        problem = self.watch.problem
+        if not problem:
+            return ""
+        return f"{self.options.config.vehicles.on_vehicle_event}: {problem}"[:64]
+
+    def _watch_localization(self, diag: StepDiagnostics) -> None:
+        """Say at once when an own λ̄ copy goes below ε − tol, or comes back
+        (swarm.watch.localization_watch): a log line now, the counters in this step's telemetry."""
+        for event in self.localization.update(diag.time_s, diag.lambda_bar,
+                                              control_active=diag.control_active,
+                                              swarm_size=self.agent.swarm_size):
+            self.options.log(event.describe(self.id))
+
+    def _watch_vehicle(self, step: int, sample_age_s: float) -> None:
+        """Compare the vehicle with what was asked (swarm.watch.vehicle_watch); log a change with
+        its
+        time and apply ``vehicles.on_vehicle_event``."""
+        link = self.link
+        event = self.watch.update(step * self.options.config.scenario.dt_s, armed=link.armed,
+                                  mode=link.mode, position_age_s=sample_age_s)
+        if event is None:
+            return
+        policy = self.options.config.vehicles.on_vehicle_event
+        self.options.log(event.describe(self.id) + (
+            f"; policy {policy}" if event.problem else ""))
+        if event.problem and policy != "continue":
+            raise VehicleNotAsAsked(policy)
+
+    def _send_command(self, velocity: np.ndarray, position: np.ndarray,
+                      vehicle_velocity: np.ndarray | None, stamp: int) -> None:
+        """The step's command to the autopilot: velocity only, or the setpoint along the
+        command reference (``vehicles.setpoints``); the tracking errors measured on the way."""
+        if vehicle_velocity is not None:
+            self.velocity_error_m_s = float(np.linalg.norm(vehicle_velocity - self._flying))
+        if self.reference is None:
+            self.link.send_velocity(velocity, stamp)
+            return
+        if self.watch.problem:  # the vehicle flies a mode of its own: start again from it
+            self.reference.restart()
+        now = time.monotonic()
+        dt = self.options.config.scenario.dt_s
+        elapsed = dt if self._lockstep or self._last_setpoint_s is None \
+            else max(now - self._last_setpoint_s, 1e-3)
+        self._last_setpoint_s = now
+        p = position.tolist()
+        v = None if vehicle_velocity is None else vehicle_velocity.tolist()
+        sp = self.reference.setpoint((p[0], p[1], p[2]), v, tuple(velocity.tolist()), elapsed)
+        self.tracking_error_m = sp.position_error_m
+        if sp.reset:
+            self.options.log(f"drone {self.id}: vehicle {sp.position_error_m:.2f} m from the "
+                             f"command reference: reference put back on it "
+                             f"({self.reference.resets} resets)")
+        self.link.send_tracked(sp.position_w, sp.velocity_w, sp.acceleration_w, stamp)
+
+    # -- phases ------------------------------------------------------------------------------
+
+    def start(self) -> None:
+        """MAVLink handshake, then keep the setpoint stream alive until the mission starts."""
+        cfg = self.options.config
+        freeze_heap()  # set up: collect now, not between the handshake and the first step
+        # On the ground, the vehicle climbs to the drone's start position (the world's emulated
+        # vehicles start there in the air, as the thesis does; real ones may start anywhere).
+        start_position = initial_drone_positions(cfg, self.options.seed)[self.id]
+        self.link.handshake(timeout_s=cfg.runtime.start_timeout_s,
+                            start_position_w=start_position)
+        self.options.log(f"drone {self.id}: armed and streaming; waiting for the mission")
+        deadline = time.monotonic() + cfg.runtime.start_timeout_s
+        while self.camera_latest.get(0) is None:
+            self._check_clock()
+            if time.monotonic() > deadline:
+                raise LinkError(f"drone {self.id}: the mission did not start within "
+                                f"{cfg.runtime.start_timeout_s} s")
+            self.link.keepalive(time.monotonic())
+            if not self._lockstep:
+                # A world without simulated vehicles starts when it has heard every drone.
+                sample = self.link.latest_position()
+                if sample is not None:
+                    self._publish(self._pub_beacon, BeaconWire.build(
+                        sender=self.id, step=0, time_s=0.0, position_m=sample.position_w))
+            if self._lockstep:
+                self.camera_steps.wait_for(0, 0, {0}, 0.05)
+            else:
+                self.camera_latest.wait_for([0], 0.05)
+
+    def run_lockstep(self) -> None:
+        step = 0
+        while True:
+            frame = self._wait_steps(self.camera_steps, step, 0, {0}, "camera frame")[0]
+            sample = self.link.wait_position(frame.vehicle_time_ms,
+                                             self.options.config.runtime.lockstep_timeout_s)
+            self._step(step, sample.position_w, frame, vehicle_velocity=sample.velocity_w)
+            step += 1
+
+    def run_realtime(self) -> None:
+        limiter = RateLimiter(self.options.config.scenario.dt_s)
+        n_steps = self.options.config.n_steps
+        last_frame_step = -1
+        position = received_s = vehicle_velocity = None
+        # Count steps from the world's step of the first frame: with both loops on the wall
+        # clock (RateLimiter keeps phase), step k here is sim time k·ΔT there, so telemetry
+        # lines up with truth and the filter predicts exactly as far as the targets moved.
+        first = self.camera_latest.get(0)
+        step = first[0].step if first is not None else 0
+        while True:
+            self._check_clock()
+            sample = self.link.latest_position()
+            if sample is not None:
+                position, received_s = sample.position_w, sample.received_s
+                vehicle_velocity = sample.velocity_w
+            latest = self.camera_latest.get(0)
+            frame = None
+            if latest is not None and latest[0].step != last_frame_step:
+                frame = latest[0]
+                last_frame_step = frame.step
+            # The mission has n_steps: past its last step (the world's "done" not yet here)
+            # the agent only holds its vehicle (keepalive) and waits for the end.
+            if step >= n_steps:
+                self.link.keepalive()
+            elif position is not None:
+                self._step(step, position, frame, max(time.monotonic() - received_s, 0.0),
+                           vehicle_velocity)
+                step += 1
+            if limiter.sleep():
+                self.late_steps += 1
+
+    def run(self) -> int:
+        """The mission; whatever ends it (done, an error, Ctrl-C/SIGTERM), the vehicle gets a
+        zero-velocity setpoint and then the configured end action (``vehicles.end_action``)."""
+        try:
+            return self._run()
+        finally:
+            self.link.end_mission(self.options.config.vehicles.end_action)
+            if self._faulty is not None:
+                f = self._faulty
+                self.options.log(
+                    f"drone {self.id}: injected consensus faults: {f.dropped} messages lost, "
+                    f"{f.delayed} delayed {f.faults.delay_steps} steps, of {f.offered}")
+
+    def _run(self) -> int:
+        log = self.options.log
+        try:
+            self.start()
+            if self._lockstep:
+                self.run_lockstep()
+            else:
+                self.run_realtime()
+        except MissionEnded as over:
+            if over.state == "done":
+                log(f"drone {self.id}: mission complete; {self.agent.qp_fallbacks} QP "
+                    f"fallbacks, {self.late_steps} late steps, "
+                    f"{self.rejections.total() + self.link.rejected_frames} rejected inputs")
+                return 0
+            log(f"drone {self.id}: mission aborted by the world: {over}")
+            return 1
+        except LinkError as err:
+            log(str(err) if str(err).startswith("drone ") else f"drone {self.id}: {err}")
+            return 1
+        except VehicleNotAsAsked as policy:
+            if str(policy) == "end":
+                log(f"drone {self.id}: ending the mission (vehicles.on_vehicle_event = end)")
+                return EXIT_END_MISSION
+            log(f"drone {self.id}: leaving the swarm (vehicles.on_vehicle_event = leave)")
+            return 1
+        return 0
+
+    def close(self) -> None:
+        for sub in self._subscribers:
+            sub.undeclare()
+        self.link.close()
+        self.session.close()

@@ -1,0 +1,302 @@
+"""``launch-swarm``: run a scenario — as a process swarm, or in-process — and summarize it.
+
+Exit codes: 0 mission completed with every SPEC invariant within tolerance, 1 an invariant
+was violated or the mission failed (a process died, the world aborted) or, in realtime, went
+on after losing an agent, 2 bad command line or config (one line on stderr, no traceback),
+130 interrupted (Ctrl-C or SIGTERM).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import sys
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+from rich.console import Console
+
+from swarm.launch.launcher import LaunchOptions, MissionError, SwarmLauncher, TelemetryCollector
+from swarm.mavlink.sitl import (
+    ENV_ARDUCOPTER,
+    ENV_PX4,
+    ENV_VARIABLE,
+    KINDS,
+    Firmware,
+    SitlError,
+    firmware_from_env,
+)
+from swarm.messages.wire import TelemetryCounters
+from swarm.models.kinematics import InitialPlacementError
+from swarm.observe.dashboard import Dashboard, DashboardSettings, InProcessFeed
+from swarm.observe.recording import RecordingError, record_directory, record_reference
+from swarm.observe.report import build_report, render_report
+from swarm.runs.reference import RunRecord, run_reference
+from swarm.scenario.cli_common import (
+    DEFAULT_MAVLINK_BASE,
+    EXIT_FAILED,
+    EXIT_INTERRUPTED,
+    ConfigError,
+    OneLineParser,
+    fail,
+    load_scenario,
+    port,
+    positive_float,
+    restart_count,
+    run_id,
+    seed,
+    terminate_on_sigterm,
+)
+from swarm.scenario.config import ScenarioConfig, realtime_only_reason
+
+PROG = "launch-swarm"
+# Live tables at 4 Hz at most on a terminal; a line every 5 simulated seconds otherwise.
+DASHBOARD = DashboardSettings(refresh_hz=4.0, log_period_s=5.0)
+
+
+def build_parser() -> OneLineParser:
+    parser = OneLineParser(
+        prog=PROG,
+        description="Run a Vigil scenario: N camera drones keeping M targets localized.")
+    parser.add_argument("config", help="scenario file, e.g. configs/case1.toml")
+    parser.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep",
+                        help="process swarm timing: deterministic lockstep (default) or 50 Hz "
+                             "wall clock")
+    parser.add_argument("--inprocess", action="store_true",
+                        help="run every drone in this process (the reference simulator)")
+    parser.add_argument("--seed", type=seed, default=None,
+                        help="random seed (default: scenario.seed of the config)")
+    parser.add_argument("--duration", type=positive_float, default=None, metavar="S",
+                        help="simulated seconds (default: scenario.duration_s)")
+    parser.add_argument("--headless", action="store_true",
+                        help="no live display: a one-line log every few simulated seconds")
+    parser.add_argument("--mavlink-base", type=port, default=0, metavar="PORT",
+                        help=f"vehicle i talks to agent i on UDP PORT+i (default: "
+                             f"{DEFAULT_MAVLINK_BASE}, or the next free, quiet block)")
+    parser.add_argument("--run-id", type=run_id, default=None,
+                        help="Zenoh key prefix vigil/<run-id>/ (default: random)")
+    parser.add_argument("--log-dir", default=None, metavar="DIR",
+                        help="where each process writes its log (default: a temp dir)")
+    parser.add_argument("--agent-restarts", type=restart_count, default=0, metavar="N",
+                        help="realtime: restart an agent that dies during the mission (same "
+                             "id; it rejoins the swarm) up to N times (default 0: the mission "
+                             "goes on without it)")
+    parser.add_argument("--agent-restart-delay", type=positive_float, default=2.0, metavar="S",
+                        help="seconds between an agent's loss and its restart (default 2)")
+    parser.add_argument("--kill-agent", action="append", default=[], metavar="I@S",
+                        type=agent_kill, dest="kill_agents",
+                        help="realtime fault injection: SIGKILL drone I's agent at mission time "
+                             "S seconds, as if its companion computer died (repeatable; with "
+                             "--agent-restarts it comes back)")
+    parser.add_argument("--sitl", default=None, metavar="PATH",
+                        help="fly real autopilot firmware: one SITL instance per drone, started "
+                             "and stopped here: PATH is the arducopter SITL binary or a PX4 "
+                             "SITL build directory (bin/px4, etc/); 'ardupilot' or 'px4' take "
+                             f"it from ${ENV_ARDUCOPTER} or ${ENV_PX4} (realtime)")
+    parser.add_argument("--sitl-param", action="append", default=[], metavar="NAME=VALUE",
+                        type=sitl_parameter, dest="sitl_params",
+                        help="--sitl: set this autopilot parameter at boot on every instance, "
+                             "after the swarm's own (repeatable; e.g. a failsafe to try)")
+    parser.add_argument("--mavlink", action="append", default=[], metavar="I=URL",
+                        type=mavlink_assignment,
+                        help="drone I flies the autopilot at this pymavlink URL, started "
+                             "elsewhere (repeat for every drone; or vehicles.mavlink_urls in "
+                             "the config); the world then serves no vehicles (realtime)")
+    parser.add_argument("--record", type=record_directory, default=None, metavar="DIR",
+                        help="write DIR/run.mcap as the run goes: telemetry, beacons, "
+                             "detections and truth with their sim time, and the resolved "
+                             "config (MCAP, JSON; Foxglove reads it)")
+    return parser
+
+
+def sitl_parameter(text: str) -> tuple[str, float]:
+    """argparse type of ``--sitl-param NAME=VALUE``."""
+    name, sep, value = text.partition("=")
+    name = name.strip()
+    try:
+        number = float(value)
+    except ValueError:
+        number = math.nan
+    if not sep or not name or not name.replace("_", "").isalnum() or len(name) > 16 \
+            or not math.isfinite(number):
+        raise argparse.ArgumentTypeError(f"expected NAME=VALUE with a parameter name of at "
+                                         f"most 16 letters, digits or _ and a finite number "
+                                         f"(e.g. BATT_LOW_VOLT=11.5), got {text!r}")
+    return name.upper(), number
+
+
+def agent_kill(text: str) -> tuple[int, float]:
+    """argparse type of ``--kill-agent I@S``."""
+    drone, sep, when = text.partition("@")
+    try:
+        time_s = float(when)
+    except ValueError:
+        time_s = math.nan
+    if not sep or not drone.strip().isdigit() or not (math.isfinite(time_s) and time_s > 0):
+        raise argparse.ArgumentTypeError(f"expected I@S, a drone id and a mission time in "
+                                         f"seconds > 0 (e.g. 1@12.5), got {text!r}")
+    return int(drone), time_s
+
+
+def mavlink_assignment(text: str) -> tuple[int, str]:
+    """argparse type of ``--mavlink I=URL``."""
+    drone, sep, url = text.partition("=")
+    if not sep or not drone.strip().isdigit() or not url.strip() or " " in url.strip():
+        raise argparse.ArgumentTypeError(f"expected I=URL (e.g. 0=udpin:127.0.0.1:14540), "
+                                         f"got {text!r}")
+    return int(drone), url.strip()
+
+
+def sitl_firmware(value: str | None) -> Firmware | None:
+    """``--sitl``: a path, or 'ardupilot'/'px4' for the build named by its environment
+    variable; SitlError (one line) when unusable."""
+    if value is None:
+        return None
+    if value in KINDS:
+        firmware = firmware_from_env(value)  # type: ignore[arg-type]
+        if firmware is None:
+            variable = ENV_VARIABLE[value]  # type: ignore[index]
+            raise SitlError(f"--sitl {value}: ${variable} is not set (give the path of the "
+                            f"build instead)")
+        return firmware
+    return Firmware.at(value)
+
+
+def with_mavlink_urls(config: ScenarioConfig, urls: dict[int, str]) -> ScenarioConfig:
+    """The config with ``--mavlink I=URL`` for every drone in ``vehicles.mavlink_urls``."""
+    if not urls:
+        return config
+    n = config.swarm.n_drones
+    missing = sorted(set(range(n)) - set(urls))
+    extra = sorted(set(urls) - set(range(n)))
+    if extra:
+        raise ConfigError(f"--mavlink: drone ids {extra} out of range 0..{n - 1}")
+    if missing:
+        raise ConfigError(f"--mavlink: give a connection string for every drone (missing "
+                          f"{missing})")
+    vehicles = dataclasses.replace(config.vehicles,
+                                   mavlink_urls=tuple(urls[i] for i in range(n)))
+    return dataclasses.replace(config, vehicles=vehicles)
+
+
+def print_summary(record: RunRecord, console: Console, mode: str = "inprocess",
+                  counters: Mapping[int, TelemetryCounters] | None = None) -> int:
+    """The run's report (the same tables and verdict as ``swarm-report``); its exit code."""
+    report = build_report(record, mode, counters)
+    render_report(report, console)
+    return report.exit_code
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    console = Console()
+    if not console.is_terminal:
+        console = Console(width=140)  # logs and CI: keep table columns unwrapped
+    try:
+        config = load_scenario(args.config, args.duration)
+    except ConfigError as err:
+        return fail(PROG, f"config error: {err}")
+    seed_value = config.scenario.seed if args.seed is None else args.seed
+    for flag, given in (("--agent-restarts", args.agent_restarts),
+                        ("--kill-agent", args.kill_agents)):
+        if given and (args.inprocess or args.mode != "realtime"):
+            return fail(PROG, f"{flag} needs --mode realtime (in lockstep every drone waits "
+                              f"for every other one)")
+    try:
+        sitl = sitl_firmware(args.sitl)
+        config = with_mavlink_urls(config, dict(args.mavlink))
+    except (SitlError, ConfigError) as err:
+        return fail(PROG, str(err))
+    real = sitl is not None or bool(config.vehicles.mavlink_urls)
+    if real:  # the tracking margins the config leaves out: the firmware's fitted ones
+        autopilot = sitl.kind if sitl is not None else config.vehicles.flavour
+        try:
+            config = with_mavlink_urls(load_scenario(args.config, args.duration,
+                                                     autopilot=autopilot), dict(args.mavlink))
+        except ConfigError as err:
+            return fail(PROG, f"config error: {err}")
+    reason = realtime_only_reason(config.vehicles, mode=args.mode, inprocess=args.inprocess,
+                                  external=real)
+    if reason is not None:
+        return fail(PROG, reason)
+    if args.sitl_params and sitl is None:
+        return fail(PROG, "--sitl-param needs --sitl (it sets parameters on the SITL "
+                          "autopilots launch-swarm starts)")
+    if sitl is not None and config.vehicles.mavlink_urls:
+        return fail(PROG, "--sitl starts its own autopilots: leave out --mavlink and "
+                          "vehicles.mavlink_urls")
+    options = None
+    if not args.inprocess:
+        try:
+            options = LaunchOptions(
+                config=config, config_path=str(Path(args.config).resolve()), seed=seed_value,
+                mode=args.mode, run_id=args.run_id or "", mavlink_base=args.mavlink_base,
+                log_dir=Path(args.log_dir) if args.log_dir else None, record_dir=args.record,
+                agent_restarts=args.agent_restarts,
+                agent_restart_delay_s=args.agent_restart_delay, sitl=sitl,
+                sitl_params=tuple(args.sitl_params), kill_agents=tuple(args.kill_agents))
+        except ValueError as err:
+            return fail(PROG, str(err))
+    terminate_on_sigterm()
+    try:
+        if args.inprocess:
+            with Dashboard(config, console, headless=args.headless,
+                           settings=DASHBOARD) as dashboard:
+                feed = InProcessFeed(dashboard)
+                record = run_reference(config, seed_value, on_step=feed) \
+                    if args.record is None else \
+                    record_reference(config, seed_value, args.record, on_step=feed)
+        else:
+            assert options is not None
+            launcher = SwarmLauncher(options, log=lambda line: console.print(
+                line, highlight=False, markup=False))
+            with Dashboard(config, console, headless=args.headless,
+                           settings=DASHBOARD) as dashboard:
+                # The dashboard is one more telemetry consumer; the truth step is its clock.
+                record = launcher.run(on_progress=lambda step, _c: dashboard.advance(step),
+                                      telemetry_listeners=[dashboard.on_telemetry])
+            print_process_counters(launcher.collector, console)
+            counters = launcher.collector.drone_counters()
+    except InitialPlacementError as err:
+        return fail(PROG, f"config error: {config.source}: swarm.initial_box_size_m: {err}")
+    except MissionError as err:
+        print(f"{PROG}: mission failed: {err}", file=sys.stderr)
+        return EXIT_FAILED
+    except RecordingError as err:
+        return fail(PROG, f"recording failed: {err}", EXIT_FAILED)
+    except KeyboardInterrupt:
+        print(f"{PROG}: interrupted; every process stopped", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    if args.inprocess:
+        return print_summary(record, console)
+    code = print_summary(record, console, args.mode, counters)
+    if launcher.recording_problem is not None:  # the run is fine, its record is not whole
+        print(f"{PROG}: recording incomplete: {launcher.recording_problem}", file=sys.stderr)
+        return EXIT_FAILED
+    if launcher.agent_losses:  # the mission went on, degraded: not a clean run
+        lost = ", ".join(f"drone {loss.drone} at {loss.time_s:.1f} s ({loss.how}"
+                         f"{', restarted' if loss.restarted else ''})"
+                         for loss in launcher.agent_losses)
+        print(f"{PROG}: the mission went on after losing agents: {lost}", file=sys.stderr)
+        return EXIT_FAILED
+    return code
+
+
+def print_process_counters(collector: TelemetryCollector, console: Console) -> None:
+    counts = collector.counters()
+    steps = max(counts["agent_steps"], 1)
+    console.print(
+        f"agent steps {counts['agent_steps']} (telemetry received "
+        f"{counts['telemetry_received']}), late {counts['late_steps']} "
+        f"({100.0 * counts['late_steps'] / steps:.2f} %), stale neighbour messages "
+        f"{counts['stale_neighbour_messages']}, rejected messages "
+        f"{counts['rejected_messages']}, QP fallbacks {counts['qp_fallbacks']}, vehicle "
+        f"events {counts['vehicle_events']}, rate-box releases "
+        f"{counts['rate_limit_releases']}, reference resets {counts['reference_resets']}, "
+        f"λ̄ breaches said by the agents {counts['lambda_breaches']}",
+        highlight=False)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,730 @@
+"""A thin Zenoh layer (SPEC §12): loopback-only session configs, key names, and thread-safe
+stores that turn callback deliveries into what an agent step needs.
+
+- ``zenoh_config`` builds a session config with explicit endpoints only: no multicast scouting
+  and no default listener (zenoh's own default listens on ``tcp/[::]:<port>`` on every
+  interface and scouts on UDP multicast 224.0.0.224:7446). A swarm started with loopback
+  endpoints therefore creates no traffic outside 127.0.0.0/8. With a ``TlsIdentity``
+  (``swarm.net.security``, the config's ``[security]``) every link is mutual TLS (``tls/...``
+  endpoints only), and a router can be given an ``access_control`` block to enforce.
+- ``Keys`` names every key expression under ``vigil/<run_id>/``; different run ids never match.
+- ``subscribe`` declares a callback subscriber that decodes each payload with a ``WireCodec``
+  decoder; a ``WireError`` (or anything unexpected) is counted in a ``RejectionCounter`` and the
+  payload dropped — no exception ever reaches zenoh's thread.
+- ``LatestValues`` (realtime mode): the newest value per source with its age; never a queue.
+- ``StepMailbox`` (lockstep mode): values keyed (step, round, sender) and a blocking
+  ``wait_for`` on a condition variable, pruned so memory stays bounded.
+- ``LinkFaults`` / ``FaultyPublisher`` (a test option, off by default): drop a fraction of
+  one key's outgoing messages at random, or send each a number of steps late, as a lossy or
+  slow radio link would.
+
+zenoh-python 1.x runs Python callbacks on a dedicated Python thread per subscriber by default
+(``handlers.Callback(indirect=True)``), in arrival order per subscriber; ``subscribe(...,
+direct=True)`` runs them on zenoh's receiving thread instead (one thread hop and one
+wake-up fewer per message: what a lockstep step waits on). The queue in front of that
+Python thread has no bound: a consumer that falls behind (an overloaded machine) grows it
+without end and works through ever older data. ``subscribe(..., keep_latest=K)`` is for
+consumers that only want the newest data (realtime agents): a ring of K samples in front of
+a thread of our own, the oldest dropped when it is full. The stores here are what make
+those deliveries safe to read from the agent's own thread.
+"""
+
+from __future__ import annotations
+
+import atexit
+import contextlib
+import ipaddress
+import json
+import math
+import random
+import re
+import threading
+import time
+import weakref
+from collections import deque
+from collections.abc import Callable, Hashable, Iterable, Sequence
+from dataclasses import dataclass
+from typing import Any, Final, Generic, Literal, TypeVar
+
+import zenoh
+
+from swarm.errors import VigilError
+from swarm.messages.wire import WireError
+from swarm.net.security import TlsIdentity
+
+T = TypeVar("T")
+
+Mode = Literal["peer", "client", "router"]
+MODES: Final = ("peer", "client", "router")
+PROTOCOLS: Final = ("tcp", "udp", "tls")
+KEY_ROOT: Final = "vigil"
+
+_RUN_ID = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+_HOSTNAME = re.compile(r"^(?=.{1,253}$)[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?"
+                       r"(?:\.[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?)*$")
+_MAX_REASON_CHARS: Final = 300
+TX_DATA_QUEUE_BATCHES: Final = 16  # per link and priority; zenoh allocates batches lazily
+
+
+class TransportError(VigilError, RuntimeError):
+    """A Zenoh session could not be opened (one line: what and why)."""
+
+
+# -- configuration -------------------------------------------------------------------------------
+
+
+def parse_endpoint(endpoint: str, *, role: Literal["listen", "connect"] = "connect"
+                   ) -> tuple[str, str, int]:
+    """Split ``"<tcp|udp|tls>/<host>:<port>"`` into (protocol, host, port), or raise
+    ``ValueError``.
+
+    Hosts are IPv4 addresses, bracketed IPv6 addresses (``tcp/[::1]:7447``) or host names. Port
+    0 (any free port) is allowed for ``listen`` only. Zenoh itself accepts malformed strings at
+    configuration time and fails later, so every endpoint goes through here first.
+    """
+    if not isinstance(endpoint, str):
+        raise ValueError(f"zenoh {role} endpoint must be a string like 'tcp/127.0.0.1:7447', "
+                         f"got {type(endpoint).__name__}")
+    shown = endpoint if len(endpoint) <= 80 else endpoint[:77] + "..."
+    expected = "expected '<tcp|udp|tls>/<host>:<port>', e.g. 'tcp/127.0.0.1:7447'"
+    proto, slash, rest = endpoint.partition("/")
+    if not slash or proto not in PROTOCOLS:
+        raise ValueError(f"zenoh {role} endpoint {shown!r}: {expected}")
+    host, colon, port_text = rest.rpartition(":")
+    if not colon or not host or not port_text.isdigit() or len(port_text) > 5:
+        raise ValueError(f"zenoh {role} endpoint {shown!r}: {expected}")
+    port = int(port_text)
+    if not (0 if role == "listen" else 1) <= port <= 65535:
+        raise ValueError(f"zenoh {role} endpoint {shown!r}: port {port} out of range "
+                         f"({'0' if role == 'listen' else '1'}-65535)")
+    if host.startswith("[") and host.endswith("]"):
+        try:
+            ipaddress.IPv6Address(host[1:-1])
+        except ValueError:
+            raise ValueError(f"zenoh {role} endpoint {shown!r}: {host} is not an IPv6 "
+                             "address") from None
+    elif re.fullmatch(r"[0-9.]+", host):
+        try:
+            ipaddress.IPv4Address(host)
+        except ValueError:
+            raise ValueError(f"zenoh {role} endpoint {shown!r}: {host} is not an IPv4 "
+                             "address") from None
+    elif not _HOSTNAME.match(host):
+        raise ValueError(f"zenoh {role} endpoint {shown!r}: {host!r} is not a host name; "
+                         f"{expected}")
+    return proto, host, port
+
+
+def is_loopback_endpoint(endpoint: str) -> bool:
+    """True for endpoints on 127.0.0.0/8, ``[::1]`` or ``localhost``."""
+    _, host, _ = parse_endpoint(endpoint, role="listen")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+def local_endpoint(port: int, *, tls: bool = False) -> str:
+    """``tcp/127.0.0.1:<port>``, or ``tls/...`` when the swarm runs with ``[security]``."""
+    return f"{'tls' if tls else 'tcp'}/127.0.0.1:{port}"
+
+
+def check_tls_endpoints(endpoints: Iterable[str], *, tls: bool) -> None:
+    """``ValueError`` unless every endpoint is ``tls/...`` with TLS on, and none is without."""
+    for endpoint in endpoints:
+        if endpoint.startswith("tls/") != tls:
+            raise ValueError(f"zenoh endpoint {endpoint[:80]!r}: " + (
+                "plain, but [security] is on: use tls/<host>:<port>" if tls
+                else "tls needs certificates: set [security] tls_dir in the config"))
+
+
+def zenoh_config(
+    *,
+    mode: Mode = "peer",
+    listen: Sequence[str] = (),
+    connect: Sequence[str] = (),
+    connect_timeout_s: float | None = None,
+    shared_memory: bool = False,
+    tls: TlsIdentity | None = None,
+    access_control: dict[str, Any] | None = None,
+) -> zenoh.Config:
+    """A Zenoh session config with explicit endpoints only.
+
+    - ``mode``: "router" (routes between everything connected to it), "peer" or "client".
+    - ``listen`` / ``connect``: exact endpoints such as ``"tcp/127.0.0.1:7447"``; empty ``listen``
+      means the session accepts no connections at all (zenoh's default would listen on every
+      interface).
+    - Multicast scouting is off. Gossip scouting stays on for peers and routers: it only tells
+      sessions already connected about each other's *listen* endpoints (so peers behind one
+      hub can link up directly), and those are exactly the explicit ones given here.
+    - ``connect_timeout_s``: keep retrying the connect endpoints this long at open, then fail
+      (default: zenoh's per-mode behaviour — a client fails at once if nothing answers, a peer
+      opens anyway and keeps retrying in the background).
+    - ``shared_memory`` is off by default: payloads here are small, and a SIGKILLed process
+      must not leave segments behind in /dev/shm.
+    - ``tls``: mutual TLS with this identity (``swarm.net.security``); every endpoint must then be
+      ``tls/...``, and without it none may be.
+    - ``access_control``: a zenoh ``access_control`` block (``security.router_access_control``)
+      that this session enforces on the messages it exchanges with the others.
+    """
+    if mode not in MODES:
+        raise ValueError(f"zenoh mode must be one of {MODES}, got {mode!r}")
+    if isinstance(listen, str) or isinstance(connect, str):
+        raise ValueError("zenoh listen/connect must be sequences of endpoint strings, "
+                         "not one string")
+    listen, connect = list(listen), list(connect)
+    for endpoint in listen:
+        parse_endpoint(endpoint, role="listen")
+    for endpoint in connect:
+        parse_endpoint(endpoint, role="connect")
+    check_tls_endpoints([*listen, *connect], tls=tls is not None)
+    if connect_timeout_s is not None and not (isinstance(connect_timeout_s, int | float)
+                                              and 0 < connect_timeout_s <= 3600):
+        raise ValueError(f"connect_timeout_s must be in (0, 3600] s, got {connect_timeout_s!r}")
+    config = zenoh.Config()
+    settings: dict[str, Any] = {
+        "mode": mode,
+        "listen/endpoints": listen,
+        "listen/exit_on_failure": True,  # a busy port is an error at open, not a silent gap
+        "connect/endpoints": connect,
+        # Reconnect quickly after a hub restarts. ``connect/retry`` is null by default, so its
+        # fields cannot be inserted one by one ("unknown key"): the object goes in whole.
+        "connect/retry": {"period_init_ms": 100, "period_max_ms": 1000,
+                          "period_increase_factor": 2},
+        "scouting/multicast/enabled": False,
+        "scouting/gossip/enabled": mode != "client",
+        "scouting/gossip/multihop": False,
+        "transport/shared_memory/enabled": bool(shared_memory),
+        # Room for a whole step's burst per link. An express message is a batch of its own
+        # and zenoh's default data queue holds 2 batches, so a world step (N camera frames,
+        # truth, clock) toward one subscriber overflowed whenever the link's tx task was not
+        # scheduled within wait_before_drop (1 ms) on a loaded machine: droppable (realtime)
+        # messages were lost, ~10 % of the truth toward a recording launcher.
+        "transport/link/tx/queue/size/data": TX_DATA_QUEUE_BATCHES,
+    }
+    if tls is not None:
+        settings.update(tls.zenoh_settings())
+    if access_control is not None:
+        settings["access_control"] = access_control
+    if connect_timeout_s is not None:
+        settings["connect/timeout_ms"] = max(1, round(connect_timeout_s * 1000))
+        settings["connect/exit_on_failure"] = True
+    for key, value in settings.items():
+        config.insert_json5(key, json.dumps(value))
+    return config
+
+
+def open_session(config: zenoh.Config) -> zenoh.Session:
+    """``zenoh.open`` with a one-line ``TransportError`` (busy port, nothing to connect to)."""
+    try:
+        return zenoh.open(config)
+    except Exception as exc:  # zenoh.ZError carries a multi-line Rust trace
+        message = " ".join(str(exc).split())
+        message = re.sub(r" at /\S+\.rs:\d+\.?", "", message)
+        raise TransportError(f"cannot open zenoh session: {message[:_MAX_REASON_CHARS]}"
+                             ) from None
+
+
+def put_stamped(session: zenoh.Session, publisher: zenoh.Publisher, payload: bytes) -> None:
+    """``publisher.put(payload)`` with a Zenoh timestamp of now (the session's hybrid logical
+    clock, which follows the wall clock): receivers learn when the data left
+    (``subscribe(..., on_sent_time=...)``)."""
+    publisher.put(payload, timestamp=session.new_timestamp())
+
+
+def declare_publisher(session: zenoh.Session, key: str, *, block: bool = True,
+                      express: bool = False) -> zenoh.Publisher:
+    """A publisher for one key.
+
+    ``block=True`` (lockstep): a full transmission queue waits instead of dropping — a lost
+    consensus message would stall the neighbours until their timeout. ``block=False``
+    (realtime): drop rather than delay; only the newest value matters. ``express`` puts each
+    message in a batch (a write, a wake-up at the receiver) of its own. Off by default: zenoh
+    batches only what queues up while a link is busy, so an idle link still sends at once,
+    and a burst (the world's camera frames, a beacon and a consensus message to the same
+    agent) goes out in fewer writes. Measured on a synthetic lockstep (the swarm's messages
+    without its compute, 6 agents, 2 cores, medians of 3): 4.5 instead of 5.3 ms per step,
+    ~20 % less router CPU.
+    """
+    return session.declare_publisher(
+        key,
+        congestion_control=zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP,
+        express=express,
+    )
+
+
+@dataclass(frozen=True)
+class LinkFaults:
+    """What a ``FaultyPublisher`` does to the messages put through it (a test option)."""
+
+    drop_rate: float = 0.0  # each message is lost with this probability
+    delay_steps: int = 0  # each message that is not lost goes out this many steps late
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.drop_rate) and 0.0 <= self.drop_rate < 1.0):
+            raise ValueError(f"drop rate must be in [0, 1), got {self.drop_rate!r}")
+        if self.delay_steps < 0:
+            raise ValueError(f"delay must be >= 0 steps, got {self.delay_steps!r}")
+
+    @property
+    def active(self) -> bool:
+        return self.drop_rate > 0.0 or self.delay_steps > 0
+
+
+class FaultyPublisher:
+    """Puts messages with a Zenoh timestamp of when they were *sent* (``put_stamped``), after
+    losing some at random and holding the others back a number of steps: a receiver sees
+    what a lossy, slow link would deliver, the age of the data included.
+
+    ``advance(step)`` at the start of each step sends what is due: a message put during step
+    k goes out at the start of step k + ``delay_steps``. Used from one thread (the step's).
+    """
+
+    def __init__(self, session: zenoh.Session, publisher: zenoh.Publisher,
+                 faults: LinkFaults) -> None:
+        self._session, self._publisher, self.faults = session, publisher, faults
+        self._random = random.Random(faults.seed)
+        self._held: deque[tuple[int, Any, bytes]] = deque()  # (due step, timestamp, payload)
+        self._step = 0
+        self.offered = self.sent = self.dropped = self.delayed = 0
+
+    def advance(self, step: int) -> None:
+        self._step = step
+        while self._held and self._held[0][0] <= step:
+            _due, stamp, payload = self._held.popleft()
+            self._publisher.put(payload, timestamp=stamp)
+            self.sent += 1
+
+    def put(self, payload: bytes) -> None:
+        stamp = self._session.new_timestamp()
+        self.offered += 1
+        if self._random.random() < self.faults.drop_rate:
+            self.dropped += 1
+        elif self.faults.delay_steps:
+            self._held.append((self._step + self.faults.delay_steps, stamp, payload))
+            self.delayed += 1
+        else:
+            self._publisher.put(payload, timestamp=stamp)
+            self.sent += 1
+
+
+# -- key expressions -----------------------------------------------------------------------------
+
+
+def _index(name: str, i: Any) -> int:
+    if isinstance(i, bool) or not isinstance(i, int) or i < 0:
+        raise ValueError(f"{name} must be an integer >= 0, got {i!r}")
+    return i
+
+
+class Keys:
+    """Key expressions of one run, all under ``vigil/<run_id>/``."""
+
+    def __init__(self, run_id: str) -> None:
+        if not isinstance(run_id, str) or not _RUN_ID.match(run_id):
+            raise ValueError("run_id must be 1-64 characters of [A-Za-z0-9_-], got "
+                             f"{run_id!r:.80}")
+        self.run_id = run_id
+        self.prefix = f"{KEY_ROOT}/{run_id}"
+        self.truth = f"{self.prefix}/world/truth"
+        self.clock = f"{self.prefix}/world/clock"
+        self.all_consensus = f"{self.prefix}/agent/*/consensus"
+        self.all_beacons = f"{self.prefix}/agent/*/beacon"
+        self.all_telemetry = f"{self.prefix}/agent/*/telemetry"
+        self.all_cameras = f"{self.prefix}/world/camera/*"
+        self.everything = f"{self.prefix}/**"
+        self._source = re.compile(
+            rf"^{re.escape(self.prefix)}/(?:agent/(\d{{1,9}})/(?:consensus|beacon|telemetry)"
+            rf"|world/camera/(\d{{1,9}}))$")
+
+    def consensus(self, i: int) -> str:
+        return f"{self.prefix}/agent/{_index('drone id', i)}/consensus"
+
+    def beacon(self, i: int) -> str:
+        return f"{self.prefix}/agent/{_index('drone id', i)}/beacon"
+
+    def telemetry(self, i: int) -> str:
+        return f"{self.prefix}/agent/{_index('drone id', i)}/telemetry"
+
+    def camera(self, i: int) -> str:
+        return f"{self.prefix}/world/camera/{_index('drone id', i)}"
+
+    def source_id(self, key: str) -> int | None:
+        """The drone id in an agent or camera key of this run (None for other keys).
+
+        A subscriber on a wildcard can check it against the id inside the payload.
+        """
+        match = self._source.match(str(key))
+        if match is None:
+            return None
+        return int(match.group(1) or match.group(2))
+
+    def __repr__(self) -> str:
+        return f"Keys({self.run_id!r})"
+
+
+# -- rejection counting --------------------------------------------------------------------------
+
+
+class RejectionCounter:
+    """Thread-safe counts of dropped payloads per key kind, with the last reason of each.
+
+    ``rejected``: the payload was not a valid wire message (``WireError``). ``unexpected``: the
+    decoder or the value handler raised anything else — a bug, counted instead of crashing.
+    """
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._counts: dict[str, dict[str, Any]] = {}
+        self._total = 0
+
+    def _add(self, kind: str, field: str, reason: str) -> None:
+        reason = " ".join(str(reason).split())[:_MAX_REASON_CHARS]
+        with self._cond:
+            entry = self._counts.setdefault(
+                kind, {"rejected": 0, "unexpected": 0, "last_reason": ""})
+            entry[field] += 1
+            entry["last_reason"] = reason
+            self._total += 1
+            self._cond.notify_all()
+
+    def reject(self, kind: str, reason: str) -> None:
+        self._add(kind, "rejected", reason)
+
+    def unexpected(self, kind: str, reason: str) -> None:
+        self._add(kind, "unexpected", reason)
+
+    def total(self) -> int:
+        """All payloads dropped so far, every kind and both causes."""
+        with self._cond:
+            return self._total
+
+    def snapshot(self) -> dict[str, dict[str, Any]]:
+        """``{kind: {"rejected": n, "unexpected": m, "last_reason": str}}`` (a copy)."""
+        with self._cond:
+            return {kind: dict(entry) for kind, entry in self._counts.items()}
+
+    def wait_for_total(self, count: int, timeout_s: float) -> bool:
+        """Block until at least ``count`` payloads were dropped in all; False at the deadline."""
+        with self._cond:
+            return self._cond.wait_for(lambda: self._total >= count, timeout=timeout_s)
+
+
+# -- stores --------------------------------------------------------------------------------------
+
+
+class LatestValues(Generic[T]):
+    """Thread-safe latest value per source, with its receipt time (realtime mode).
+
+    A source is any hashable: a drone id, or e.g. ``(drone, round)`` for consensus rounds.
+
+    ``put(source, value, seq=step)`` ignores a value older (lower ``seq``) than the stored one,
+    so a late out-of-order delivery never replaces newer data. Memory: one entry per source,
+    at most ``max_sources`` sources. Every clock reading happens under the lock, so an age
+    is never negative (a reading taken before a concurrent ``put`` stored a newer time gave
+    e.g. a negative neighbour age, which the telemetry encoder then refused).
+    """
+
+    def __init__(self, *, clock: Callable[[], float] = time.monotonic,
+                 max_sources: int = 4096) -> None:
+        self._clock = clock
+        self._max_sources = max_sources
+        self._cond = threading.Condition()
+        self._values: dict[Hashable, tuple[T, float, int | None]] = {}
+
+    def put(self, source: Hashable, value: T, *, seq: int | None = None) -> bool:
+        """Store ``value`` as the newest from ``source``; False if refused (older, or full)."""
+        with self._cond:
+            now = self._clock()
+            old = self._values.get(source)
+            if old is None and len(self._values) >= self._max_sources:
+                return False
+            if old is not None and seq is not None and old[2] is not None and seq < old[2]:
+                return False
+            self._values[source] = (value, now, seq)
+            self._cond.notify_all()
+            return True
+
+    def get(self, source: Hashable) -> tuple[T, float] | None:
+        """(value, age in seconds) or None if ``source`` never sent anything."""
+        with self._cond:
+            now = self._clock()
+            entry = self._values.get(source)
+        return None if entry is None else (entry[0], now - entry[1])
+
+    def fresh(self, max_age_s: float) -> dict[Hashable, T]:
+        """The values no older than ``max_age_s`` seconds, by source."""
+        with self._cond:
+            now = self._clock()
+            return {s: v for s, (v, t, _) in self._values.items() if now - t <= max_age_s}
+
+    def fresh_with_ages(self, max_age_s: float) -> dict[Hashable, tuple[T, float]]:
+        """(value, age in seconds) of the values no older than ``max_age_s``, by source."""
+        with self._cond:
+            now = self._clock()
+            return {s: (v, now - t) for s, (v, t, _) in self._values.items()
+                    if now - t <= max_age_s}
+
+    def ages(self) -> dict[Hashable, float]:
+        with self._cond:
+            now = self._clock()
+            return {s: now - t for s, (_, t, _) in self._values.items()}
+
+    def wait_for(self, sources: Iterable[Hashable], timeout_s: float, *,
+                 min_seq: int | None = None) -> bool:
+        """Block until every source in ``sources`` has a value (with ``seq >= min_seq`` if
+        given); False at the deadline."""
+        wanted = set(sources)
+
+        def ready() -> bool:
+            for s in wanted:
+                entry = self._values.get(s)
+                if entry is None or (min_seq is not None
+                                     and (entry[2] is None or entry[2] < min_seq)):
+                    return False
+            return True
+
+        with self._cond:
+            return self._cond.wait_for(ready, timeout=timeout_s)
+
+    def __len__(self) -> int:
+        with self._cond:
+            return len(self._values)
+
+
+class StepMailbox(Generic[T]):
+    """Thread-safe values keyed (step, round, sender) for lockstep consensus.
+
+    - ``put`` keeps the FIRST value for a key; later duplicates are counted and ignored, so
+      what ``wait_for`` returned can never change under the caller.
+    - ``wait_for(step, round, senders, timeout_s)`` blocks on a condition variable until every
+      requested sender has a value for (step, round) or the deadline passes, then returns
+      exactly the requested senders that have one. ``put`` wakes a waiter only when its set
+      is complete, not at every arrival (one wake-up per wait instead of one per sender).
+    - Bounded memory: ``wait_for`` for step k drops every entry with a step below
+      ``k - horizon_steps`` or above ``k + max_ahead_steps``, and ``put`` refuses such steps
+      (and anything beyond ``max_entries``). Refusals are counted in ``refused``.
+    """
+
+    def __init__(self, *, horizon_steps: int = 2, max_ahead_steps: int = 4,
+                 max_entries: int = 65536) -> None:
+        for name, value in (("horizon_steps", horizon_steps),
+                            ("max_ahead_steps", max_ahead_steps), ("max_entries", max_entries)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ValueError(f"StepMailbox: {name} must be an integer >= 0, got {value!r}")
+        self.horizon_steps = horizon_steps
+        self.max_ahead_steps = max_ahead_steps
+        self.max_entries = max_entries
+        self._cond = threading.Condition()
+        self._boxes: dict[tuple[int, int], dict[int, T]] = {}
+        self._entries = 0
+        self._current: int | None = None  # the newest step anyone waited for
+        self._closed = False
+        self._waiters: dict[tuple[int, int], list[set[int]]] = {}  # what each wait needs
+        self.refused = 0
+        self.duplicates = 0
+
+    def _in_window(self, step: int) -> bool:
+        if self._current is None:
+            return True
+        return self._current - self.horizon_steps <= step <= self._current + self.max_ahead_steps
+
+    def put(self, step: int, round: int, sender: int, value: T) -> bool:
+        """Store ``value``; False if it was a duplicate or refused (outside the window, full)."""
+        with self._cond:
+            if not self._in_window(step) or self._entries >= self.max_entries:
+                self.refused += 1
+                return False
+            box = self._boxes.setdefault((step, round), {})
+            if sender in box:
+                self.duplicates += 1
+                return False
+            box[sender] = value
+            self._entries += 1
+            if any(wanted <= box.keys() for wanted in self._waiters.get((step, round), ())):
+                self._cond.notify_all()
+            return True
+
+    def wait_for(self, step: int, round: int, senders: Iterable[int],
+                 timeout_s: float) -> dict[int, T]:
+        """What arrived for (step, round) from ``senders``: all of them, or what there is at
+        the deadline or once ``close`` was called."""
+        wanted = set(senders)
+        deadline = time.monotonic() + max(0.0, timeout_s)
+        key = (step, round)
+        with self._cond:
+            if self._current is None or step > self._current:
+                self._current = step
+                self._prune()
+            waiters = self._waiters.setdefault(key, [])
+            waiters.append(wanted)
+            try:
+                while True:
+                    box = self._boxes.get(key, {})
+                    found = {s: box[s] for s in wanted if s in box}
+                    remaining = deadline - time.monotonic()
+                    if len(found) == len(wanted) or remaining <= 0 or self._closed:
+                        return found
+                    self._cond.wait(remaining)
+            finally:
+                waiters.remove(wanted)
+                if not waiters:
+                    del self._waiters[key]
+
+    def close(self) -> None:
+        """From now on ``wait_for`` returns at once, including waits in progress (e.g. the
+        mission ended: nothing more is coming)."""
+        with self._cond:
+            self._closed = True
+            self._cond.notify_all()
+
+    def get(self, step: int, round: int) -> dict[int, T]:
+        """What has arrived for (step, round) so far, without waiting (a copy)."""
+        with self._cond:
+            return dict(self._boxes.get((step, round), {}))
+
+    def prune(self, current_step: int) -> None:
+        """Advance the window to ``current_step`` without waiting."""
+        with self._cond:
+            if self._current is None or current_step > self._current:
+                self._current = current_step
+                self._prune()
+
+    def _prune(self) -> None:
+        for key in [k for k in self._boxes if not self._in_window(k[0])]:
+            self._entries -= len(self._boxes.pop(key))
+
+    def __len__(self) -> int:
+        with self._cond:
+            return self._entries
+
+
+# -- subscriptions -------------------------------------------------------------------------------
+
+
+def subscribe(
+    session: zenoh.Session,
+    key: str,
+    decode: Callable[[bytes], T],
+    on_value: Callable[[str, T], None],
+    rejections: RejectionCounter,
+    kind: str,
+    *,
+    max_payload_bytes: int = 1 << 20,
+    direct: bool = False,
+    remote_only: bool = False,
+    on_sent_time: Callable[[T, float], None] | None = None,
+    keep_latest: int | None = None,
+) -> zenoh.Subscriber | RingSubscriber:
+    """Declare a callback subscriber on ``key`` (wildcards allowed).
+
+    Each sample's payload goes through ``decode`` (e.g. ``codec.decode_beacon``); a valid value
+    is passed to ``on_value(key_of_the_sample, value)``. A ``WireError`` is counted as rejected
+    under ``kind``; any other exception from the decoder or from ``on_value`` is counted as
+    unexpected with its type and message. Nothing propagates into zenoh's thread. The
+    subscriber lives until ``undeclare()`` or the session closes; ``on_value`` runs on zenoh's
+    callback thread, so it should only store the value (e.g. in a ``StepMailbox``).
+
+    ``direct``: run the callback on zenoh's receiving thread (no hop through a Python thread
+    of its own); it then holds up that link's reception while it runs (and while it waits for
+    the GIL), so keep it short, and never use it in a process that hosts a router.
+    ``remote_only``: leave out what this session publishes itself (e.g. an agent's own beacon
+    on ``agent/*/beacon``).
+    ``on_sent_time(value, unix_s)``: called before ``on_value`` for a sample that carries a
+    Zenoh timestamp (``put_stamped``), with its time — the sender's clock at the put, so the
+    receiver sees the age of the data including the hop (exact on one host; across hosts as
+    good as the clocks' synchronisation).
+    ``keep_latest``: instead of zenoh's callback thread and its unbounded queue, a ring of
+    this many samples read by a daemon thread of ours (ending when the subscriber is
+    undeclared or the session closes); when the thread falls behind, the oldest samples are
+    dropped. Memory and the age of what is handled then stay bounded on an overloaded
+    machine; only for consumers that want the newest value per source (size the ring to
+    hold at least one step's worth of sources).
+    """
+
+    def callback(sample: zenoh.Sample) -> None:
+        try:
+            payload = sample.payload
+            if len(payload) > max_payload_bytes:
+                rejections.reject(kind, f"payload of {len(payload)} bytes exceeds the "
+                                        f"{max_payload_bytes}-byte limit")
+                return
+            value = decode(payload.to_bytes())
+        except WireError as exc:
+            rejections.reject(kind, exc.reason)
+            return
+        except BaseException as exc:  # never into zenoh's thread
+            rejections.unexpected(kind, f"decoder raised {type(exc).__name__}: {exc}")
+            return
+        try:
+            if on_sent_time is not None and (stamp := sample.timestamp) is not None:
+                on_sent_time(value, stamp.get_time_as_ntp64().as_secs_f64())
+            on_value(str(sample.key_expr), value)
+        except BaseException as exc:
+            rejections.unexpected(kind, f"handler raised {type(exc).__name__}: {exc}")
+
+    origin = zenoh.Locality.REMOTE if remote_only else zenoh.Locality.ANY
+    if keep_latest is None:
+        handler = zenoh.handlers.Callback(callback, indirect=not direct)
+        return session.declare_subscriber(key, handler, allowed_origin=origin)
+    if direct or isinstance(keep_latest, bool) or not (isinstance(keep_latest, int)
+                                                       and keep_latest >= 1):
+        raise ValueError(f"keep_latest must be an integer >= 1 and excludes direct, got "
+                         f"{keep_latest!r}")
+    return RingSubscriber(session.declare_subscriber(
+        key, zenoh.handlers.RingChannel(keep_latest), allowed_origin=origin), callback, kind)
+
+
+class RingSubscriber:
+    """A subscriber whose samples wait in a bounded ring (oldest dropped) for a thread of
+    ours that runs the callback (``subscribe(..., keep_latest=K)``).
+
+    ``undeclare()`` ends the subscription and joins the thread. Every ring subscriber still
+    declared at interpreter exit is undeclared then: a daemon thread woken inside zenoh while
+    Python finalizes aborts the process (seen as "FATAL: exception not rethrown").
+    """
+
+    def __init__(self, subscriber: zenoh.Subscriber, callback: Callable[[zenoh.Sample], None],
+                 kind: str) -> None:
+        self._subscriber = subscriber
+        # The channel itself: a recv() blocked on the subscriber object would keep it borrowed
+        # (pyo3), and undeclare() from another thread fails with "Already borrowed".
+        self._ring = subscriber.handler
+        self._callback = callback
+        self._lock = threading.Lock()
+        self._declared = True
+        self._thread = threading.Thread(target=self._drain, name=f"ring-{kind}", daemon=True)
+        _LIVE_RINGS.add(self)
+        self._thread.start()
+
+    def _drain(self) -> None:
+        while True:
+            try:
+                sample = self._ring.recv()
+            except zenoh.ZError:  # undeclared, or the session closed: the ring is closed
+                return
+            self._callback(sample)
+
+    def undeclare(self) -> None:
+        with self._lock:
+            if not self._declared:
+                return
+            self._declared = False
+        _LIVE_RINGS.discard(self)
+        with contextlib.suppress(zenoh.ZError):  # the session is closed already
+            self._subscriber.undeclare()
+        if threading.current_thread() is not self._thread:
+            self._thread.join(timeout=RING_JOIN_TIMEOUT_S)
+
+
+RING_JOIN_TIMEOUT_S = 2.0
+_LIVE_RINGS: weakref.WeakSet[RingSubscriber] = weakref.WeakSet()
+
+
+@atexit.register
+def _undeclare_rings() -> None:
+    for ring in list(_LIVE_RINGS):
+        ring.undeclare()

@@ -1,0 +1,1 @@
+"""Observation: telemetry collection, recordings, the live dashboard, reports and plots."""

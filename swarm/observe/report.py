@@ -1,0 +1,478 @@
+"""The report of one run: a typed summary, its JSON form and its rich tables.
+
+``build_report(record, mode, counters)`` is a pure function of a ``RunRecord`` (from the
+in-process runner, the launcher or a recording), the timing mode and the agents' running
+counters (``TelemetryCounters`` per drone; none for an in-process run). It returns a frozen
+``RunReport``; ``report_to_json`` turns it into one JSON-ready dict (no NaN: a figure with no
+sample at all is ``None``) and ``render_report`` prints its tables and verdict to a rich
+Console — ``swarm-report`` and the end-of-run summary of ``launch-swarm`` share it.
+
+Margins are λ − ε. "Final" is each drone's last step with a sample (a realtime or truncated
+recording can miss steps); every figure is taken over the samples present, and the report
+says how many were missing.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+from rich.console import Console
+from rich.markup import escape
+from rich.table import Table
+
+from swarm.messages.wire import TelemetryCounters
+from swarm.runs.checks import (
+    SENSING_WEIGHT,
+    Coverage,
+    Violation,
+    check_invariants,
+    coverage,
+    max_abs_velocity,
+    min_pairwise_distance,
+    summarize_drones,
+    summarize_targets,
+)
+from swarm.runs.reference import RunRecord
+
+Mode = Literal["lockstep", "realtime", "inprocess"]
+MODES: tuple[str, ...] = ("lockstep", "realtime", "inprocess")
+EXIT_OK, EXIT_VIOLATION = 0, 1
+MISSING = "—"  # how a figure without any sample is shown in a table
+
+
+def finite_or_none(value: float | None) -> float | None:
+    """A float for JSON: NaN and ±inf (no sample at all) become None."""
+    if value is None or not math.isfinite(value):
+        return None
+    return float(value)
+
+
+@dataclass(frozen=True)
+class Provenance:
+    """Where a run came from; everything is optional for an in-process record."""
+
+    run_id: str = ""
+    version: str = ""
+    git_commit: str = ""
+    source: str = ""  # recording path
+    truncated: bool = False  # the recording ends before the run did (crash, kill)
+
+
+@dataclass(frozen=True)
+class TargetReport:
+    id: int
+    min_lambda_bar_margin: float | None  # min over drones and steps ≥ start of λ̄ − ε
+    time_below_epsilon_s: float  # time after start during which some copy had λ̄ < ε
+    min_true_lambda_margin: float | None  # min of λ_min(true G) − ε after start
+    min_measured_lambda: float | None  # min of λ_min(measured G) after start
+    final_position_error_m: float | None  # max over drones of each one's last error
+    rms_position_error_m: float | None  # over drones and steps ≥ start
+    drones_sensing_final: int  # drones with a final w > SENSING_WEIGHT for this target
+    missing_samples: int  # drone-steps without this target's λ̄
+
+
+@dataclass(frozen=True)
+class DroneReport:
+    id: int
+    final_speed_mps: float | None
+    final_weights: tuple[float | None, ...]
+    idle_final: bool  # final w ≤ SENSING_WEIGHT for every target
+    sensing_targets: tuple[int, ...]  # targets with a final w > SENSING_WEIGHT
+    mean_step_us: float | None
+    p99_step_us: float | None
+    final_bearing_error: float | None  # None without a formation task
+    qp_fallbacks: int
+    late_steps: int | None  # None: not measured (in-process run, or no counters received)
+    rejected_messages: int | None
+    stale_neighbour_messages: int | None
+    missing_neighbour_messages: int | None
+    steps_run: int | None  # as counted by the agent process
+    missing_samples: int  # steps whose telemetry never reached the recorder
+    # Changes of the vehicle the agent did not ask for (swarm.watch.vehicle_watch) and what was
+    # still wrong at the end ("" = nothing); None: not measured (in-process run).
+    vehicle_events: int | None = None
+    vehicle_status: str | None = None
+    # Breaches of λ̄ ≥ ε − tol the agent saw in its own copies and said at once
+    # (swarm.watch.localization_watch), when the first began [s], and what was still below at the
+    # end.
+    lambda_breaches: int | None = None
+    first_lambda_breach_s: float | None = None
+    localization_status: str | None = None
+
+
+@dataclass(frozen=True)
+class RunReport:
+    scenario: str
+    seed: int
+    mode: str
+    n_drones: int
+    n_targets: int
+    duration_s: float  # what the record covers (steps × ΔT)
+    planned_duration_s: float  # scenario.duration_s
+    steps: int
+    dt_s: float
+    epsilon: float
+    lambda_tolerance: float
+    start_s: float
+    collision_distance_m: float
+    u_max_mps: float
+    min_pairwise_distance_m: float | None
+    max_abs_velocity_mps: float | None  # largest |u_k| of one axis, as bounded by u_max
+    qp_fallbacks: int
+    late_steps: int | None
+    rejected_messages: int | None
+    wall_time_s: float | None
+    targets: tuple[TargetReport, ...]
+    drones: tuple[DroneReport, ...]
+    violations: tuple[Violation, ...]
+    coverage: Coverage
+    warnings: tuple[str, ...]
+    provenance: Provenance = field(default_factory=Provenance)
+
+    @property
+    def ok(self) -> bool:
+        return not self.violations
+
+    @property
+    def exit_code(self) -> int:
+        """0: every SPEC invariant held (on the samples present); 1: one did not."""
+        return EXIT_OK if self.ok else EXIT_VIOLATION
+
+
+# -- building ------------------------------------------------------------------------------
+
+
+def _target_reports(record: RunRecord) -> tuple[TargetReport, ...]:
+    return tuple(TargetReport(
+        id=s.target,
+        min_lambda_bar_margin=finite_or_none(s.min_lambda_bar_margin),
+        time_below_epsilon_s=s.time_below_epsilon_s,
+        min_true_lambda_margin=finite_or_none(s.min_true_lambda_margin),
+        min_measured_lambda=finite_or_none(s.min_measured_lambda),
+        final_position_error_m=finite_or_none(s.final_position_error_m),
+        rms_position_error_m=finite_or_none(s.rms_position_error_m),
+        drones_sensing_final=s.drones_sensing_final,
+        missing_samples=s.missing_samples,
+    ) for s in summarize_targets(record))
+
+
+def _drone_reports(record: RunRecord,
+                   counters: Mapping[int, TelemetryCounters]) -> tuple[DroneReport, ...]:
+    out = []
+    for s in summarize_drones(record):
+        c = counters.get(s.drone)
+        out.append(DroneReport(
+            id=s.drone,
+            final_speed_mps=finite_or_none(s.final_speed_m_s),
+            final_weights=tuple(finite_or_none(w) for w in s.final_weights),
+            idle_final=s.idle_final,
+            sensing_targets=tuple(r for r, w in enumerate(s.final_weights)
+                                  if w > SENSING_WEIGHT),
+            mean_step_us=finite_or_none(s.mean_step_us),
+            p99_step_us=finite_or_none(s.p99_step_us),
+            final_bearing_error=finite_or_none(s.final_bearing_error),
+            # The agent's running total also counts steps whose telemetry was dropped.
+            qp_fallbacks=max(s.qp_fallbacks, c.qp_fallbacks) if c else s.qp_fallbacks,
+            late_steps=c.late_steps if c else None,
+            rejected_messages=c.rejected_messages if c else None,
+            stale_neighbour_messages=c.stale_neighbour_messages if c else None,
+            missing_neighbour_messages=c.missing_neighbour_messages if c else None,
+            steps_run=c.steps if c else None,
+            missing_samples=s.missing_samples,
+            vehicle_events=c.vehicle_events if c else None,
+            vehicle_status=c.vehicle_status if c else None,
+            lambda_breaches=c.lambda_breaches if c else None,
+            first_lambda_breach_s=c.first_lambda_breach_s if c else None,
+            localization_status=c.localization_status if c else None,
+        ))
+    return tuple(out)
+
+
+def _sum_known(values: Sequence[int | None]) -> int | None:
+    """Total over drones; None when no drone reported the counter at all."""
+    known = [v for v in values if v is not None]
+    return sum(known) if known else None
+
+
+def _warnings(record: RunRecord, mode: str, cov: Coverage, drones: Sequence[DroneReport],
+              provenance: Provenance) -> tuple[str, ...]:
+    out = []
+    planned = record.config.n_steps
+    if provenance.truncated:
+        out.append(f"the recording is truncated: {cov.steps} of {planned} steps; the verdict "
+                   f"covers the steps present")
+    elif cov.steps < planned:
+        out.append(f"the record holds {cov.steps} of {planned} planned steps")
+    if cov.missing_telemetry:
+        per_drone = ", ".join(f"drone {i}: {n}" for i, n in enumerate(cov.missing_per_drone)
+                              if n)
+        out.append(f"{cov.missing_telemetry} of {cov.drone_steps} drone-step samples missing "
+                   f"({per_drone}); figures use the samples present")
+    if cov.missing_truth:
+        out.append(f"{cov.missing_truth} of {cov.steps} steps without ground truth")
+    if mode != "inprocess":
+        silent = [d.id for d in drones if d.steps_run is None]
+        if silent:
+            out.append(f"no counters from drone(s) {', '.join(map(str, silent))}: late steps "
+                       f"and rejected messages unknown for them")
+        for d in drones:
+            if d.vehicle_events:
+                out.append(f"drone {d.id}: its vehicle left the state the agent asked for "
+                           f"{d.vehicle_events} time(s) (the agent log has when and why)"
+                           + (f"; at the end: {d.vehicle_status}" if d.vehicle_status else ""))
+            if d.lambda_breaches:
+                out.append(f"drone {d.id}: said it could not hold λ̄ ≥ ε − tol from t = "
+                           f"{_fmt(d.first_lambda_breach_s, '.2f')} s ({d.lambda_breaches} "
+                           f"breach(es) by target; the agent log has each)"
+                           + (f"; at the end: {d.localization_status}"
+                              if d.localization_status else ""))
+    return tuple(out)
+
+
+def build_report(record: RunRecord, mode: str = "inprocess",
+                 counters: Mapping[int, TelemetryCounters] | None = None,
+                 provenance: Provenance | None = None) -> RunReport:
+    """Summaries, counters and the SPEC invariant checks of one run."""
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {', '.join(MODES)} (got {mode!r})")
+    cfg = record.config
+    provenance = provenance or Provenance()
+    drones = _drone_reports(record, counters or {})
+    cov = coverage(record)
+    dt = cfg.scenario.dt_s
+    return RunReport(
+        scenario=cfg.scenario.name,
+        seed=record.seed,
+        mode=mode,
+        n_drones=cfg.swarm.n_drones,
+        n_targets=len(cfg.targets),
+        duration_s=round(record.n_steps * dt, 9),
+        planned_duration_s=cfg.scenario.duration_s,
+        steps=record.n_steps,
+        dt_s=dt,
+        epsilon=cfg.gramian.epsilon,
+        lambda_tolerance=cfg.checks.lambda_tolerance,
+        start_s=cfg.control.start_s,
+        collision_distance_m=cfg.control.collision_distance_m,
+        u_max_mps=cfg.control.u_max_m_s,
+        min_pairwise_distance_m=finite_or_none(min_pairwise_distance(record)),
+        max_abs_velocity_mps=finite_or_none(max_abs_velocity(record)),
+        qp_fallbacks=sum(d.qp_fallbacks for d in drones),
+        late_steps=_sum_known([d.late_steps for d in drones]),
+        rejected_messages=_sum_known([d.rejected_messages for d in drones]),
+        wall_time_s=finite_or_none(record.wall_time_s),
+        targets=_target_reports(record),
+        drones=drones,
+        violations=tuple(check_invariants(record)),
+        coverage=cov,
+        warnings=_warnings(record, mode, cov, drones, provenance),
+        provenance=provenance,
+    )
+
+
+# -- JSON ----------------------------------------------------------------------------------
+
+
+def _target_json(t: TargetReport) -> dict[str, Any]:
+    return {
+        "id": t.id,
+        "min_lambda_bar_margin": t.min_lambda_bar_margin,
+        "time_below_epsilon_s": t.time_below_epsilon_s,
+        "min_true_lambda_margin": t.min_true_lambda_margin,
+        "min_measured_lambda": t.min_measured_lambda,
+        "final_position_error_m": t.final_position_error_m,
+        "rms_position_error_m": t.rms_position_error_m,
+        "drones_sensing_final": t.drones_sensing_final,
+        "missing_samples": t.missing_samples,
+    }
+
+
+def _drone_json(d: DroneReport) -> dict[str, Any]:
+    return {
+        "id": d.id,
+        "final_speed_mps": d.final_speed_mps,
+        "final_weights": list(d.final_weights),
+        "idle_final": d.idle_final,
+        "sensing_targets": list(d.sensing_targets),
+        "mean_step_us": d.mean_step_us,
+        "p99_step_us": d.p99_step_us,
+        "final_bearing_error": d.final_bearing_error,
+        "qp_fallbacks": d.qp_fallbacks,
+        "late_steps": d.late_steps,
+        "rejected_messages": d.rejected_messages,
+        "stale_neighbour_messages": d.stale_neighbour_messages,
+        "missing_neighbour_messages": d.missing_neighbour_messages,
+        "steps_run": d.steps_run,
+        "missing_samples": d.missing_samples,
+        "vehicle_events": d.vehicle_events,
+        "vehicle_status": d.vehicle_status,
+        "lambda_breaches": d.lambda_breaches,
+        "first_lambda_breach_s": d.first_lambda_breach_s,
+        "localization_status": d.localization_status,
+    }
+
+
+def report_to_json(report: RunReport) -> dict[str, Any]:
+    """One JSON-ready dict (``json.dumps(..., allow_nan=False)`` accepts it)."""
+    cov, prov = report.coverage, report.provenance
+    return {
+        "scenario": report.scenario,
+        "seed": report.seed,
+        "mode": report.mode,
+        "run_id": prov.run_id,
+        "version": prov.version,
+        "git_commit": prov.git_commit,
+        "truncated": prov.truncated,
+        "n_drones": report.n_drones,
+        "n_targets": report.n_targets,
+        "duration_s": report.duration_s,
+        "planned_duration_s": report.planned_duration_s,
+        "steps": report.steps,
+        "dt_s": report.dt_s,
+        "epsilon": report.epsilon,
+        "lambda_tolerance": report.lambda_tolerance,
+        "start_s": report.start_s,
+        "collision_distance_m": report.collision_distance_m,
+        "u_max_mps": report.u_max_mps,
+        "min_pairwise_distance_m": report.min_pairwise_distance_m,
+        "max_abs_velocity_mps": report.max_abs_velocity_mps,
+        "qp_fallbacks": report.qp_fallbacks,
+        "late_steps": report.late_steps,
+        "rejected_messages": report.rejected_messages,
+        "wall_time_s": report.wall_time_s,
+        "missing_samples": {"telemetry": cov.missing_telemetry, "truth": cov.missing_truth,
+                            "drone_steps": cov.drone_steps},
+        "targets": [_target_json(t) for t in report.targets],
+        "drones": [_drone_json(d) for d in report.drones],
+        "violations": [{"invariant": v.invariant, "detail": v.detail}
+                       for v in report.violations],
+        "warnings": list(report.warnings),
+        "verdict": "ok" if report.ok else "violated",
+    }
+
+
+# -- rich tables ---------------------------------------------------------------------------
+
+
+def _fmt(value: float | None, spec: str) -> str:
+    return MISSING if value is None else format(value, spec)
+
+
+def _count(value: int | None) -> str:
+    return MISSING if value is None else str(value)
+
+
+def _late(d: DroneReport) -> str:
+    if d.late_steps is None:
+        return MISSING
+    if not d.steps_run:
+        return str(d.late_steps)
+    return f"{d.late_steps} ({100.0 * d.late_steps / d.steps_run:.2f} %)"
+
+
+def target_table(report: RunReport) -> Table:
+    table = Table(title=f"{report.scenario}: targets (ε = {report.epsilon}; margins λ − ε "
+                        f"after t = {report.start_s} s)", title_justify="left")
+    columns = ["target", "min λ̄−ε", "time λ̄<ε [s]", "min true λ−ε", "min meas. λ",
+               "final err [m]", "RMS err [m]", f"sensing (w>{SENSING_WEIGHT})"]
+    incomplete = not report.coverage.complete
+    if incomplete:
+        columns.append("missing")
+    for column in columns:
+        table.add_column(escape(column), justify="right")
+    for t in report.targets:
+        row = [str(t.id), _fmt(t.min_lambda_bar_margin, "+.4f"),
+               f"{t.time_below_epsilon_s:.2f}", _fmt(t.min_true_lambda_margin, "+.4f"),
+               _fmt(t.min_measured_lambda, ".4f"), _fmt(t.final_position_error_m, ".4f"),
+               _fmt(t.rms_position_error_m, ".4f"), str(t.drones_sensing_final)]
+        if incomplete:
+            row.append(str(t.missing_samples))
+        table.add_row(*row)
+    return table
+
+
+def drone_table(report: RunReport) -> Table:
+    table = Table(title="drones", title_justify="left")
+    columns = ["drone", "final |u| [m/s]", "final w", "state", "QP fallbacks", "late steps",
+               "rejected", "step µs mean/p99", "bearing err", "vehicle events", "λ̄ breaches"]
+    incomplete = not report.coverage.complete
+    if incomplete:
+        columns.append("missing")
+    for column in columns:
+        table.add_column(escape(column), justify="right")
+    for d in report.drones:
+        weights = " ".join(_fmt(w, ".2f") for w in d.final_weights)
+        state = ("sensing " + ",".join(f"T{r}" for r in d.sensing_targets)
+                 if d.sensing_targets else "idle")
+        row = [str(d.id), _fmt(d.final_speed_mps, ".3f"), weights, state, str(d.qp_fallbacks),
+               _late(d), _count(d.rejected_messages),
+               f"{_fmt(d.mean_step_us, '.0f')}/{_fmt(d.p99_step_us, '.0f')}",
+               _fmt(d.final_bearing_error, ".4f"), _vehicle(d), _breaches(d)]
+        if incomplete:
+            row.append(str(d.missing_samples))
+        table.add_row(*row)
+    return table
+
+
+def _vehicle(d: DroneReport) -> str:
+    """Vehicle events (not asked for), and what was still wrong at the end."""
+    if d.vehicle_events is None:
+        return "—"
+    return f"{d.vehicle_events} ({d.vehicle_status})" if d.vehicle_status \
+        else str(d.vehicle_events)
+
+
+def _breaches(d: DroneReport) -> str:
+    """λ̄ breaches the agent said, and from when."""
+    if d.lambda_breaches is None:
+        return "—"
+    if not d.lambda_breaches:
+        return "0"
+    return f"{d.lambda_breaches} (from {_fmt(d.first_lambda_breach_s, '.2f')} s)"
+
+
+def run_lines(report: RunReport) -> tuple[str, str]:
+    """Two lines: the swarm-wide figures, then where the run came from."""
+    figures = "; ".join([
+        f"min pairwise distance {_fmt(report.min_pairwise_distance_m, '.4f')} m "
+        f"(Δ = {report.collision_distance_m} m)",
+        f"max |u_k| {_fmt(report.max_abs_velocity_mps, '.3f')} m/s "
+        f"(u_max = {report.u_max_mps} m/s)",
+        f"QP fallbacks {report.qp_fallbacks}",
+        f"late steps {_count(report.late_steps)}",
+        f"rejected messages {_count(report.rejected_messages)}",
+    ])
+    origin = (f"mode {report.mode}; seed {report.seed}; {report.steps} steps "
+              f"({report.duration_s:g} s simulated")
+    origin += f", {report.wall_time_s:.1f} s wall)" if report.wall_time_s is not None else ")"
+    prov = report.provenance
+    for label, value in (("run", prov.run_id), ("version", prov.version),
+                         ("commit", prov.git_commit[:12])):
+        if value:
+            origin += f"; {label} {value}"
+    return figures, origin
+
+
+def verdict_line(report: RunReport) -> str:
+    if report.ok:
+        return "verdict: OK (every SPEC invariant within tolerance)"
+    names = sorted({v.invariant for v in report.violations})
+    return f"verdict: FAILED ({', '.join(names)}: a SPEC invariant was violated or not checked)"
+
+
+def render_report(report: RunReport, console: Console) -> None:
+    """Tables per target and per drone, warnings, violations and the verdict line."""
+    console.print(target_table(report))
+    console.print(drone_table(report))
+    for line in run_lines(report):
+        console.print(line, highlight=False, markup=False)
+    for warning in report.warnings:
+        console.print(f"[bold yellow]warning[/] {escape(warning)}", highlight=False)
+    for v in report.violations:
+        console.print(f"[bold red]VIOLATION[/] {escape(str(v))}", highlight=False)
+    style = "bold green" if report.ok else "bold red"
+    console.print(f"[{style}]{verdict_line(report)}[/]", highlight=False)
+

@@ -1,0 +1,100 @@
+"""``swarm-report DIR``: the report of a recorded run (``launch-swarm --record DIR``).
+
+Prints a table per target and per drone and a verdict line; ``--json`` prints one JSON object
+instead (warnings also go to stderr); ``--plots OUT`` writes the thesis figures as PNG files.
+
+Exit codes: 0 every SPEC invariant held on the samples present, 1 one was violated beyond
+its tolerance (or had no sample to be checked on), 2 bad command line, unreadable recording
+or unwritable plot directory (one line on stderr, no traceback). A truncated recording (the
+run was killed, or is still being written) is reported with a warning and judged on the
+steps it holds: its exit code is 0 or 1 like any other.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from rich.console import Console
+
+from swarm.observe.recording import Recording, RecordingError, read_recording
+from swarm.observe.report import Provenance, RunReport, build_report, render_report, report_to_json
+from swarm.scenario.cli_common import EXIT_INTERRUPTED, OneLineParser, fail
+
+PROG = "swarm-report"
+
+
+def build_parser() -> OneLineParser:
+    parser = OneLineParser(
+        prog=PROG,
+        description="Summarize a recorded Vigil run: per-target and per-drone tables, the "
+                    "SPEC invariants, and optionally the thesis figures.")
+    parser.add_argument("recording", metavar="DIR",
+                        help="run directory holding run.mcap (launch-swarm --record DIR), or "
+                             "the .mcap file itself")
+    parser.add_argument("--json", action="store_true",
+                        help="print one JSON object instead of the tables")
+    parser.add_argument("--plots", metavar="OUT", type=Path, default=None,
+                        help="write the figures (position_error.png, psi.png, weights.png, "
+                             "speed.png, bearing_error.png with a formation task, view3d.png) "
+                             "into OUT")
+    return parser
+
+
+def report_from_recording(recording: Recording) -> RunReport:
+    """The report of a recording: its record, mode and the drones' own counters."""
+    meta = recording.metadata
+    return build_report(
+        recording.record, meta.mode, recording.drone_counters,
+        Provenance(run_id=meta.run_id, version=meta.version, git_commit=meta.git_commit,
+                   source=str(recording.path), truncated=recording.truncated))
+
+
+def _console() -> Console:
+    console = Console()
+    if not console.is_terminal:
+        console = Console(width=140)  # pipes and CI: keep table columns unwrapped
+    return console
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        recording = read_recording(Path(args.recording))
+        report = report_from_recording(recording)
+    except RecordingError as err:
+        return fail(PROG, str(err))
+    except ValueError as err:  # e.g. metadata naming an unknown mode
+        return fail(PROG, f"{args.recording}: {err}")
+    except KeyboardInterrupt:
+        return EXIT_INTERRUPTED
+    written: list[Path] = []
+    if args.plots is not None:
+        # Before any output: a directory we cannot write is a usage error with empty stdout.
+        try:
+            from swarm.observe.plots import write_plots  # matplotlib loads only when asked for
+
+            written = write_plots(recording.record, args.plots)
+        except OSError as err:
+            return fail(PROG, f"cannot write plots to {args.plots}: {err.strerror or err}")
+    if args.json:
+        document = report_to_json(report)
+        if args.plots is not None:
+            document["plots"] = [str(path) for path in written]
+        print(json.dumps(document, allow_nan=False))
+        for warning in report.warnings:
+            print(f"{PROG}: warning: {warning}", file=sys.stderr)
+    else:
+        console = _console()
+        render_report(report, console)
+        if written:
+            console.print(f"wrote {len(written)} figures to {args.plots}: "
+                          f"{', '.join(path.name for path in written)}", highlight=False,
+                          markup=False)
+    return report.exit_code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""Runs: the in-process reference run, its record, ground-truth Gramians and the run checks."""

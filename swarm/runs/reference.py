@@ -1,0 +1,264 @@
+"""In-process reference runner: N ``DroneAgent``s, exact synchronous exchange, seeded.
+
+The world (targets, cameras, kinematics) and the agents live in one process and step in
+lockstep; every neighbour message of round κ is delivered before round κ + 1. Same config and
+seed → bit-identical output, and the same output as a lockstep run of the process swarm:
+the autopilot link is modelled exactly as MAVLink carries it (positions and velocity
+setpoints as float32 in each vehicle's local NED frame, ``swarm.models.frames``). Besides what the
+agents compute, the runner integrates the true and measured Gramians from ground truth
+(``swarm.runs.ground_truth``) for checking.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from swarm.core.agent import AgentSetup, Detection, DroneAgent, StepDiagnostics
+from swarm.core.formation import circle_bearings
+from swarm.messages.wire import (
+    BeaconWire,
+    CameraFrameWire,
+    TelemetryCounters,
+    TelemetryWire,
+    TruthWire,
+    telemetry_from_diagnostics,
+)
+from swarm.models.camera import detect
+from swarm.models.frames import position_over_link, velocity_over_link
+from swarm.models.kinematics import sample_initial_positions, step_vehicle
+from swarm.runs.ground_truth import ReferenceGramians
+from swarm.scenario.config import ScenarioConfig
+
+Array = NDArray[np.float64]
+
+# Independent random streams, keyed so that each drone's stream does not depend on how many
+# other drones or processes exist (the process swarm draws the very same numbers).
+STREAM_INITIAL_POSITIONS = 1
+STREAM_INITIAL_GUESS = 2
+STREAM_CAMERA = 3
+
+
+def stream(seed: int, purpose: int, index: int = 0) -> np.random.Generator:
+    return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(purpose, index)))
+
+
+def initial_drone_positions(config: ScenarioConfig, seed: int) -> Array:
+    sw = config.swarm
+    return sample_initial_positions(sw.n_drones, np.array(sw.initial_box_center_m),
+                                    np.array(sw.initial_box_size_m),
+                                    sw.initial_min_separation_m,
+                                    stream(seed, STREAM_INITIAL_POSITIONS))
+
+
+def initial_target_guesses(config: ScenarioConfig, seed: int, drone_id: int) -> Array:
+    """Truth at t = 0 plus U(−x, x) per axis, drawn from drone ``drone_id``'s own stream."""
+    rng = stream(seed, STREAM_INITIAL_GUESS, drone_id)
+    offset = config.estimation.initial_offset_m
+    starts = np.array([t.start_m for t in config.targets], dtype=float)
+    return starts + rng.uniform(-offset, offset, size=starts.shape)
+
+
+def agent_setup(config: ScenarioConfig, drone_id: int) -> AgentSetup:
+    graph = config.swarm.graph
+    est = config.estimation
+    desired: dict[int, Array] = {}
+    if config.control.task == "bearing_formation":
+        bearings = circle_bearings(graph.n_nodes)
+        desired = {j: bearings[drone_id, j] for j in graph.neighbours[drone_id]}
+    return AgentSetup(
+        drone_id=drone_id,
+        n_drones=graph.n_nodes,
+        n_targets=len(config.targets),
+        dt_s=config.scenario.dt_s,
+        neighbour_weights=graph.consensus_weights(drone_id, est.consensus_weights,
+                                                  est.laplacian_step),
+        perception=config.perception,
+        estimation=est,
+        gramian=config.gramian,
+        control=config.control,
+        desired_bearings=desired,
+    )
+
+
+def build_agent(config: ScenarioConfig, seed: int, drone_id: int) -> DroneAgent:
+    return DroneAgent(agent_setup(config, drone_id), initial_target_guesses(config, seed, drone_id))
+
+
+@dataclass(frozen=True)
+class RunRecord:
+    """Time series of a run; index k is step k (t = k·ΔT), before the motion of step k."""
+
+    config: ScenarioConfig
+    seed: int
+    times_s: Array  # (K,)
+    drone_positions_m: Array  # (K, N, 3)
+    velocities_m_s: Array  # (K, N, 3) commanded
+    target_positions_m: Array  # (K, M, 3)
+    target_velocities_m_s: Array  # (K, M, 3)
+    estimates: Array  # (K, N, M, n)
+    lambda_bar: Array  # (K, N, M) λ̄ of each drone's copy
+    psi0: Array  # (K, N, M)
+    psi1: Array  # (K, N, M)
+    weights: Array  # (K, N, M)
+    slacks: Array  # (K, N, M)
+    weight_slacks: Array  # (K, N, M)
+    detected: Array  # (K, N, M) bool
+    true_lambda_min: Array  # (K, M)
+    measured_lambda_min: Array  # (K, M)
+    bearing_errors: Array  # (K, N), NaN without a formation task
+    qp_fallback: Array  # (K, N) bool
+    step_us: Array  # (K, N)
+    wall_time_s: float
+
+    @property
+    def n_steps(self) -> int:
+        return int(self.times_s.shape[0])
+
+    def position_errors(self) -> Array:
+        """‖p̂_ir − p_r‖ per step, drone and target, (K, N, M) [m]."""
+        return np.linalg.norm(self.estimates[..., :3] - self.target_positions_m[:, None], axis=-1)
+
+    def min_pairwise_distance(self) -> float:
+        p = self.drone_positions_m
+        diff = p[:, :, None, :] - p[:, None, :, :]
+        dist = np.linalg.norm(diff, axis=-1)
+        n = p.shape[1]
+        dist[:, np.arange(n), np.arange(n)] = np.inf
+        return float(dist.min())
+
+
+StepCallback = Callable[[int, list[StepDiagnostics]], None]
+
+
+class MessageSink(Protocol):
+    """Where a run's messages go as the process swarm's recorder would hear them (a
+    ``swarm.observe.recording.Recorder``)."""
+
+    def put(self, message: BeaconWire | CameraFrameWire | TelemetryWire | TruthWire) -> None:
+        ...
+
+
+def run_reference(config: ScenarioConfig, seed: int | None = None,
+                  on_step: StepCallback | None = None,
+                  sink: MessageSink | None = None) -> RunRecord:
+    """Run the scenario in one process and return every time series.
+
+    ``sink``: also hand it, every step, the messages a process swarm's recording holds
+    (telemetry, beacons, camera frames, truth; ``swarm.observe.recording.record_reference``).
+    """
+    seed = config.scenario.seed if seed is None else seed
+    return _run(config, seed, on_step, sink)
+
+
+def _record_step(recorder: MessageSink, agents: list[DroneAgent], step: int, time_s: float,
+                 positions: Array, seen: list[Array], flying: Array,
+                 detections: list[list[Detection]], targets: Array, target_vel: Array,
+                 communicated: Array | None, diags: list[StepDiagnostics]) -> None:
+    """One step as the process swarm's recorder would hear it: each agent's beacon (what it
+    read from its autopilot and the velocity it flies) and telemetry, each camera frame, and
+    the ground truth."""
+    stamp_ms = round(time_s * 1000)
+    for i, agent in enumerate(agents):
+        recorder.put(CameraFrameWire.build(drone=i, step=step, time_s=time_s,
+                                           vehicle_time_ms=stamp_ms, detections=detections[i],
+                                           target_velocities=communicated))
+        recorder.put(BeaconWire.build(sender=i, step=step, time_s=time_s, position_m=seen[i],
+                                      velocity_m_s=flying[i]))
+        counters = TelemetryCounters(
+            qp_fallbacks=agent.qp_fallbacks, rejected_messages=agent.rejected_inputs,
+            missing_neighbour_messages=agent.missing_neighbour_messages, steps=step + 1,
+            mavlink_state="in-process")
+        recorder.put(telemetry_from_diagnostics(diags[i], seen[i], counters))
+    recorder.put(TruthWire.build(step=step, time_s=time_s, drone_positions=positions,
+                                 target_positions=targets, target_velocities=target_vel))
+
+
+def _run(config: ScenarioConfig, seed: int, on_step: StepCallback | None,
+         recorder: MessageSink | None) -> RunRecord:
+    """The run itself; every step also goes to ``recorder`` when one is given."""
+    started = time.perf_counter()
+    n, m, dt = config.swarm.n_drones, len(config.targets), config.scenario.dt_s
+    steps = config.n_steps
+    graph = config.swarm.graph
+    trajectories = [t.build() for t in config.targets]
+    agents = [build_agent(config, seed, i) for i in range(n)]
+    cameras = [stream(seed, STREAM_CAMERA, i) for i in range(n)]
+    positions = initial_drone_positions(config, seed)
+    n_state = agents[0].target_estimates.shape[1]
+    origins = [config.vehicles.origin_w(i) for i in range(n)]
+    truth = ReferenceGramians(m, config.gramian, config.perception, config.estimation.info_gain,
+                              dt)
+    flying = np.zeros((n, 3))  # the setpoint each drone flies (its beacon's velocity)
+    response = config.vehicles.velocity_response
+    vehicle_velocities = np.zeros((n, 3))  # every drone starts hovering
+
+    rec = {
+        "pos": np.zeros((steps, n, 3)), "vel": np.zeros((steps, n, 3)),
+        "tpos": np.zeros((steps, m, 3)), "tvel": np.zeros((steps, m, 3)),
+        "est": np.zeros((steps, n, m, n_state)), "lam": np.zeros((steps, n, m)),
+        "psi0": np.zeros((steps, n, m)), "psi1": np.zeros((steps, n, m)),
+        "w": np.zeros((steps, n, m)), "slack": np.zeros((steps, n, m)),
+        "wslack": np.zeros((steps, n, m)), "det": np.zeros((steps, n, m), dtype=bool),
+        "true": np.zeros((steps, m)), "meas": np.zeros((steps, m)),
+        "berr": np.full((steps, n), np.nan), "fb": np.zeros((steps, n), dtype=bool),
+        "us": np.zeros((steps, n)),
+    }
+    for k in range(steps):
+        t = k * dt
+        targets = np.array([traj.position(t) for traj in trajectories])
+        target_vel = np.array([traj.velocity(t) for traj in trajectories])
+        detections = [detect(positions[i], targets, config.camera, cameras[i]) for i in range(n)]
+        communicated = target_vel if config.estimation.model == "single_integrator" else None
+        # What each agent reads from its autopilot (LOCAL_POSITION_NED, float32 NED).
+        seen = [position_over_link(positions[i], origins[i]) for i in range(n)]
+        messages = [agents[i].begin_step(k, seen[i], detections[i], communicated)
+                    for i in range(n)]
+        for _ in range(agents[0].n_rounds):
+            inboxes = [{j: messages[j] for j in graph.neighbours[i]} for i in range(n)]
+            messages = [agents[i].consensus_round(inboxes[i]) for i in range(n)]
+        beacons = dict(enumerate(seen))
+        results = [agents[i].finish_step(beacons) for i in range(n)]
+        diags = [r.diagnostics for r in results]
+        if recorder is not None:
+            _record_step(recorder, agents, k, t, positions, seen, flying, detections, targets,
+                         target_vel, communicated, diags)
+            flying = np.array([r.velocity for r in results])
+
+        rec["pos"][k], rec["tpos"][k], rec["tvel"][k] = positions, targets, target_vel
+        for i, d in enumerate(diags):
+            rec["vel"][k, i] = d.velocity
+            rec["est"][k, i] = d.estimates
+            rec["lam"][k, i], rec["psi0"][k, i], rec["psi1"][k, i] = d.lambda_bar, d.psi0, d.psi1
+            rec["w"][k, i], rec["slack"][k, i], rec["wslack"][k, i] = (
+                d.weights, d.slacks, d.weight_slacks)
+            rec["det"][k, i], rec["fb"][k, i], rec["us"][k, i] = (
+                d.detected, d.qp_fallback, d.step_us)
+            if d.bearing_error is not None:
+                rec["berr"][k, i] = d.bearing_error
+        rec["true"][k], rec["meas"][k] = truth.lambda_min()
+        truth.advance(positions, targets, rec["det"][k])
+        if on_step is not None:
+            on_step(k, diags)
+        # The vehicle applies the float32 setpoint it received, clamped to u_max, through its
+        # velocity response (ideal by default: p + ΔT·u), exactly as the emulated vehicles.
+        for i in range(n):
+            positions[i], vehicle_velocities[i] = step_vehicle(
+                positions[i], vehicle_velocities[i], velocity_over_link(results[i].velocity),
+                config.control.u_max_m_s, dt, response)
+
+    return RunRecord(
+        config=config, seed=seed, times_s=np.arange(steps) * dt,
+        drone_positions_m=rec["pos"], velocities_m_s=rec["vel"],
+        target_positions_m=rec["tpos"], target_velocities_m_s=rec["tvel"],
+        estimates=rec["est"], lambda_bar=rec["lam"], psi0=rec["psi0"], psi1=rec["psi1"],
+        weights=rec["w"], slacks=rec["slack"], weight_slacks=rec["wslack"],
+        detected=rec["det"], true_lambda_min=rec["true"], measured_lambda_min=rec["meas"],
+        bearing_errors=rec["berr"], qp_fallback=rec["fb"], step_us=rec["us"],
+        wall_time_s=time.perf_counter() - started,
+    )

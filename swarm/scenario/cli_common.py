@@ -1,0 +1,125 @@
+"""What every command-line entry point shares: one-line errors, config loading, signals."""
+
+from __future__ import annotations
+
+import argparse
+import math
+import re
+import signal
+import sys
+import typing
+
+from swarm.scenario.config import ConfigError, ScenarioConfig, load_config
+
+EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
+EXIT_INTERRUPTED = 130  # 128 + SIGINT
+# Emulated vehicle i talks to agent i on UDP DEFAULT_MAVLINK_BASE + i. Clear of every port
+# autopilot SITL uses by default (PX4: 14540-14549 offboard, 14550 GCS, 14580+, 18570+,
+# 13030+, 14030+, 19410+; ArduPilot: TCP 5760+, UDP 5501+, 9002+, MAVProxy 14550/14551), so
+# that an emulated run never hears a real autopilot of the same machine, and below Linux's
+# ephemeral ports (32768+).
+DEFAULT_MAVLINK_BASE = 24540
+RUN_ID_PATTERN = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse prints the usage block before an error; our errors are one line."""
+
+    def error(self, message: str) -> typing.NoReturn:
+        print(f"{self.prog}: error: {message} (see --help)", file=sys.stderr)
+        sys.exit(EXIT_USAGE)
+
+
+def fail(prog: str, message: str, code: int = EXIT_USAGE) -> int:
+    """One plain line on stderr: never wrapped, never styled, no traceback."""
+    print(f"{prog}: {' '.join(message.split())}", file=sys.stderr)
+    return code
+
+
+def positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
+    return value
+
+
+def _int_in(text: str, low: int, high: int, what: str, bounds: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not {what}: {text!r}") from None
+    if not low <= value <= high:
+        raise argparse.ArgumentTypeError(f"must be in {bounds}, got {text!r}")
+    return value
+
+
+def seed(text: str) -> int:
+    return _int_in(text, 0, 2**63 - 1, "an integer", "[0, 2^63)")
+
+
+def fraction(text: str) -> float:
+    """A probability in [0, 1)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not (math.isfinite(value) and 0.0 <= value < 1.0):
+        raise argparse.ArgumentTypeError(f"must be in [0, 1), got {text!r}")
+    return value
+
+
+def step_count(text: str) -> int:
+    return _int_in(text, 0, 1000, "an integer", "[0, 1000]")
+
+
+def restart_count(text: str) -> int:
+    return _int_in(text, 0, 100, "an integer", "[0, 100]")
+
+
+def port(text: str) -> int:
+    return _int_in(text, 1, 65535, "a port number", "[1, 65535]")
+
+
+def run_id(text: str) -> str:
+    if not RUN_ID_PATTERN.match(text):
+        raise argparse.ArgumentTypeError(
+            f"must be 1-64 characters of A-Z a-z 0-9 _ - (got {text!r})")
+    return text
+
+
+def add_run_arguments(parser: argparse.ArgumentParser, *, run_id_help: str) -> None:
+    """The options that name one run, shared by the world and the agent processes."""
+    parser.add_argument("--run-id", type=run_id, default="vigil", help=run_id_help)
+    parser.add_argument("--mode", choices=("lockstep", "realtime"), default="lockstep")
+    parser.add_argument("--seed", type=seed, default=None, help="default: scenario.seed")
+    parser.add_argument("--duration", type=positive_float, default=None, metavar="S")
+
+
+def load_scenario(path: str, duration_s: float | None, *,
+                  autopilot: str | None = None) -> ScenarioConfig:
+    """Config file plus an optional --duration; ConfigError (one line) when unusable.
+    ``autopilot``: real autopilots of that flavour fly the drones (``load_config``)."""
+    config = load_config(path, autopilot=autopilot)
+    if duration_s is not None:
+        config = config.with_duration(duration_s)
+    return config
+
+
+def terminate_on_sigterm() -> None:
+    """Turn SIGTERM into KeyboardInterrupt so ``finally`` blocks close sessions and sockets;
+    and make SIGINT (Ctrl-C) do the same even when the process inherited it ignored — a shell
+    starts background commands so, and Python then leaves it ignored: the swarm would fly on
+    through a Ctrl-C sent to it (seen: a launch-swarm under a backgrounded test run)."""
+
+    def _raise(_signum: int, _frame: object) -> None:
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, _raise)
+    signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+__all__ = ["ConfigError", "OneLineParser", "add_run_arguments", "fail", "load_scenario", "port",
+           "positive_float", "run_id", "seed", "terminate_on_sigterm"]

@@ -1,0 +1,1 @@
+"""Helpers shared by the tests: processes, SITL boots, network namespaces, fuzzing, TLS."""

@@ -1,0 +1,1 @@
+"""Tests of swarm.launch: launch-swarm end to end, on the emulator and on real autopilots."""

@@ -1,0 +1,1 @@
+"""Tests of swarm.mavlink, against real autopilot firmware where it is present."""

@@ -1,0 +1,1 @@
+"""Tests of swarm.net: real Zenoh sessions between real processes."""

@@ -1,0 +1,1 @@
+"""Tests of swarm.runs: the thesis' cases run in process."""
