@@ -10,11 +10,12 @@ from sim_world.world import World, WorldOptions
 from swarm.net.transport import check_tls_endpoints, local_endpoint
 from swarm.scenario.cli_common import (
     DEFAULT_MAVLINK_BASE,
-    EXIT_INTERRUPTED,
     ConfigError,
     OneLineParser,
     add_run_arguments,
+    exit_code,
     fail,
+    fail_on,
     load_scenario,
     port,
     terminate_on_sigterm,
@@ -51,7 +52,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         config = load_scenario(args.config, args.duration)
     except ConfigError as err:
-        return fail(PROG, f"config error: {err}")
+        return fail_on(PROG, err, "config error: ")
     try:
         mavlink_hosts(args.mavlink_host, config.swarm.n_drones)
     except ValueError as err:
@@ -76,12 +77,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         world = World(options)
         return world.run()
-    except KeyboardInterrupt:
-        return EXIT_INTERRUPTED
+    except KeyboardInterrupt as err:
+        return exit_code(err)
     except ConfigError as err:  # the signing key file, read again when the vehicles start
-        return fail(PROG, f"config error: {err}")
+        return fail_on(PROG, err, "config error: ")
     except OSError as err:
-        return fail(PROG, f"cannot open the world's sockets: {err}", 1)
+        return fail_on(PROG, err, "cannot open the world's sockets: ")
     finally:
         if world is not None:
             world.close()

@@ -16,10 +16,11 @@ from sim_world.fleet import VehicleFleet, serve_forever
 from swarm.runs.reference import initial_drone_positions
 from swarm.scenario.cli_common import (
     DEFAULT_MAVLINK_BASE,
-    EXIT_INTERRUPTED,
+    EXIT_OK,
     ConfigError,
     OneLineParser,
-    fail,
+    exit_code,
+    fail_on,
     load_scenario,
     port,
     seed,
@@ -47,11 +48,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         config = load_scenario(args.config, None)
     except ConfigError as err:
-        return fail(PROG, f"config error: {err}")
+        return fail_on(PROG, err, "config error: ")
     try:
         signing_key = config.vehicles.signing_key()
     except ConfigError as err:
-        return fail(PROG, f"config error: {err}")
+        return fail_on(PROG, err, "config error: ")
     terminate_on_sigterm()
     seed_value = config.scenario.seed if args.seed is None else args.seed
     started = time.monotonic()
@@ -65,17 +66,17 @@ def main(argv: Sequence[str] | None = None) -> int:
             clock=lambda: time.monotonic() - started, signing_key=signing_key,
             start=config.vehicles.start, response=config.vehicles.velocity_response)
     except OSError as err:
-        return fail(PROG, f"cannot open the vehicles' sockets: {err}", 1)
+        return fail_on(PROG, err, "cannot open the vehicles' sockets: ")
     print(f"sim-vehicles: {len(fleet)} {config.vehicles.flavour} vehicles sending to "
           f"{args.mavlink_host}:{args.mavlink_base}..{args.mavlink_base + len(fleet) - 1}"
           f"{', MAVLink 2 signing on' if signing_key is not None else ''}", flush=True)
     try:
         serve_forever(fleet, config.scenario.dt_s, started)
-    except KeyboardInterrupt:
-        return EXIT_INTERRUPTED
+    except KeyboardInterrupt as err:
+        return exit_code(err)
     finally:
         fleet.close()
-    return 0
+    return EXIT_OK
 
 
 if __name__ == "__main__":

@@ -24,7 +24,7 @@ from typing import Literal
 import numpy as np
 
 from sim_world.fleet import VehicleFleet
-from swarm.errors import VigilError
+from swarm.errors import EXIT_FAILED, EXIT_OK, VigilError
 from swarm.messages.wire import (
     BeaconWire,
     CameraFrameWire,
@@ -329,11 +329,11 @@ class World:
             log(f"world: mission complete ({opts.config.n_steps} steps); rejected "
                 f"{self.rejected_total()} malformed inputs")
             self.linger()
-            return 0
+            return EXIT_OK
         except WorldAbortError as err:
             self.publish_clock(0, "aborted", str(err))
             log(f"world: mission aborted: {err}")
-            return 1
+            return EXIT_FAILED
 
     def linger(self) -> None:
         """Keep the router and the vehicles up for a while after the mission, so that the

@@ -19,11 +19,12 @@ from swarm.mavlink.link import LinkError  # noqa: E402
 from swarm.net.transport import LinkFaults, check_tls_endpoints, local_endpoint  # noqa: E402
 from swarm.scenario.cli_common import (  # noqa: E402
     DEFAULT_MAVLINK_BASE,
-    EXIT_INTERRUPTED,
     ConfigError,
     OneLineParser,
     add_run_arguments,
+    exit_code,
     fail,
+    fail_on,
     fraction,
     load_scenario,
     step_count,
@@ -61,7 +62,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         config = load_scenario(args.config, args.duration)
     except ConfigError as err:
-        return fail(PROG, f"config error: {err}")
+        return fail_on(PROG, err, "config error: ")
     if not 0 <= args.id < config.swarm.n_drones:
         return fail(PROG, f"--id {args.id} is out of range 0..{config.swarm.n_drones - 1} "
                           f"for {config.source}")
@@ -90,14 +91,14 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         process = AgentProcess(options)
         return process.run()
-    except KeyboardInterrupt:
-        return EXIT_INTERRUPTED
+    except KeyboardInterrupt as err:
+        return exit_code(err)
     except LinkError as err:
-        return fail(PROG, str(err), 1)
+        return fail_on(PROG, err)
     except ConfigError as err:  # the signing key file, read again when the link opens
-        return fail(PROG, f"config error: {err}")
+        return fail_on(PROG, err, "config error: ")
     except OSError as err:
-        return fail(PROG, f"drone {args.id}: {err}", 1)
+        return fail_on(PROG, err, f"drone {args.id}: ")
     finally:
         if process is not None:
             process.close()

@@ -29,7 +29,7 @@ from typing import Literal
 import numpy as np
 
 from swarm.core.agent import ConsensusMessage, DroneAgent, StepDiagnostics
-from swarm.errors import VigilError
+from swarm.errors import EXIT_END_MISSION, EXIT_FAILED, EXIT_OK, VigilError
 from swarm.mavlink.link import AutopilotLink, LinkError
 from swarm.messages.wire import (
     BeaconWire,
@@ -58,7 +58,7 @@ from swarm.runs.reference import build_agent, initial_drone_positions
 from swarm.scenario.config import ScenarioConfig
 from swarm.watch.command_reference import CommandReference
 from swarm.watch.localization_watch import LocalizationWatch
-from swarm.watch.vehicle_watch import EXIT_END_MISSION, VehicleWatch
+from swarm.watch.vehicle_watch import VehicleWatch
 
 Mode = Literal["lockstep", "realtime"]
 WAIT_SLICE_S = 0.25  # lockstep waits wake at least this often to check their deadline
@@ -607,19 +607,19 @@ class AgentProcess:
                 log(f"drone {self.id}: mission complete; {self.agent.qp_fallbacks} QP "
                     f"fallbacks, {self.late_steps} late steps, "
                     f"{self.rejections.total() + self.link.rejected_frames} rejected inputs")
-                return 0
+                return EXIT_OK
             log(f"drone {self.id}: mission aborted by the world: {over}")
-            return 1
+            return EXIT_FAILED
         except LinkError as err:
             log(str(err) if str(err).startswith("drone ") else f"drone {self.id}: {err}")
-            return 1
+            return EXIT_FAILED
         except VehicleNotAsAsked as policy:
             if str(policy) == "end":
                 log(f"drone {self.id}: ending the mission (vehicles.on_vehicle_event = end)")
                 return EXIT_END_MISSION
             log(f"drone {self.id}: leaving the swarm (vehicles.on_vehicle_event = leave)")
-            return 1
-        return 0
+            return EXIT_FAILED
+        return EXIT_OK
 
     def close(self) -> None:
         for sub in self._subscribers:

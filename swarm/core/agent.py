@@ -20,12 +20,14 @@ import math
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
 from swarm.core import _lapack, icf
 from swarm.core.barrier import localization_barrier_scalars, robust_lower_bound
+from swarm.core.consensus_layout import ConsensusLayout
 from swarm.core.formation import bearing_formation_scalars
 from swarm.core.gramian import initial_gramian
 from swarm.core.params import ControlParams, EstimationParams, GramianParams, PerceptionParams
@@ -171,18 +173,22 @@ class DroneAgent:
         parts = [self._n_info + r * n + a for r in range(m) for a in range(3)]
         self._measurement_index = np.array(blocks + parts)
         self._measurement_terms = np.zeros_like(self._icf)  # zero outside those positions
-        # Consensus states packed as one list of floats (SPEC §6): the estimates s (wΠ̂: 9M,
-        # w: M), their integrals η (9M, M), then the Gramian copies G (9M).
-        self._cons = [0.0] * (20 * m) + initial_gramian(gram.epsilon).ravel().tolist() * m
+        # Consensus states packed as one list of floats (SPEC §6, ``ConsensusLayout``).
+        self._layout = layout = ConsensusLayout(m)
+        cons = [0.0] * layout.size
+        cons[layout.gramian] = initial_gramian(gram.epsilon).ravel().tolist() * m
+        self._cons = cons
         self._cons_array = np.array(self._cons)
         self._consensus_started = False  # s_i(0) = u_i(0) is set on the first step
-        self._disagreement = np.zeros(29 * m)  # Σ_j (x_i − x_j) of the round-0 states
-        self._operator = _consensus_operator(m, setup.dt_s, gram, est.info_gain * setup.n_drones)
+        self._disagreement = np.zeros(layout.size)  # Σ_j (x_i − x_j) of the round-0 states
+        self._operator = _consensus_operator(layout, setup.dt_s, gram,
+                                             est.info_gain * setup.n_drones)
         self._neighbours = setup.neighbours
         self._weight_columns: dict[tuple[int, ...], Array] = {}
         self._perception = perception_constants(setup.perception)
-        self._barrier_constants = (setup.n_drones, gram.forgetting, gram.epsilon,
-                                   gram.smooth_min_exponent, est.info_gain)
+        self._barrier_constants = _BarrierConstants(setup.n_drones, gram.forgetting,
+                                                    gram.epsilon, gram.smooth_min_exponent,
+                                                    est.info_gain)
         self._single_integrator = est.model == "single_integrator"
         self._qp_relaxed = LocalQpWorkspace(
             m, setup.n_drones - 1, relaxed=True, slack_weight=ctrl.slack_weight,
@@ -247,9 +253,9 @@ class DroneAgent:
         self._swarm_size = n_live
         self._filter = icf.StackedFilter(self._filter.transition, est.process_noise, n_live,
                                          setup.dt_s)
-        self._operator = _consensus_operator(setup.n_targets, setup.dt_s, gram,
+        self._operator = _consensus_operator(self._layout, setup.dt_s, gram,
                                              est.info_gain * n_live)
-        self._barrier_constants = (n_live, *self._barrier_constants[1:])
+        self._barrier_constants = self._barrier_constants._replace(n_agents=n_live)
 
     def begin_step(
         self,
@@ -390,17 +396,19 @@ class DroneAgent:
         constants = self._perception
         terms = [perception_scalars(own, estimates[r], constants) for r in range(m)]
         cons = self._cons
-        eigenvalues, eigenvectors = _lapack.eigh_lists(self._cons_array[20 * m:].reshape(m, 3, 3))
+        layout = self._layout
+        eigenvalues, eigenvectors = _lapack.eigh_lists(
+            self._cons_array[layout.gramian].reshape(m, 3, 3))
         n_agents, forgetting, epsilon, exponent, info_gain = self._barrier_constants
         barriers = [
             localization_barrier_scalars(
-                eigenvalues[r], eigenvectors[r], cons[9 * r:9 * r + 9], terms[r],
+                eigenvalues[r], eigenvectors[r], cons[layout.target_projector_mean(r)], terms[r],
                 target_velocities[r], n_agents=n_agents, forgetting=forgetting,
                 epsilon=epsilon, exponent=exponent, info_gain=info_gain)
             for r in range(m)
         ]
-        weights = [t[0] for t in terms]
-        weight_sums = [n_drones * w for w in cons[9 * m:10 * m]]  # S_w = N · s_w
+        weights = [t.weight for t in terms]
+        weight_sums = [n_drones * w for w in cons[layout.weight_mean]]  # S_w = N · s_w
         t2 = time.perf_counter()
 
         nominal, formation_error = self._nominal_velocity(own, clean_beacons)
@@ -442,8 +450,8 @@ class DroneAgent:
         self.missing_neighbour_messages += self._missing
         self.rejected_inputs += self._rejected
         self._phase = "idle"
-        series = np.array([b[0] for b in barriers] + [b[1] for b in barriers]
-                          + [b[2] for b in barriers] + weights + weight_sums)
+        series = np.array([b.lambda_bar for b in barriers] + [b.psi0 for b in barriers]
+                          + [b.psi1 for b in barriers] + weights + weight_sums)
         if slacks is None:
             slacks, weight_slacks = np.zeros(m), np.zeros(m)
         diagnostics = _build(
@@ -474,8 +482,7 @@ class DroneAgent:
 
     @property
     def gramian_copies(self) -> Array:
-        m = self.setup.n_targets
-        return self._cons_array[20 * m:].reshape(m, 3, 3).copy()
+        return self._layout.unpack(self._cons_array)["gramian"].copy()
 
     @property
     def target_estimates(self) -> Array:
@@ -500,16 +507,10 @@ class DroneAgent:
                           round=rnd, information=information, information_vector=vector,
                           projector_mean=None, projector_integral=None, weight_mean=None,
                           weight_integral=None, gramian=None)
-        cons = self._cons_array.copy()
         return _build(
             ConsensusMessage, sender=self.setup.drone_id, step=self._step, round=rnd,
             information=information, information_vector=vector,
-            projector_mean=cons[:9 * m].reshape(m, 3, 3),
-            projector_integral=cons[10 * m:19 * m].reshape(m, 3, 3),
-            weight_mean=cons[9 * m:10 * m],
-            weight_integral=cons[19 * m:20 * m],
-            gramian=cons[20 * m:].reshape(m, 3, 3),
-        )
+            **self._layout.unpack(self._cons_array.copy()))
 
     def _gather(self, inbox: Mapping[int, ConsensusMessage],
                 first: bool) -> tuple[tuple[int, ...], Array]:
@@ -546,7 +547,7 @@ class DroneAgent:
                     self._rejected += 1
                     continue
                 parts += (msg.information.ravel(), msg.information_vector.ravel(),
-                          s_proj.ravel(), s_w, eta_proj.ravel(), eta_w, g.ravel())
+                          *self._layout.pack(s_proj, s_w, eta_proj, eta_w, g))
             else:
                 if _has_states(msg) and not msg.is_finite():
                     self._rejected += 1
@@ -598,7 +599,7 @@ class DroneAgent:
         (``_consensus_operator``): one gather, one product, one sum, the same update as
         ``pi_consensus_step`` and ``gramian_step`` up to round-off.
         """
-        local_input = [w * x for w, t in zip(weights, terms, strict=True) for x in t[4]]
+        local_input = [w * x for w, t in zip(weights, terms, strict=True) for x in t.projector]
         local_input += weights  # u_i = [w Π̂ (9M), w (M)]
         local_input.append(0.0)  # what unused operator terms point at
         stacked = np.concatenate((self._cons_array, self._disagreement, local_input))
@@ -609,12 +610,13 @@ class DroneAgent:
 
     def _initialise_consensus_states(self) -> None:
         """s_i(0) = u_i(0) from the initial estimate, η_i(0) = 0 (SPEC §6)."""
-        m = self.setup.n_targets
+        m, layout = self.setup.n_targets, self._layout
         terms = [perception_terms(self._position, self._prior_state[r, :3],
                                   self.setup.perception) for r in range(m)]
         cons = list(self._cons)
-        cons[:9 * m] = np.array([t.weight * t.projector for t in terms]).ravel().tolist()
-        cons[9 * m:10 * m] = [t.weight for t in terms]
+        cons[layout.projector_mean] = np.array([t.weight * t.projector
+                                                for t in terms]).ravel().tolist()
+        cons[layout.weight_mean] = [t.weight for t in terms]
         self._cons = cons
         self._cons_array = np.array(cons)
         self._consensus_started = True
@@ -636,11 +638,11 @@ class DroneAgent:
         inactive slots "0 ≥ −1"), each bound tightened by ē‖a‖ for the vehicle's tracking
         error (``robust_lower_bound``; ē = ``control.tracking_error_bound_m_s``)."""
         ctrl, n, slots = self.setup.control, self._swarm_size, self.setup.n_drones - 1
-        rows = [b[3] for b in barriers] + [t[1] for t in terms]
-        lower = [b[4] for b in barriers]
+        rows = [b.lie_g for b in barriers] + [t.weight_grad_drone for t in terms]
+        lower = [b.lower_bound for b in barriers]
         gamma = ctrl.gamma
         for t, v, s_w in zip(terms, target_velocities, weight_sums, strict=True):
-            grad = t[1]
+            grad = t.weight_grad_drone
             lower.append(-(s_w - gamma) / n + (grad[0] * v[0] + grad[1] * v[1] + grad[2] * v[2]))
         px, py, pz = position
         radius, delta, gain = (ctrl.collision_radius_m, ctrl.collision_distance_m,
@@ -685,6 +687,16 @@ class DroneAgent:
         return relaxed, self._qp_hard is not None or not relaxed.found, False
 
 
+class _BarrierConstants(NamedTuple):
+    """The scalars ``localization_barrier_scalars`` takes besides the state, looked up once."""
+
+    n_agents: int  # N, the swarm size the barrier is written for
+    forgetting: float  # ρ
+    epsilon: float  # ε
+    exponent: float  # p of λ̄
+    info_gain: float  # b
+
+
 _ZERO3 = (0.0, 0.0, 0.0)
 _ZERO9 = (0.0,) * 9
 
@@ -698,28 +710,29 @@ def _build(cls: type, **fields: object):  # type: ignore[no-untyped-def]
     return obj
 
 
-def _consensus_operator(m: int, dt: float, gram: GramianParams,
+def _consensus_operator(layout: ConsensusLayout, dt: float, gram: GramianParams,
                         rate_gain: float) -> tuple[Array, Array]:
     """Gather index and coefficients of the consensus step on z = [x, D, u] (SPEC §6).
 
-    x = [s (wΠ̂ 9M, w M), η (10M), G (9M)] is the packed state, D = Σ_j (x − x_j) over the
+    x is the packed state (``ConsensusLayout``: s, η, G), D = Σ_j (x − x_j) over the
     round-0 neighbours, u = [wΠ̂, w] the local input. With K = (ζ, K_p, K_i) per entry:
     s' = (1 − ΔTζ) s + ΔTζ u − ΔT K_p D_s + ΔT K_i D_η (3.30), η' = η − ΔT K_i D_s, and
     G' = ½(Ĝ + Ĝᵀ) with Ĝ = (1 − ΔTρ) G + ΔT bN s_wΠ̂ − ΔT c D_G (3.29, Σ_j (G_j − G) = −D_G).
     Returns (index, coefficients), each (6, 29M); unused terms point at the 0 that ends z.
     """
-    n = 29 * m
+    m, n = layout.n_targets, layout.size
+    means, integrals, gramian = layout.means, layout.integrals, layout.gramian
     d0, u0 = n, 2 * n  # offsets of D and u in z
-    index = np.full((6, n), 2 * n + 10 * m, dtype=np.intp)
+    index = np.full((6, n), u0 + means.stop, dtype=np.intp)
     coefficients = np.zeros((6, n))
 
     def put(row: int, entry: int, source: int, coefficient: float) -> None:
         index[row, entry], coefficients[row, entry] = source, coefficient
 
     pc, wc = gram.projector_consensus, gram.weight_consensus
-    for i in range(10 * m):
-        gains = pc if i < 9 * m else wc
-        e = 10 * m + i  # the matching η entry
+    for i in range(means.start, means.stop):
+        gains = pc if i < layout.projector_mean.stop else wc
+        e = integrals.start + i  # the matching η entry
         put(0, i, i, 1.0 - dt * gains.zeta)
         put(1, i, u0 + i, dt * gains.zeta)
         put(2, i, d0 + i, -dt * gains.kp)
@@ -731,11 +744,11 @@ def _consensus_operator(m: int, dt: float, gram: GramianParams,
         for a in range(3):
             for b in range(3):
                 k, kt = 9 * r + 3 * a + b, 9 * r + 3 * b + a  # G[a, b] and G[b, a] in the block
-                i, it = 20 * m + k, 20 * m + kt
+                i, it = gramian.start + k, gramian.start + kt
                 put(0, i, i, 0.5 * keep)
                 put(1, i, it, 0.5 * keep)
-                put(2, i, k, 0.5 * rate)
-                put(3, i, kt, 0.5 * rate)
+                put(2, i, layout.projector_mean.start + k, 0.5 * rate)  # s of wΠ̂ (3.29)
+                put(3, i, layout.projector_mean.start + kt, 0.5 * rate)
                 put(4, i, d0 + i, 0.5 * couple)
                 put(5, i, d0 + it, 0.5 * couple)
     return index, coefficients

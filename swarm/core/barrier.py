@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -77,7 +78,14 @@ def localization_barrier(
 
 
 # (λ̄, ψ0, ψ1, L_gi ψ1, lower bound) of one target, as plain floats.
-BarrierScalars = tuple[float, float, float, tuple[float, float, float], float]
+class BarrierScalars(NamedTuple):
+    """What ``LocalizationBarrier`` gives the QP, as plain floats."""
+
+    lambda_bar: float  # λ̄
+    psi0: float  # ψ0 = λ̄ − ε
+    psi1: float  # ψ1 = ⟨Γ, Ġ⟩ + ψ0
+    lie_g: tuple[float, float, float]  # L_gi ψ1
+    lower_bound: float  # −(c + ψ1)/N − d_i (3.32)
 
 
 def localization_barrier_scalars(
@@ -106,7 +114,7 @@ def localization_barrier_scalars(
       ⟨Γ, ∂Π̂/∂p_i,k⟩ = (1/d̂)(t_kᵀΓβ̂ + β̂ᵀΓt_k) = (2/d̂)(Π̂Γβ̂)_k, t_k = Π̂e_k (B.15),
 
     identities that hold exactly, so the results equal ``localization_barrier``'s up to
-    round-off. Returns (λ̄, ψ0, ψ1, L_gi ψ1, lower bound of 3.32).
+    round-off.
     """
     value, _, (g0, g1, g2), hess, theta = smooth_min_scalars(eigenvalues, exponent)
     (v00, v01, v02), (v10, v11, v12), (v20, v21, v22) = eigenvectors
@@ -156,7 +164,7 @@ def localization_barrier_scalars(
               + 2.0 * (theta[0] * o01 * o01 + theta[1] * o02 * o02 + theta[2] * o12 * o12))
     coupling = second + (1.0 - forgetting) * along_rate
     lower = -(coupling + psi1) / n_agents - drift
-    return value, psi0, psi1, lie_g, lower
+    return BarrierScalars(value, psi0, psi1, lie_g, lower)
 
 
 def weight_sum_row(

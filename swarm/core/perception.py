@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -71,19 +72,32 @@ def perception_terms(
     return PerceptionTerms(w_d * w_b, grad, unit, distance, proj)
 
 
-# (D_m^th, D_M^th, σ_Dm², σ_DM², cos α_M^th, σ_β²) as plain floats, looked up once.
-PerceptionConstants = tuple[float, float, float, float, float, float]
+class PerceptionConstants(NamedTuple):
+    """The parameters ``perception_scalars`` needs, as plain floats, looked up once."""
+
+    d_min_th_m: float  # D_m^th
+    d_max_th_m: float  # D_M^th
+    sigma_dmin_sq_m2: float  # σ_Dm²
+    sigma_dmax_sq_m2: float  # σ_DM²
+    cos_alpha_th: float  # cos α_M^th
+    sigma_beta_sq: float  # σ_β²
 
 
 def perception_constants(params: PerceptionParams) -> PerceptionConstants:
-    """The parameters ``perception_scalars`` needs, in its order."""
-    return (params.d_min_th_m, params.d_max_th_m, params.sigma_dmin_sq_m2,
-            params.sigma_dmax_sq_m2, params.cos_alpha_th, params.sigma_beta_sq)
+    """The parameters ``perception_scalars`` needs."""
+    return PerceptionConstants(params.d_min_th_m, params.d_max_th_m, params.sigma_dmin_sq_m2,
+                               params.sigma_dmax_sq_m2, params.cos_alpha_th,
+                               params.sigma_beta_sq)
 
 
-# (w, ∂w/∂p_i, β̂, d̂, Π̂ row-major): what ``PerceptionTerms`` holds, as plain floats.
-PerceptionScalars = tuple[float, tuple[float, float, float], tuple[float, float, float], float,
-                          tuple[float, float, float, float, float, float, float, float, float]]
+class PerceptionScalars(NamedTuple):
+    """What ``PerceptionTerms`` holds, as plain floats (Π̂ row-major)."""
+
+    weight: float  # w_ir
+    weight_grad_drone: tuple[float, float, float]  # ∂w/∂p_i
+    unit_bearing: tuple[float, float, float]  # β̂
+    distance_m: float  # d̂
+    projector: tuple[float, float, float, float, float, float, float, float, float]  # Π̂
 
 
 def perception_scalars(
@@ -124,7 +138,7 @@ def perception_scalars(
     a = -(w_b * dw_d)
     c = w_d * dw_b / distance
     grad = (a * bx + c * pxz, a * by + c * pyz, a * bz + c * proj[8])
-    return w_d * w_b, grad, (bx, by, bz), distance, proj
+    return PerceptionScalars(w_d * w_b, grad, (bx, by, bz), distance, proj)
 
 
 def perception_weight(

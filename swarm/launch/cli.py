@@ -24,6 +24,7 @@ from swarm.mavlink.sitl import (
     ENV_VARIABLE,
     KINDS,
     Firmware,
+    FirmwareError,
     SitlError,
     firmware_from_env,
 )
@@ -36,10 +37,11 @@ from swarm.runs.reference import RunRecord, run_reference
 from swarm.scenario.cli_common import (
     DEFAULT_MAVLINK_BASE,
     EXIT_FAILED,
-    EXIT_INTERRUPTED,
     ConfigError,
     OneLineParser,
+    exit_code,
     fail,
+    fail_on,
     load_scenario,
     port,
     positive_float,
@@ -157,7 +159,7 @@ def sitl_firmware(value: str | None) -> Firmware | None:
         firmware = firmware_from_env(value)  # type: ignore[arg-type]
         if firmware is None:
             variable = ENV_VARIABLE[value]  # type: ignore[index]
-            raise SitlError(f"--sitl {value}: ${variable} is not set (give the path of the "
+            raise FirmwareError(f"--sitl {value}: ${variable} is not set (give the path of the "
                             f"build instead)")
         return firmware
     return Firmware.at(value)
@@ -196,7 +198,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         config = load_scenario(args.config, args.duration)
     except ConfigError as err:
-        return fail(PROG, f"config error: {err}")
+        return fail_on(PROG, err, "config error: ")
     seed_value = config.scenario.seed if args.seed is None else args.seed
     for flag, given in (("--agent-restarts", args.agent_restarts),
                         ("--kill-agent", args.kill_agents)):
@@ -207,7 +209,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         sitl = sitl_firmware(args.sitl)
         config = with_mavlink_urls(config, dict(args.mavlink))
     except (SitlError, ConfigError) as err:
-        return fail(PROG, str(err))
+        return fail_on(PROG, err)
     real = sitl is not None or bool(config.vehicles.mavlink_urls)
     if real:  # the tracking margins the config leaves out: the firmware's fitted ones
         autopilot = sitl.kind if sitl is not None else config.vehicles.flavour
@@ -215,7 +217,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             config = with_mavlink_urls(load_scenario(args.config, args.duration,
                                                      autopilot=autopilot), dict(args.mavlink))
         except ConfigError as err:
-            return fail(PROG, f"config error: {err}")
+            return fail_on(PROG, err, "config error: ")
     reason = realtime_only_reason(config.vehicles, mode=args.mode, inprocess=args.inprocess,
                                   external=real)
     if reason is not None:
@@ -259,15 +261,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             print_process_counters(launcher.collector, console)
             counters = launcher.collector.drone_counters()
     except InitialPlacementError as err:
-        return fail(PROG, f"config error: {config.source}: swarm.initial_box_size_m: {err}")
+        return fail_on(PROG, err, f"config error: {config.source}: swarm.initial_box_size_m: ")
     except MissionError as err:
-        print(f"{PROG}: mission failed: {err}", file=sys.stderr)
-        return EXIT_FAILED
+        return fail_on(PROG, err, "mission failed: ")
     except RecordingError as err:
-        return fail(PROG, f"recording failed: {err}", EXIT_FAILED)
-    except KeyboardInterrupt:
+        return fail_on(PROG, err, "recording failed: ")
+    except KeyboardInterrupt as err:
         print(f"{PROG}: interrupted; every process stopped", file=sys.stderr)
-        return EXIT_INTERRUPTED
+        return exit_code(err)
     if args.inprocess:
         return print_summary(record, console)
     code = print_summary(record, console, args.mode, counters)

@@ -36,7 +36,7 @@ from typing import IO
 import numpy as np
 import zenoh
 
-from swarm.errors import VigilError
+from swarm.errors import EXIT_END_MISSION, VigilError
 from swarm.mavlink.sitl import (
     DEFAULT_BOOT_SPEEDUP,
     Firmware,
@@ -70,7 +70,6 @@ from swarm.observe.recording import AutopilotState, Recorder, RecordingError, Re
 from swarm.runs.reference import RunRecord, initial_drone_positions
 from swarm.scenario.cli_common import DEFAULT_MAVLINK_BASE
 from swarm.scenario.config import ScenarioConfig, write_resolved_config
-from swarm.watch.vehicle_watch import EXIT_END_MISSION
 
 # Listen this long for datagrams before taking a block of MAVLink ports: PX4 SITL streams its
 # offboard link at tens of messages a second, ArduPilot at least a 1 Hz heartbeat (agents also

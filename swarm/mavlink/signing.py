@@ -24,7 +24,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from swarm.errors import VigilError
+from swarm.errors import UsageError
 
 __all__ = ["KEY_BYTES", "SigningKeyError", "enable_signing", "read_signing_key",
            "refresh_signing_timestamp", "signing_timestamp"]
@@ -34,7 +34,7 @@ _EPOCH_2015_S = 1420070400  # MAVLink signing timestamps count 10 µs units sinc
 _MAX_KEY_FILE_BYTES = 4096  # a key file is tiny; do not read a wrongly named big file
 
 
-class SigningKeyError(VigilError, ValueError):
+class SigningKeyError(UsageError, ValueError):
     """The key file cannot be used; the message is one line and never shows its content."""
 
 

@@ -61,7 +61,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from swarm.errors import VigilError
+from swarm.errors import UsageError, VigilError
 
 Kind = Literal["ardupilot", "px4"]
 KINDS: tuple[Kind, ...] = ("ardupilot", "px4")
@@ -80,6 +80,10 @@ Array = NDArray[np.float64]
 
 class SitlError(VigilError, RuntimeError):
     """An autopilot SITL instance could not be found, started or brought up; one line."""
+
+
+class FirmwareError(SitlError, UsageError):
+    """A path or variable that names no usable SITL build (input, not a failed run)."""
 
 
 # -- finding the firmware ----------------------------------------------------------------------
@@ -125,7 +129,7 @@ class Firmware:
                 firmware = cls("px4", root.resolve())
                 firmware.check()
                 return firmware
-            raise SitlError(f"{path}: not a PX4 SITL build directory (no bin/px4 and etc/ "
+            raise FirmwareError(f"{path}: not a PX4 SITL build directory (no bin/px4 and etc/ "
                             f"in it); give the arducopter binary or the PX4 build directory")
         if path.is_file():
             if path.name == "px4" and (path.parent.parent / "etc").is_dir():
@@ -133,18 +137,18 @@ class Firmware:
             firmware = cls("ardupilot", path.resolve())
             firmware.check()
             return firmware
-        raise SitlError(f"{path}: no such file or directory (expected the arducopter SITL "
+        raise FirmwareError(f"{path}: no such file or directory (expected the arducopter SITL "
                         f"binary or a PX4 SITL build directory)")
 
     def check(self) -> None:
         executable = self.executable
         if not executable.is_file():
-            raise SitlError(f"{executable}: no such file")
+            raise FirmwareError(f"{executable}: no such file")
         if not os.access(executable, os.X_OK):
-            raise SitlError(f"{executable}: not executable (chmod +x?)")
+            raise FirmwareError(f"{executable}: not executable (chmod +x?)")
         with executable.open("rb") as handle:
             if handle.read(4) != b"\x7fELF":
-                raise SitlError(f"{executable}: not an executable binary (ELF)")
+                raise FirmwareError(f"{executable}: not an executable binary (ELF)")
 
 
 def firmware_from_env(kind: Kind) -> Firmware | None:
@@ -155,7 +159,7 @@ def firmware_from_env(kind: Kind) -> Firmware | None:
         return None
     firmware = Firmware.at(value)
     if firmware.kind != kind:
-        raise SitlError(f"{ENV_VARIABLE[kind]}={value} is a {firmware.name}, not {kind}")
+        raise FirmwareError(f"{ENV_VARIABLE[kind]}={value} is a {firmware.name}, not {kind}")
     return firmware
 
 

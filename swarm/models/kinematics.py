@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from swarm.errors import VigilError
+from swarm.errors import UsageError
 
 Array = NDArray[np.float64]
 
@@ -106,7 +106,7 @@ def step_vehicle(position_m: Array, velocity_m_s: Array, command_m_s: Array, u_m
     return position_m + dt_s * velocity, velocity
 
 
-class InitialPlacementError(VigilError, ValueError):
+class InitialPlacementError(UsageError, ValueError):
     """The start box cannot hold the drones at the requested separation."""
 
 

@@ -32,7 +32,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Final
 
-from swarm.errors import VigilError
+from swarm.errors import UsageError
 
 CA_FILE: Final = "ca.pem"
 WORLD_ROLE: Final = "world"
@@ -42,7 +42,7 @@ _PEM_CERTIFICATE: Final = b"-----BEGIN CERTIFICATE-----"
 _PEM_KEY_END: Final = b"PRIVATE KEY-----"
 
 
-class SecurityError(VigilError, ValueError):
+class SecurityError(UsageError, ValueError):
     """An unusable TLS directory (one line: which file and why)."""
 
 

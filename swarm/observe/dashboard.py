@@ -626,11 +626,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     from swarm.net.transport import TransportError, check_tls_endpoints
     from swarm.scenario.cli_common import (
         EXIT_FAILED,
-        EXIT_INTERRUPTED,
         EXIT_OK,
         ConfigError,
         OneLineParser,
+        exit_code,
         fail,
+        fail_on,
         load_scenario,
         positive_float,
         run_id,
@@ -651,7 +652,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         config = load_scenario(args.config, args.duration)
     except ConfigError as err:
-        return fail(prog, f"config error: {err}")
+        return fail_on(prog, err, "config error: ")
     try:
         check_tls_endpoints([args.connect], tls=config.security.enabled)
     except ValueError as err:
@@ -660,9 +661,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         state = watch(args.connect, args.run_id, config, headless=args.headless)
     except TransportError as err:
-        return fail(prog, str(err), EXIT_FAILED)
-    except KeyboardInterrupt:
-        return EXIT_INTERRUPTED
+        return fail_on(prog, err)
+    except KeyboardInterrupt as err:
+        return exit_code(err)
     return EXIT_OK if state == "done" else EXIT_FAILED
 
 

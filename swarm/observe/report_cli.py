@@ -21,7 +21,11 @@ from rich.console import Console
 
 from swarm.observe.recording import Recording, RecordingError, read_recording
 from swarm.observe.report import Provenance, RunReport, build_report, render_report, report_to_json
-from swarm.scenario.cli_common import EXIT_INTERRUPTED, OneLineParser, fail
+from swarm.scenario.cli_common import (
+    OneLineParser,
+    exit_code,
+    fail,
+)
 
 PROG = "swarm-report"
 
@@ -64,12 +68,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         recording = read_recording(Path(args.recording))
         report = report_from_recording(recording)
-    except RecordingError as err:
+    except RecordingError as err:  # the file given cannot be used: a usage error
         return fail(PROG, str(err))
     except ValueError as err:  # e.g. metadata naming an unknown mode
         return fail(PROG, f"{args.recording}: {err}")
-    except KeyboardInterrupt:
-        return EXIT_INTERRUPTED
+    except KeyboardInterrupt as err:
+        return exit_code(err)
     written: list[Path] = []
     if args.plots is not None:
         # Before any output: a directory we cannot write is a usage error with empty stdout.

@@ -9,10 +9,15 @@ import signal
 import sys
 import typing
 
+from swarm.errors import (  # noqa: F401 (the executables import the codes from here too)
+    EXIT_FAILED,
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    EXIT_USAGE,
+    exit_code,
+)
 from swarm.scenario.config import ConfigError, ScenarioConfig, load_config
 
-EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
-EXIT_INTERRUPTED = 130  # 128 + SIGINT
 # Emulated vehicle i talks to agent i on UDP DEFAULT_MAVLINK_BASE + i. Clear of every port
 # autopilot SITL uses by default (PX4: 14540-14549 offboard, 14550 GCS, 14580+, 18570+,
 # 13030+, 14030+, 19410+; ArduPilot: TCP 5760+, UDP 5501+, 9002+, MAVProxy 14550/14551), so
@@ -34,6 +39,12 @@ def fail(prog: str, message: str, code: int = EXIT_USAGE) -> int:
     """One plain line on stderr: never wrapped, never styled, no traceback."""
     print(f"{prog}: {' '.join(message.split())}", file=sys.stderr)
     return code
+
+
+def fail_on(prog: str, error: BaseException, context: str = "") -> int:
+    """``error`` as one line on stderr (after ``context``, e.g. "config error: "), and the
+    exit code ``swarm.errors.exit_code`` gives it."""
+    return fail(prog, f"{context}{error}", exit_code(error))
 
 
 def positive_float(text: str) -> float:

@@ -29,7 +29,7 @@ from swarm.core.params import (
     require_finite,
     require_finite_positive,
 )
-from swarm.errors import VigilError
+from swarm.errors import UsageError
 from swarm.mavlink.signing import SigningKeyError, read_signing_key
 from swarm.models.camera import CameraParams
 from swarm.models.kinematics import (
@@ -52,7 +52,7 @@ from swarm.watch.vehicle_watch import VEHICLE_EVENT_POLICIES, VehicleEventPolicy
 Vector3 = tuple[float, float, float]
 
 
-class ConfigError(VigilError, ValueError):
+class ConfigError(UsageError, ValueError):
     """A scenario file that cannot be used; ``str()`` is one line naming key and reason."""
 
 

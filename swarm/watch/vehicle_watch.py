@@ -29,8 +29,6 @@ VEHICLE_EVENT_POLICIES: tuple[VehicleEventPolicy, ...] = ("continue", "leave", "
 # A position sample older than this is a lost estimate (both firmwares stream at 50 Hz here;
 # PX4's own offboard-loss timeout, COM_OF_LOSS_T, is 0.5 s as well).
 POSITION_TIMEOUT_S = 0.5
-# Exit code of an agent whose policy ``end`` ended the mission (the launcher stops all).
-EXIT_END_MISSION = 3
 
 
 @dataclass(frozen=True)

@@ -28,6 +28,7 @@ from hypothesis import strategies as st
 from swarm.core import icf
 from swarm.core.agent import _consensus_operator
 from swarm.core.barrier import localization_barrier, localization_barrier_scalars
+from swarm.core.consensus_layout import ConsensusLayout
 from swarm.core.dynamic_consensus import pi_consensus_step
 from swarm.core.formation import (
     bearing_error,
@@ -254,29 +255,29 @@ def test_consensus_operator_equals_the_pi_consensus_and_gramian_steps(
     gram = GramianParams(forgetting=forgetting, consensus_gain=coupling,
                          projector_consensus=ConsensusGains(*rng.uniform(0.5, 10.0, 3)),
                          weight_consensus=ConsensusGains(*rng.uniform(0.5, 10.0, 3)))
-    layout = [9 * m, m, 9 * m, m, 9 * m]  # s_Π, s_w, η_Π, η_w, G: the agent's packed state
-    own = rng.normal(size=29 * m)
-    others = [rng.normal(size=29 * m) for _ in range(n_neighbours)]
+    layout = ConsensusLayout(m)
+    own = rng.normal(size=layout.size)
+    others = [rng.normal(size=layout.size) for _ in range(n_neighbours)]
     local_input = rng.normal(size=10 * m)
-    index, coefficients = _consensus_operator(m, dt, gram, rate_gain)
-    disagreement = sum((own - x for x in others), np.zeros(29 * m))
+    index, coefficients = _consensus_operator(layout, dt, gram, rate_gain)
+    disagreement = sum((own - x for x in others), np.zeros(layout.size))
     z = np.concatenate((own, disagreement, local_input, [0.0]))
-    fast = np.add.reduce(z[index] * coefficients, axis=0)
+    fast = layout.unpack(np.add.reduce(z[index] * coefficients, axis=0))
 
-    def parts(x: np.ndarray) -> list[np.ndarray]:
-        return np.split(x, np.cumsum(layout)[:-1])
-
-    s_p, s_w, eta_p, eta_w, g = parts(own)
-    neighbour_parts = [parts(x) for x in others]
+    mine, theirs = layout.unpack(own), [layout.unpack(x) for x in others]
     new_s_p, new_eta_p = pi_consensus_step(
-        s_p, eta_p, local_input[:9 * m], [p[0] for p in neighbour_parts],
-        [p[2] for p in neighbour_parts], gram.projector_consensus, dt)
+        mine["projector_mean"], mine["projector_integral"],
+        local_input[:9 * m].reshape(m, 3, 3), [x["projector_mean"] for x in theirs],
+        [x["projector_integral"] for x in theirs], gram.projector_consensus, dt)
     new_s_w, new_eta_w = pi_consensus_step(
-        s_w, eta_w, local_input[9 * m:], [p[1] for p in neighbour_parts],
-        [p[3] for p in neighbour_parts], gram.weight_consensus, dt)
-    new_g = gramian_step(g.reshape(m, 3, 3), s_p.reshape(m, 3, 3),
-                         [p[4].reshape(m, 3, 3) for p in neighbour_parts], n_agents=1,
-                         forgetting=forgetting, info_gain=rate_gain, consensus_gain=coupling,
-                         dt_s=dt)
-    readable = np.concatenate((new_s_p, new_s_w, new_eta_p, new_eta_w, new_g.ravel()))
-    _close(fast, readable, max(1.0, float(np.max(np.abs(z)))) * (1 + n_neighbours))
+        mine["weight_mean"], mine["weight_integral"], local_input[9 * m:],
+        [x["weight_mean"] for x in theirs], [x["weight_integral"] for x in theirs],
+        gram.weight_consensus, dt)
+    new_g = gramian_step(mine["gramian"], mine["projector_mean"],
+                         [x["gramian"] for x in theirs], n_agents=1, forgetting=forgetting,
+                         info_gain=rate_gain, consensus_gain=coupling, dt_s=dt)
+    scale = max(1.0, float(np.max(np.abs(z)))) * (1 + n_neighbours)
+    for name, readable in (("projector_mean", new_s_p), ("weight_mean", new_s_w),
+                           ("projector_integral", new_eta_p), ("weight_integral", new_eta_w),
+                           ("gramian", new_g)):
+        _close(fast[name], readable, scale)
