@@ -1,14 +1,17 @@
-"""Fixtures of the conformance suite: SITL dialogues that run beside the emulator's.
+"""Fixtures of the conformance suite: SITL boots (and ArduPilot's dialogue) beside the
+emulator dialogues.
 
-The dialogues talk to different vehicles on different ports and spend their time waiting on
-the wall clock (a velocity step takes seconds to settle, PX4 can arm only ~37 s after it
-starts; the whole suite uses a fraction of a core). So the first emulator dialogue starts
-every SITL whose dialogue is among the tests to run booting and, once each is ready, flies its
-dialogue in a thread of its own (``SitlFlights.start``) while the emulator dialogues run in
-the tests; each SITL test then waits for its flight and reports its result and conversation
-(``SitlFlights.result``). Run alone (``-k sitl``), a SITL test flies its dialogue itself.
-At most one SITL instance per flavour exists at a time, and every instance is stopped when
-its test ends (or at the end of the session if its test never ran).
+A SITL autopilot spends its boot waiting on the wall clock (PX4 can arm only ~37 s after it
+starts), and a dialogue talks to its own vehicle on its own port. So a flavour's emulator
+dialogue (which runs first) starts that flavour's SITL booting, if its SITL dialogue is among
+the tests to run (``SitlFlights.start``), and the SITL test then takes the result over
+(``SitlFlights.result``). ArduCopter's dialogue also flies in a thread beside the emulator's
+(its figures are the same either way); PX4's flies only once the emulator dialogue is over:
+SIH's response changes when the machine is busy (a velocity step took 1.55 s to 63 % beside
+the emulator dialogue in one CI run, 0.86-0.93 s alone), so PX4's boot overlaps, its flight
+does not. Run alone (``-k sitl``), a SITL test boots and flies itself. At most one SITL
+instance exists at a time; every instance is stopped when its test ends (or at the end of the
+session if its test never ran).
 """
 
 from __future__ import annotations
@@ -34,10 +37,13 @@ class Flight:
     lines: list[str] = field(default_factory=list)
     error: BaseException | None = None
     thread: threading.Thread | None = None
+    cleared: threading.Event = field(default_factory=threading.Event)  # may fly now
 
     def run(self, fly: Fly) -> None:
         try:
-            fly(self.boot.wait().companion_url, self.lines.append)
+            url = self.boot.wait().companion_url
+            self.cleared.wait()
+            fly(url, self.lines.append)
         except BaseException as err:  # handed to the SITL test
             self.error = err
 
@@ -50,13 +56,16 @@ class SitlFlights:
     def _selected(self, kind: Kind) -> bool:
         return any(item.nodeid.endswith(f"[{kind}-sitl]") for item in self._session.items)
 
-    def start(self, kind: Kind, fly: Fly) -> None:
-        """Boot ``kind``'s SITL and fly ``fly`` on it in a thread, if its dialogue will run,
-        its firmware is here and it is not flying yet."""
+    def start(self, kind: Kind, fly: Fly, *, beside: bool) -> None:
+        """Boot ``kind``'s SITL and, in a thread, fly ``fly`` on it once it is ready: at once
+        if ``beside``, else once ``result`` asks for it; only if its dialogue will run, its
+        firmware is here and no other instance is alive."""
         firmware = find_firmware(kind)
-        if kind in self._flights or not self._selected(kind) or firmware is None:
+        if self._flights or not self._selected(kind) or firmware is None:
             return
         flight = Flight(BootingSitl(firmware))
+        if beside:
+            flight.cleared.set()
         self._flights[kind] = flight
         flight.boot.start()
         flight.thread = threading.Thread(target=flight.run, args=(fly,),
@@ -68,10 +77,13 @@ class SitlFlights:
         flown now (skipped, saying why, without a build); its log goes to ``log``; what it
         raised is raised here. The instance is stopped either way."""
         flight = self._flights.pop(kind, None)
+        self.stop_all()
         if flight is None:
             flight = Flight(BootingSitl(firmware_or_skip(kind)))
             flight.boot.start()
+            flight.cleared.set()
             flight.run(fly)
+        flight.cleared.set()
         try:
             if flight.thread is not None:
                 flight.thread.join()
@@ -86,6 +98,7 @@ class SitlFlights:
         while self._flights:
             _, flight = self._flights.popitem()
             flight.boot.stop()  # its dialogue then fails on a closed link and ends
+            flight.cleared.set()
             if flight.thread is not None:
                 flight.thread.join(timeout=30.0)
 
