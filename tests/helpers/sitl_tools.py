@@ -95,8 +95,8 @@ class BootingSitl:
     what the boot raised, ``stop()`` stops the instance and its monitor (any time, more than
     once). PX4 needs ~37 s before it can arm, which another test can use meanwhile
     (``tests/conformance/conftest.py``). ``params`` are set at boot after the firmware's
-    defaults and ``swarm.mavlink.sitl.default_params`` (the swarm's setpoint timeout, PX4's Hold on
-    offboard loss, no PX4 flight log)."""
+    defaults and ``swarm.mavlink.sitl.default_params`` (the swarm's setpoint timeout, PX4's
+    Hold on offboard loss, no PX4 flight log)."""
 
     def __init__(self, firmware: Firmware, *, system_id: int = 1,
                  companion_port: int | None = None, setpoint_timeout_s: float | None = None,
