@@ -36,13 +36,18 @@ def _project_modules() -> list[str]:
     return names
 
 
-def test_every_exception_class_of_the_project_derives_from_the_root() -> None:
+def _exception_classes() -> dict[str, type[BaseException]]:
+    """Every exception class defined in swarm and sim_world, by qualified name."""
     found = {}
     for name in _project_modules():
-        module = importlib.import_module(name)
-        for _, cls in inspect.getmembers(module, inspect.isclass):
+        for _, cls in inspect.getmembers(importlib.import_module(name), inspect.isclass):
             if issubclass(cls, BaseException) and cls.__module__ == name:
                 found[f"{name}.{cls.__name__}"] = cls
+    return found
+
+
+def test_every_exception_class_of_the_project_derives_from_the_root() -> None:
+    found = _exception_classes()
     assert len(found) >= 13, sorted(found)  # the classes there are today, at least
     strays = sorted(qualified for qualified, cls in found.items()
                     if not issubclass(cls, VigilError) and qualified not in NOT_ERRORS)
@@ -59,19 +64,11 @@ EXECUTABLES = ("swarm.launch.cli", "swarm.agent.cli", "sim_world.cli", "sim_worl
                "sim_world.world")
 
 
-def _error_classes() -> dict[str, type[VigilError]]:
-    found = {}
-    for name in _project_modules():
-        for _, cls in inspect.getmembers(importlib.import_module(name), inspect.isclass):
-            if issubclass(cls, VigilError) and cls.__module__ == name:
-                found[f"{name}.{cls.__name__}"] = cls
-    return found
-
-
 def test_exit_codes_come_from_one_table() -> None:
     """Input that cannot be used exits 2 (the UsageError branch of the tree), every other
     error of ours 1, an interrupt 130, anything else (a bug) 1."""
-    classes = _error_classes()
+    classes = {name: cls for name, cls in _exception_classes().items()
+               if issubclass(cls, VigilError)}
     usage = {name for name, cls in classes.items() if issubclass(cls, UsageError)}
     assert usage - {"swarm.errors.UsageError"} == USAGE
     for name, cls in classes.items():

@@ -470,9 +470,8 @@ class AgentProcess:
             self.options.log(event.describe(self.id))
 
     def _watch_vehicle(self, step: int, sample_age_s: float) -> None:
-        """Compare the vehicle with what was asked (swarm.watch.vehicle_watch); log a change with
-        its
-        time and apply ``vehicles.on_vehicle_event``."""
+        """Compare the vehicle with what was asked (swarm.watch.vehicle_watch); log a change
+        with its time and apply ``vehicles.on_vehicle_event``."""
         link = self.link
         event = self.watch.update(step * self.options.config.scenario.dt_s, armed=link.armed,
                                   mode=link.mode, position_age_s=sample_age_s)

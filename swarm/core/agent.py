@@ -482,7 +482,8 @@ class DroneAgent:
 
     @property
     def gramian_copies(self) -> Array:
-        return self._layout.unpack(self._cons_array)["gramian"].copy()
+        m = self.setup.n_targets
+        return self._cons_array[self._layout.gramian].reshape(m, 3, 3).copy()
 
     @property
     def target_estimates(self) -> Array:

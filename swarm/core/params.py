@@ -3,8 +3,7 @@
 Every field carries its unit in the name or in a ``# [unit]`` comment. Validation happens in
 ``__post_init__`` so that a wrong value is refused where it is created, whether it came from a
 config file (``swarm.scenario.config`` turns the ``ValueError`` into a one-line message naming
-the key)
-or from code.
+the key) or from code.
 """
 
 from __future__ import annotations

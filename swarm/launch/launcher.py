@@ -104,8 +104,7 @@ class LaunchOptions:
     # process plays the autopilots, as real ones would be flown; realtime only.
     external_vehicles: bool = False
     # Real autopilot firmware: one SITL instance of this build per drone (swarm.mavlink.sitl),
-    # started,
-    # brought up, flown by the agents and stopped by the launcher; realtime only.
+    # started, brought up, flown by the agents and stopped by the launcher; realtime only.
     sitl: Firmware | None = None
     sitl_boot_speedup: float = DEFAULT_BOOT_SPEEDUP
     sitl_params: tuple[tuple[str, float], ...] = ()  # --sitl-param: set at boot on every one

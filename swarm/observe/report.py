@@ -96,8 +96,8 @@ class DroneReport:
     vehicle_events: int | None = None
     vehicle_status: str | None = None
     # Breaches of λ̄ ≥ ε − tol the agent saw in its own copies and said at once
-    # (swarm.watch.localization_watch), when the first began [s], and what was still below at the
-    # end.
+    # (swarm.watch.localization_watch), when the first began [s], and what was still below at
+    # the end.
     lambda_breaches: int | None = None
     first_lambda_breach_s: float | None = None
     localization_status: str | None = None

@@ -78,12 +78,13 @@ class SitlFlights:
         raised is raised here. The instance is stopped either way."""
         flight = self._flights.pop(kind, None)
         self.stop_all()
-        if flight is None:
+        if flight is None:  # nothing started it: boot and fly here
             flight = Flight(BootingSitl(firmware_or_skip(kind)))
             flight.boot.start()
             flight.cleared.set()
             flight.run(fly)
-        flight.cleared.set()
+        else:
+            flight.cleared.set()  # PX4's waited for the emulator dialogue to end
         try:
             if flight.thread is not None:
                 flight.thread.join()
