@@ -17,7 +17,7 @@ beacon, so the agents can fly real autopilots against virtual targets.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -99,6 +99,9 @@ class World:
         self._sim_now: float | None = None
         self._last_clock_s = -np.inf  # wall time of the last world/clock message
         self.positions = initial_drone_positions(cfg, options.seed)
+        # External vehicles: the time_boot_ms of the sample behind each drone's position (its
+        # beacon's), stamped on the frames rendered from it.
+        self.pose_stamps_ms = [0] * self.n
         self.beacons: LatestValues[BeaconWire] = LatestValues()
         self.fleet: VehicleFleet | None = None
         self._failsafes_reported = [0] * self.n
@@ -165,8 +168,10 @@ class World:
         if step == 0 or time.monotonic() - self._last_clock_s >= CLOCK_PERIOD_S:
             self.publish_clock(step, "running")
 
-    def publish_step(self, step: int, vehicle_time_ms: int) -> None:
-        """Camera frames for every drone and the ground truth of step k."""
+    def publish_step(self, step: int, vehicle_times_ms: Sequence[int]) -> None:
+        """Camera frames for every drone and the ground truth of step k; drone i's frame is
+        stamped ``vehicle_times_ms[i]``, the time_boot_ms of the vehicle sample its camera
+        was placed at (how an agent pairs the frame with that pose)."""
         t = step * self.dt_s
         targets = np.array([traj.position(t) for traj in self.trajectories])
         target_vel = np.array([traj.velocity(t) for traj in self.trajectories])
@@ -176,7 +181,7 @@ class World:
         for i in range(self.n):
             detections = detect(self.positions[i], targets, camera, self.cameras[i])
             self._pub_camera[i].put(self.codec.encode(CameraFrameWire.build(
-                drone=i, step=step, time_s=t, vehicle_time_ms=vehicle_time_ms,
+                drone=i, step=step, time_s=t, vehicle_time_ms=vehicle_times_ms[i],
                 detections=detections, target_velocities=communicated)))
         self._pub_truth.put(self.codec.encode(TruthWire.build(
             step=step, time_s=t, drone_positions=self.positions, target_positions=targets,
@@ -194,6 +199,7 @@ class World:
             latest = self.beacons.get(i)
             if latest is not None:
                 self.positions[i] = latest[0].position()
+                self.pose_stamps_ms[i] = latest[0].vehicle_time_ms
 
     # -- phases -----------------------------------------------------------------------------
 
@@ -249,7 +255,7 @@ class World:
             for vehicle in fleet.vehicles:
                 vehicle.begin_step(stamp)
             fleet.send_telemetry(stamp)
-            self.publish_step(k, stamp)
+            self.publish_step(k, [stamp] * self.n)
             self.publish_running(k)
             deadline = time.monotonic() + timeout
             velocities: list[np.ndarray | None] = [None] * self.n
@@ -274,10 +280,13 @@ class World:
         for k in range(self.options.config.n_steps):
             if self.fleet is None:
                 self._external_positions()
+                stamps = list(self.pose_stamps_ms)
             else:
                 self._wait(0.0)  # telemetry reports the failsafe state: setpoints count first
-                self.fleet.send_telemetry(self.boot_ms())
-            self.publish_step(k, self.boot_ms())
+                stamp = self.boot_ms()
+                self.fleet.send_telemetry(stamp)
+                stamps = [stamp] * self.n
+            self.publish_step(k, stamps)
             self.publish_running(k)
             # Until the next tick: answer MAVLink as it comes, then move every vehicle with
             # what it applies at that moment (its latest setpoint, or a failsafe hold).

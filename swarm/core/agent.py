@@ -263,8 +263,14 @@ class DroneAgent:
         position: Array,
         detections: Sequence[Detection],
         communicated_velocities: Array | None = None,
+        camera_position: Array | None = None,
     ) -> ConsensusMessage:
-        """Start step k: fold the detections into V⁰, v⁰ (2.4-2.5) and return round 0."""
+        """Start step k: fold the detections into V⁰, v⁰ (2.4-2.5) and return round 0.
+
+        ``camera_position``: where the detections were taken from, when that is not
+        ``position`` (a realtime frame rendered from an older pose of the vehicle); the
+        measurement (2.15) is made from it, everything else from ``position``.
+        """
         if self._phase != "idle":
             raise AgentStateError(f"begin_step({step}) called while in phase {self._phase!r}")
         entered = time.perf_counter()
@@ -275,6 +281,12 @@ class DroneAgent:
             raise ValueError(f"drone {setup.drone_id}: own position must be 3 finite numbers, "
                              f"got {position!r}")
         self._step, self._round, self._position, self._own = step, 0, position, own
+        seen_from = own
+        if camera_position is not None:
+            camera = np.asarray(camera_position, dtype=float)
+            if camera.shape != (3,) or not _all_finite(seen_from := camera.tolist()):
+                raise ValueError(f"drone {setup.drone_id}: camera position must be 3 finite "
+                                 f"numbers, got {camera_position!r}")
         self._missing = self._rejected = 0
         measured: list[tuple[float, ...] | None] = [None] * m
         for det in detections:
@@ -299,7 +311,7 @@ class DroneAgent:
                   out=packed[self._n_info:].reshape(m, n, 1))
         if any(detected):
             gain = setup.estimation.info_gain
-            p0, p1, p2 = own
+            p0, p1, p2 = seen_from
             blocks: list[float] = []
             parts: list[float] = []
             for proj in measured:

@@ -71,7 +71,8 @@ stamp); ``PositionSample``; ``LinkError``.
 
 ``AutopilotLink(url, drone_id, flavour, origin_w, *, log=print, source_system=None,
 clock=time.monotonic, signing_key=None)``: ``wait_heartbeat(timeout_s)``, ``handshake(...)``,
-``keepalive(now_s=None)``, ``latest_position()``, ``wait_position(time_boot_ms, timeout_s)``,
+``keepalive(now_s=None)``, ``latest_position()``, ``position_at(time_boot_ms)``,
+``wait_position(time_boot_ms, timeout_s)``,
 ``send_velocity(velocity_w, time_boot_ms)``, ``send_position(position_w, time_boot_ms)``,
 ``end_mission(action)``, ``poll()``, ``close()`` (also a context manager). Properties:
 ``url``, ``drone_id``, ``system_id``, ``flavour``, ``origin_w``, ``local_address``, ``peer``
@@ -399,6 +400,12 @@ class AutopilotLink:
     def latest_position(self) -> PositionSample | None:
         self._drain()
         return self._latest
+
+    def position_at(self, time_boot_ms: int) -> PositionSample | None:
+        """The sample stamped ``time_boot_ms`` if it is among the last ones kept, else None
+        (no wait: a realtime agent pairs a camera frame with the pose it was taken at)."""
+        self._drain()
+        return self._by_stamp.get(int(time_boot_ms))
 
     def wait_position(self, time_boot_ms: int, timeout_s: float) -> PositionSample:
         stamp = int(time_boot_ms)

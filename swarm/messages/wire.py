@@ -226,14 +226,18 @@ class BeaconWire(_Wire, tag="beacon", kw_only=True):
     # sent: a realtime receiver extrapolates the position to its own instant.
     velocity_m_s: Vector3 = (0.0, 0.0, 0.0)
     sample_age_s: float = 0.0
+    # The autopilot's time_boot_ms of the sample ``position_m`` came from (0: not known). A
+    # world rendering this drone's camera from this position stamps the frame with it, so the
+    # agent measures from the pose the frame was taken at, not from a newer one.
+    vehicle_time_ms: NonNegativeInt = 0
 
     @classmethod
     def build(cls, sender: int, step: int, time_s: float, position_m: ArrayLike, *,
-              velocity_m_s: ArrayLike = (0.0, 0.0, 0.0), sample_age_s: float = 0.0
-              ) -> BeaconWire:
+              velocity_m_s: ArrayLike = (0.0, 0.0, 0.0), sample_age_s: float = 0.0,
+              vehicle_time_ms: int = 0) -> BeaconWire:
         return cls(sender=int(sender), step=int(step), time_s=float(time_s),
                    position_m=_vector3(position_m), velocity_m_s=_vector3(velocity_m_s),
-                   sample_age_s=float(sample_age_s))
+                   sample_age_s=float(sample_age_s), vehicle_time_ms=int(vehicle_time_ms))
 
     def position(self) -> Array:
         return np.array(self.position_m, dtype=np.float64)
@@ -577,7 +581,7 @@ assert TelemetryWire.__struct_fields__ == (
     "bearing_error", "missing_neighbour_messages", "rejected_inputs", "counters",
     "rate_limit_released")
 assert BeaconWire.__struct_fields__ == ("version", "sender", "step", "time_s", "position_m",
-                                        "velocity_m_s", "sample_age_s")
+                                        "velocity_m_s", "sample_age_s", "vehicle_time_ms")
 assert ConsensusWire.__struct_fields__ == ("version", "sender", "step", "round", "n_targets",
                                            "n_state", "data")
 
@@ -802,17 +806,19 @@ class WireCodec:
         return self.encode(wire)
 
     def encode_beacon(self, sender: int, step: int, time_s: float, position_m: ArrayLike, *,
-                      velocity_m_s: ArrayLike = (0.0, 0.0, 0.0), sample_age_s: float = 0.0
-                      ) -> bytes:
+                      velocity_m_s: ArrayLike = (0.0, 0.0, 0.0), sample_age_s: float = 0.0,
+                      vehicle_time_ms: int = 0) -> bytes:
         """``encode(BeaconWire.build(...))`` with the same arguments."""
         sender, step, t, age = int(sender), int(step), float(time_s), float(sample_age_s)
+        stamp = int(vehicle_time_ms)
         p, v = _vector3(position_m), _vector3(velocity_m_s)
         total = t + age + p[0] + p[1] + p[2] + v[0] + v[1] + v[2]
         if (0 <= sender < self.n_drones and step >= 0 and t >= 0.0 and age >= 0.0
-                and total - total == 0.0):
-            return self._encoder.encode(("beacon", WIRE_VERSION, sender, step, t, p, v, age))
+                and stamp >= 0 and total - total == 0.0):
+            return self._encoder.encode(
+                ("beacon", WIRE_VERSION, sender, step, t, p, v, age, stamp))
         return self.encode(BeaconWire(sender=sender, step=step, time_s=t, position_m=p,
-                                      velocity_m_s=v, sample_age_s=age))
+                                      velocity_m_s=v, sample_age_s=age, vehicle_time_ms=stamp))
 
     def encode_telemetry(self, diag: StepDiagnostics, position: ArrayLike,
                          counters: TelemetryCounters | None = None,
@@ -1154,7 +1160,8 @@ class WireCodec:
     def _quick_beacon(self, m: BeaconWire) -> bool:
         t, age, p, v = m.time_s, m.sample_age_s, m.position_m, m.velocity_m_s
         if (m.version != WIRE_VERSION or not 0 <= m.sender < self.n_drones or m.step < 0
-                or not (t >= 0.0 and age >= 0.0) or len(p) != 3 or len(v) != 3):
+                or m.vehicle_time_ms < 0 or not (t >= 0.0 and age >= 0.0) or len(p) != 3
+                or len(v) != 3):
             return False
         total = t + age + p[0] + p[1] + p[2] + v[0] + v[1] + v[2]
         return total - total == 0.0

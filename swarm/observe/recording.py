@@ -265,14 +265,15 @@ def telemetry_from_json(data: dict[str, Any]) -> TelemetryWire:
 def beacon_to_json(beacon: BeaconWire) -> dict[str, Any]:
     return {"sender": beacon.sender, "step": beacon.step, "time_s": beacon.time_s,
             "position_m": list(beacon.position_m), "velocity_m_s": list(beacon.velocity_m_s),
-            "sample_age_s": beacon.sample_age_s}
+            "sample_age_s": beacon.sample_age_s, "vehicle_time_ms": beacon.vehicle_time_ms}
 
 
 def beacon_from_json(data: dict[str, Any]) -> BeaconWire:
     return BeaconWire(sender=data["sender"], step=data["step"], time_s=data["time_s"],
                       position_m=_vector3(data["position_m"]),
                       velocity_m_s=_vector3(data["velocity_m_s"]),
-                      sample_age_s=data["sample_age_s"])
+                      sample_age_s=data["sample_age_s"],
+                      vehicle_time_ms=data.get("vehicle_time_ms", 0))  # absent before 2026-11
 
 
 def camera_to_json(frame: CameraFrameWire) -> dict[str, Any]:
@@ -425,7 +426,8 @@ def schemas(n_targets: int, n_state: int) -> dict[str, dict[str, Any]]:
                              "or [x y z]), barrier terms, perception weights, QP result; "
                              "positions in the world frame (x east, y north, z up) [m]."),
         "beacon": _object({"sender": _COUNT, "step": _COUNT, "time_s": _NUMBER,
-                           "position_m": vec3, "velocity_m_s": vec3, "sample_age_s": _NUMBER},
+                           "position_m": vec3, "velocity_m_s": vec3, "sample_age_s": _NUMBER,
+                           "vehicle_time_ms": _COUNT},
                           "vigil.Beacon", "A drone's position and velocity for its peers."),
         "camera": _object({"drone": _COUNT, "step": _COUNT, "time_s": _NUMBER,
                            "vehicle_time_ms": _COUNT,

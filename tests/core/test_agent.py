@@ -52,6 +52,34 @@ def test_non_finite_position_is_a_clear_error() -> None:
         agent.begin_step(0, np.array([0.0, np.nan, 3.0]), [])
 
 
+def test_detections_are_measured_from_the_camera_position_when_given() -> None:
+    """begin_step(camera_position=c) folds the detections in exactly as a step taken at c,
+    the rest of the step keeps the vehicle's position; None means the vehicle's position."""
+    detections = [Detection(0, np.array([0.05, -0.02]))]
+    here, there = np.array([0.3, -0.2, 10.0]), np.array([0.35, -0.18, 10.02])
+
+    def round0(position, camera=None, keyword=True):
+        agent = lone_agent(ControlParams())
+        if keyword:
+            return agent, agent.begin_step(0, position, detections, camera_position=camera)
+        return agent, agent.begin_step(0, position, detections)
+
+    _, from_there = round0(there)
+    agent, paired = round0(here, there)
+    np.testing.assert_array_equal(paired.information, from_there.information)
+    np.testing.assert_array_equal(paired.information_vector, from_there.information_vector)
+    np.testing.assert_array_equal(agent._position, here)
+    _, plain = round0(here, keyword=False)
+    _, same = round0(here, here)
+    _, unset = round0(here, None)
+    for message in (same, unset):
+        np.testing.assert_array_equal(message.information, plain.information)
+        np.testing.assert_array_equal(message.information_vector, plain.information_vector)
+    assert not np.array_equal(paired.information_vector, plain.information_vector)
+    with pytest.raises(ValueError, match="camera position must be 3 finite numbers"):
+        round0(here, np.array([0.0, np.nan, 1.0]))
+
+
 def test_bad_detections_are_counted_and_never_reach_the_filter() -> None:
     agent = lone_agent(ControlParams(start_s=0.0))
     bad = [Detection(0, np.array([np.nan, 0.0])), Detection(5, np.array([0.0, 0.0])),

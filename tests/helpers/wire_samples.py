@@ -78,7 +78,8 @@ def valid_messages() -> dict[str, object]:
     return {
         "consensus": consensus_to_wire(consensus_message()),
         "consensus_round": consensus_to_wire(consensus_message(round_=2)),
-        "beacon": BeaconWire.build(5, 3, 0.06, [-0.0, 5e-324, 1.7976931348623157e308]),
+        "beacon": BeaconWire.build(5, 3, 0.06, [-0.0, 5e-324, 1.7976931348623157e308],
+                                   vehicle_time_ms=0xFFFF_FFFF),
         "camera": CameraFrameWire.build(2, 9, 0.18, 123456,
                               [Detection(1, np.array([-0.0, 0.1 + 0.2])),
                                Detection(0, np.array([5e-324, -1e-300]))],

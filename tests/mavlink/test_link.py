@@ -413,6 +413,26 @@ def test_wait_position_picks_the_exact_stamp(pair: Any) -> None:
                               f"{SYS} on {link.url} within 0.2 s (newest seen: 110 ms)")
 
 
+def test_position_at_pairs_a_stamp_without_waiting(pair: Any) -> None:
+    """A realtime agent pairs a camera frame with the pose stamped like it: the kept sample if
+    there is one (bit-exact), None at once otherwise (the last 512 are kept)."""
+    link, vehicle, endpoint = pair
+    truths = []
+    for first in (0, 200, 400):  # 600 samples in three bursts (a socket buffer each), 512 kept
+        truths += _emit(vehicle, endpoint, range(20 * first, 20 * (first + 200), 20))
+        assert pump_until(link, lambda last=20 * (first + 199): link._latest is not None
+                          and link._latest.time_boot_ms == last)
+    sample = link.position_at(11000)
+    assert sample is not None and sample.time_boot_ms == 11000
+    np.testing.assert_array_equal(sample.position_w,
+                                  frames.position_over_link(truths[550], ORIGIN))
+    t0 = time.monotonic()
+    assert link.position_at(11001) is None  # no such stamp
+    assert link.position_at(20 * 87) is None  # dropped: older than the last 512
+    assert link.position_at(20 * 88) is not None
+    assert time.monotonic() - t0 < 0.5
+
+
 def test_samples_from_another_system_are_ignored(pair: Any) -> None:
     link, _, endpoint = pair
     stranger = EmulatedVehicle(DRONE + 3, "px4", START, ORIGIN)

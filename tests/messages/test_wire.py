@@ -245,6 +245,8 @@ def test_ids_steps_and_rounds_are_range_checked() -> None:
         (CODEC.decode_consensus, msgspec.structs.replace(
             MESSAGES["consensus_round"], data=cons.data), "must not carry"),
         (CODEC.decode_beacon, msgspec.structs.replace(MESSAGES["beacon"], sender=99), "sender"),
+        (CODEC.decode_beacon, msgspec.structs.replace(MESSAGES["beacon"], vehicle_time_ms=-1),
+         ">= 0"),
         (CODEC.decode_camera, msgspec.structs.replace(cam, drone=N), "drone"),
         (CODEC.decode_camera, msgspec.structs.replace(
             cam, detections=(DetectionWire(M, 0.0, 0.0),)), "target 2 out of range"),

@@ -159,16 +159,17 @@ anything = st.one_of(st.floats(), st.sampled_from([float(v) for v in SPECIAL]))
 @given(sender=st.integers(-2, N + 1), step=st.integers(-2, 10**12), time_s=anything,
        position=st.lists(anything, min_size=3, max_size=3),
        velocity=st.lists(anything, min_size=3, max_size=3), age=anything,
-       as_array=st.booleans())
+       stamp=st.integers(-2, 2**33), as_array=st.booleans())
 def test_encode_beacon_matches_encode_of_build(sender, step, time_s, position, velocity, age,
-                                               as_array) -> None:
+                                               stamp, as_array) -> None:
     if as_array:
         position, velocity = np.array(position), np.array(velocity)
     same_outcome(
         lambda: CODEC.encode_beacon(sender, step, time_s, position, velocity_m_s=velocity,
-                                    sample_age_s=age),
+                                    sample_age_s=age, vehicle_time_ms=stamp),
         lambda: CODEC.encode(BeaconWire.build(sender, step, time_s, position,
-                                              velocity_m_s=velocity, sample_age_s=age)))
+                                              velocity_m_s=velocity, sample_age_s=age,
+                                              vehicle_time_ms=stamp)))
 
 
 def test_encode_beacon_takes_numpy_numbers_and_lists() -> None:

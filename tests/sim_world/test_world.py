@@ -96,7 +96,8 @@ def test_the_clock_reports_every_input_the_world_rejected(world: World) -> None:
 
 def test_an_external_vehicle_world_counts_bad_beacons_on_its_clock() -> None:
     """With external vehicles the world subscribes to the beacons: junk there is counted and
-    shows on its clock, and only a valid beacon moves a drone."""
+    shows on its clock, and only a valid beacon moves a drone; the frame rendered from it
+    carries the autopilot stamp of that position (the agent pairs the two)."""
     config = load_config(CASE1)
     port = free_tcp_port()
     made = World(WorldOptions(config=config, seed=0, run_id="extfuzz", mode="realtime",
@@ -106,7 +107,8 @@ def test_an_external_vehicle_world_counts_bad_beacons_on_its_clock() -> None:
     try:
         captured = _Captured()
         made._pub_clock = captured
-        valid = made.codec.encode(BeaconWire.build(2, 5, 0.1, (1.0, 2.0, 3.0)))
+        valid = made.codec.encode(BeaconWire.build(2, 5, 0.1, (1.0, 2.0, 3.0),
+                                                   vehicle_time_ms=43_210))
         junk = [b"", b"\x93\x01\x02", valid[:-3], valid.replace(b"beacon", b"camera"),
                 msgspec.msgpack.encode(["beacon", 3, 2, 5, 0.1, [math.nan, 2.0, 3.0],
                                         [0.0, 0.0, 0.0], 0.0])]
@@ -121,6 +123,13 @@ def test_an_external_vehicle_world_counts_bad_beacons_on_its_clock() -> None:
         assert made.codec.decode_clock(captured.payloads[-1]).rejected_inputs == len(junk)
         made._external_positions()
         assert made.positions[2].tolist() == [1.0, 2.0, 3.0]
+        assert made.pose_stamps_ms == [0, 0, 43_210, 0, 0, 0]
+        cameras = made._pub_camera = [_Captured() for _ in range(made.n)]
+        made._pub_truth = _Captured()
+        made.publish_step(7, made.pose_stamps_ms)
+        frames = [made.codec.decode_camera(c.payloads[-1]) for c in cameras]
+        assert [f.vehicle_time_ms for f in frames] == [0, 0, 43_210, 0, 0, 0]
+        assert {f.step for f in frames} == {7}
     finally:
         session.close()
         made.close()
