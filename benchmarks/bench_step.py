@@ -244,8 +244,7 @@ def probed_agents(config: ScenarioConfig) -> Iterator[list[StepProbe]]:
 
     def build(*args: Any, **kwargs: Any) -> DroneAgent:
         agent = original(*args, **kwargs)
-        n_state = agent.target_estimates.shape[1]
-        codec = WireCodec(config.swarm.n_drones, len(config.targets), n_state)
+        codec = config.wire_codec()
         probes.append(StepProbe(agent, codec, bus, config))
         return agent
 

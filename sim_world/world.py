@@ -30,7 +30,6 @@ from swarm.messages.wire import (
     CameraFrameWire,
     ClockWire,
     TruthWire,
-    WireCodec,
 )
 from swarm.models.camera import detect
 from swarm.net.rate import RateLimiter, freeze_heap
@@ -92,8 +91,7 @@ class World:
         self.trajectories = [t.build() for t in cfg.targets]
         self.cameras = [stream(options.seed, STREAM_CAMERA, i) for i in range(self.n)]
         self.keys = Keys(options.run_id)
-        n_state = 6 if cfg.estimation.model == "double_integrator" else 3
-        self.codec = WireCodec(self.n, self.m, n_state)
+        self.codec = cfg.wire_codec()
         self.rejections = RejectionCounter()
         self.started = time.monotonic()
         self._sim_now: float | None = None

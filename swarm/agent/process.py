@@ -35,7 +35,6 @@ from swarm.messages.wire import (
     BeaconWire,
     CameraFrameWire,
     ClockWire,
-    WireCodec,
     WireError,
 )
 from swarm.net.rate import RateLimiter, freeze_heap
@@ -104,8 +103,7 @@ class AgentProcess:
         self.neighbours = set(cfg.swarm.graph.neighbours[self.id])
         self.others = set(range(self.n)) - {self.id}
         self.agent: DroneAgent = build_agent(cfg, options.seed, self.id)
-        n_state = self.agent.target_estimates.shape[1]
-        self.codec = WireCodec(self.n, len(cfg.targets), n_state)
+        self.codec = cfg.wire_codec()
         self.keys = Keys(options.run_id)
         self.rejections = RejectionCounter()
         # Each sender's own keys (the codec bounds ids to 0..N-1): a string compare per

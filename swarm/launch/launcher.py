@@ -51,7 +51,6 @@ from swarm.messages.wire import (
     ClockWire,
     TelemetryWire,
     TruthWire,
-    WireCodec,
 )
 from swarm.models import frames
 from swarm.net.security import OBSERVER_ROLE
@@ -331,9 +330,8 @@ class SwarmLauncher:
         self._state_changed = threading.Event()  # the world's clock changed state
         self._clean_exits: dict[str, float] = {}  # child name → when its exit 0 was first seen
         self.clock: LatestValues[ClockWire] = LatestValues()
-        n_state = 6 if cfg.estimation.model == "double_integrator" else 3
-        self.codec = WireCodec(self.n, len(cfg.targets), n_state)
-        self.collector = TelemetryCollector(cfg, n_state)
+        self.codec = cfg.wire_codec()
+        self.collector = TelemetryCollector(cfg)
         self.rejections = RejectionCounter()
         self._own_log_dir = options.log_dir is None  # a temp dir, removed after a clean run
         self.log_dir = options.log_dir or Path(tempfile.mkdtemp(prefix=f"vigil-{self.run_id}-"))

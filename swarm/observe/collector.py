@@ -25,11 +25,6 @@ _FLOAT_ARRAYS = ("positions", "targets", "target_vel", "velocities", "estimates"
                  "psi0", "psi1", "weights", "slacks", "weight_slacks", "bearing", "step_us")
 
 
-def state_dimension(config: ScenarioConfig) -> int:
-    """The ICF state size of a target: position and velocity, or position only."""
-    return 6 if config.estimation.model == "double_integrator" else 3
-
-
 def fill_gaps(values: Array) -> None:
     """In place, along axis 0: a NaN takes the previous step's value, leading NaNs the next
     available one."""
@@ -55,9 +50,9 @@ class TelemetryCollector:
     """Fills the run arrays from telemetry and truth messages; thread-safe (the launcher calls
     it from Zenoh callback threads)."""
 
-    def __init__(self, config: ScenarioConfig, n_state: int | None = None) -> None:
+    def __init__(self, config: ScenarioConfig) -> None:
         n, m, k = config.swarm.n_drones, len(config.targets), config.n_steps
-        n_state = state_dimension(config) if n_state is None else n_state
+        n_state = config.state_dimension
         self.config = config
         self.lock = threading.Lock()
         self.positions = np.full((k, n, 3), np.nan)

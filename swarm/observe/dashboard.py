@@ -37,7 +37,6 @@ from rich.live import Live
 from rich.text import Text
 
 from swarm.core.agent import StepDiagnostics
-from swarm.core.icf import state_dimension
 from swarm.messages.wire import TelemetryCounters, TelemetryWire, telemetry_from_diagnostics
 from swarm.scenario.config import ScenarioConfig
 
@@ -573,7 +572,7 @@ def watch(connect_endpoint: str, run_id: str, config: ScenarioConfig, *,
     "unknown" if the world's clock never arrived). Raises ``TransportError`` when the router
     cannot be reached within ``connect_timeout_s`` (the world may still be starting).
     """
-    from swarm.messages.wire import ClockWire, WireCodec
+    from swarm.messages.wire import ClockWire
     from swarm.net.security import OBSERVER_ROLE
     from swarm.net.transport import (
         Keys,
@@ -587,8 +586,7 @@ def watch(connect_endpoint: str, run_id: str, config: ScenarioConfig, *,
     console = console or Console()
     stop = stop or threading.Event()
     keys = Keys(run_id)
-    codec = WireCodec(config.swarm.n_drones, len(config.targets),
-                      state_dimension(config.estimation.model))
+    codec = config.wire_codec()
     rejections = RejectionCounter()
     clock: LatestValues[ClockWire] = LatestValues()
     dashboard = Dashboard(config, console, headless=headless, settings=settings,

@@ -63,7 +63,7 @@ from swarm.messages.wire import (
     WireCodec,
     WireError,
 )
-from swarm.observe.collector import TelemetryCollector, state_dimension
+from swarm.observe.collector import TelemetryCollector
 from swarm.runs.reference import RunRecord, StepCallback, run_reference
 from swarm.scenario.config import ConfigError, ScenarioConfig, config_from_dict, config_to_data
 
@@ -547,7 +547,7 @@ class Recorder:
         ids = {kind: self._writer.register_schema(
                    name=schema["title"], encoding="jsonschema",
                    data=json.dumps(schema).encode())
-               for kind, schema in schemas(len(cfg.targets), state_dimension(cfg)).items()}
+               for kind, schema in schemas(len(cfg.targets), cfg.state_dimension).items()}
         # Every channel up front, so that a viewer lists every topic from the start.
         channels = [("truth", topic("truth"))] + [
             (kind, topic(kind, i)) for i in range(cfg.swarm.n_drones)
@@ -741,7 +741,7 @@ def _decode(kind: str, data: bytes, codec: WireCodec | None, where: str) -> Reco
 
 
 def _codec(config: ScenarioConfig) -> WireCodec:
-    return WireCodec(config.swarm.n_drones, len(config.targets), state_dimension(config))
+    return config.wire_codec()
 
 
 def iter_messages(path: Path, kinds: tuple[str, ...] = KINDS) -> Iterator[RecordedMessage]:

@@ -19,6 +19,7 @@ from typing import Literal
 import msgspec
 import numpy as np
 
+from swarm.core import icf
 from swarm.core.graph import CommunicationGraph, pi_consensus_is_stable
 from swarm.core.params import (
     ControlParams,
@@ -31,6 +32,7 @@ from swarm.core.params import (
 )
 from swarm.errors import UsageError
 from swarm.mavlink.signing import SigningKeyError, read_signing_key
+from swarm.messages.wire import WireCodec
 from swarm.models.camera import CameraParams
 from swarm.models.kinematics import (
     ARDUCOPTER_SITL_RESPONSE,
@@ -354,6 +356,16 @@ class ScenarioConfig:
     @property
     def n_steps(self) -> int:
         return round(self.scenario.duration_s / self.scenario.dt_s)
+
+    @property
+    def state_dimension(self) -> int:
+        """The ICF state size of one target (``icf.state_dimension`` of the model)."""
+        return icf.state_dimension(self.estimation.model)
+
+    def wire_codec(self) -> WireCodec:
+        """The codec every process of this scenario speaks: N drones, M targets, and the
+        estimator's state size."""
+        return WireCodec(self.swarm.n_drones, len(self.targets), self.state_dimension)
 
     def with_duration(self, duration_s: float) -> ScenarioConfig:
         """The same scenario with another length (``--duration``); ConfigError if invalid."""

@@ -34,7 +34,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from swarm.messages.wire import ClockWire, TelemetryWire, WireCodec
+from swarm.messages.wire import ClockWire, TelemetryWire
 from swarm.net.transport import (
     Keys,
     RejectionCounter,
@@ -43,7 +43,6 @@ from swarm.net.transport import (
     subscribe,
     zenoh_config,
 )
-from swarm.observe.collector import state_dimension
 from swarm.observe.recording import Recordable, Recorder, RecordingMetadata
 from swarm.scenario.cli_common import load_scenario
 
@@ -237,7 +236,7 @@ def observe(argv: Sequence[str] | None = None) -> int:
     config = load_scenario(args.config, args.duration)
     keys = Keys(args.run_id)
     n = config.swarm.n_drones
-    codec = WireCodec(n, len(config.targets), state_dimension(config))
+    codec = config.wire_codec()
     rejections = RejectionCounter()
     metadata = RecordingMetadata.for_run(config, args.seed, args.mode, args.run_id, args.config)
     last_step = [-1] * n

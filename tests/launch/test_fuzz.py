@@ -126,9 +126,9 @@ class Plan:
 
     def __init__(self, config: Any, keys: Keys, seed: int = 2026) -> None:
         rng = random.Random(seed)
-        n, m, n_state = config.swarm.n_drones, len(config.targets), 6
+        n, m, n_state = config.swarm.n_drones, len(config.targets), config.state_dimension
         neighbours = config.swarm.graph.neighbours
-        codec = WireCodec(n, m, n_state)  # exactly the agents' codec
+        codec = config.wire_codec()  # exactly the agents' codec
         self.zenoh: dict[str, list[bytes]] = {}
         self.reach: dict[str, tuple[int, ...]] = {}  # the agents that receive each key
         self.agent_expected = [0] * n
@@ -240,7 +240,7 @@ def test_a_flood_of_bad_input_changes_nothing_and_every_rejection_is_counted() -
         assert set(before.values()) <= {0}, before  # a clean swarm rejects nothing
 
         session = open_session(zenoh_config(mode="client", connect=[launcher.endpoint]))
-        codec = WireCodec(n, len(config.targets), 6)
+        codec = config.wire_codec()
         subscribe(session, launcher.keys.clock, codec.decode_clock,
                   lambda _key, clock: clocks.append(clock), RejectionCounter(), "clock",
                   remote_only=True)
@@ -364,7 +364,7 @@ def _zenoh_boundaries(config: Any, bad: float) -> None:
     """Camera frames, beacons and consensus messages go through ``subscribe`` with the
     agents' decoders, as in ``AgentProcess``: the poisoned ones are counted, never handed on."""
     n, m = config.swarm.n_drones, len(config.targets)
-    codec = WireCodec(n, m, 6)
+    codec = config.wire_codec()
     keys = Keys("nanfuzz")
     camera = codec.encode(CameraFrameWire.build(0, 3, 0.06, 1060,
                                                 [Detection(0, np.array([0.1, -0.2]))]))

@@ -23,7 +23,7 @@ from rich.console import Console
 
 from swarm.core.agent import StepDiagnostics
 from swarm.launch.launcher import LaunchOptions, SwarmLauncher, free_tcp_port
-from swarm.messages.wire import ClockWire, TelemetryWire, WireCodec, telemetry_from_diagnostics
+from swarm.messages.wire import ClockWire, TelemetryWire, telemetry_from_diagnostics
 from swarm.net.transport import Keys, open_session, zenoh_config
 from swarm.observe.dashboard import (
     Dashboard,
@@ -380,8 +380,7 @@ def test_watch_shows_a_swarm_running_elsewhere(
     port = free_tcp_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     keys = Keys("watchtest")
-    codec = WireCodec(config.swarm.n_drones, len(config.targets),
-                      final_diagnostics[0].estimates.shape[1])
+    codec = config.wire_codec()
     console = recording_console(terminal=False)
     result: dict[str, str] = {}
     router = open_session(zenoh_config(mode="router", listen=[endpoint]))

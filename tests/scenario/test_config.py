@@ -8,6 +8,7 @@ first line ``# expect: <substring>`` that the error message must contain.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import math
 import re
 import subprocess
@@ -453,3 +454,15 @@ def test_bad_tracking_margins_are_one_line_errors(key: str, value: float, reason
         config_from_dict(data)
     message = str(err.value)
     assert f"control.{key}" in message and reason in message and "\n" not in message
+
+
+@pytest.mark.parametrize("model, size", [("double_integrator", 6), ("single_integrator", 3)])
+def test_every_process_builds_its_codec_from_the_config(model: str, size: int) -> None:
+    """One place says how large a target's state is and what the processes speak: the
+    estimator's own size (icf.state_dimension), N drones, M targets."""
+    base = load_config(CONFIGS / "case2.toml")
+    config = dataclasses.replace(base, estimation=dataclasses.replace(base.estimation,
+                                                                      model=model))
+    assert config.state_dimension == size
+    codec = config.wire_codec()
+    assert (codec.n_drones, codec.n_targets, codec.n_state) == (6, 2, size)
