@@ -76,6 +76,12 @@ _set_attribute: Final = object.__setattr__  # a frozen dataclass's own refuses
 _F64: Final = np.dtype(np.float64)
 # The wire is little-endian: on such a machine a float64 array's own bytes are the wire bytes.
 _NATIVE_LE: Final = sys.byteorder == "little"
+# What the short ways (the agent's own encoders, the decoders' quick checks) may meet and then
+# hand to the long way, which names the problem: an object of another type or shape than the
+# core makes, a number too large for msgpack, and for payloads, bytes that do not decode.
+_ODD_OBJECT: Final = (AttributeError, TypeError, ValueError, IndexError, KeyError,
+                      OverflowError)
+_ODD_PAYLOAD: Final = (msgspec.DecodeError, UnicodeDecodeError, *_ODD_OBJECT)
 
 NonNegativeInt = Annotated[int, msgspec.Meta(ge=0)]
 _Dim = Annotated[int, msgspec.Meta(ge=0, le=1 << 20)]
@@ -794,13 +800,13 @@ class WireCodec:
                         and _sum_finite(raw := b"".join(map(_tobytes, arrays)))):
                     return self._encoder.encode(("consensus", WIRE_VERSION, sender, step, rnd,
                                                  self.n_targets, self.n_state, raw))
-        except Exception:  # something unusual (None, not an array): the usual way says what
+        except _ODD_OBJECT:  # something unusual (None, not an array): the usual way says what
             pass
         try:
             wire = consensus_to_wire(message)
         except WireError:
             raise
-        except Exception as exc:  # arrays that are not numbers at all
+        except _ODD_OBJECT as exc:  # arrays that are not numbers at all
             raise WireError(f"cannot encode ConsensusMessage: {type(exc).__name__}: {exc}"
                             ) from None
         return self.encode(wire)
@@ -826,7 +832,7 @@ class WireCodec:
         """``encode(telemetry_from_diagnostics(diag, position, counters, **counter_fields))``."""
         try:
             payload = self._telemetry_payload(diag, position, counters, counter_fields)
-        except Exception:  # something unusual: the usual way says what
+        except _ODD_OBJECT:  # something unusual: the usual way says what
             payload = None
         if payload is None:
             return self.encode(telemetry_from_diagnostics(diag, position, counters,
@@ -903,7 +909,7 @@ class WireCodec:
             check(message)
         except WireError:
             raise
-        except Exception as exc:  # a hand-built message with wrong field types
+        except _ODD_OBJECT as exc:  # a hand-built message with wrong field types
             raise WireError(f"invalid {type(message).__name__}: {type(exc).__name__}: {exc}"
                             ) from None
 
@@ -929,12 +935,12 @@ class WireCodec:
                         message = _new_object(ConsensusMessage)
                         _set_attribute(message, "__dict__", fields)
                         return message
-            except Exception:  # the long way says what is wrong
+            except _ODD_PAYLOAD:  # the long way says what is wrong
                 pass
         wire = self._decode_checked(payload, ConsensusWire)
         try:
             return consensus_from_wire(wire)
-        except Exception as exc:  # cannot happen for a checked message; never escapes anyway
+        except _ODD_OBJECT as exc:  # cannot happen for a checked message; never escapes anyway
             raise WireError(f"internal decoder error on consensus payload: "
                             f"{type(exc).__name__}: {exc}") from None
 
@@ -948,7 +954,7 @@ class WireCodec:
                 message = self._beacon_decoder.decode(payload)
                 if self._quick_beacon(message):
                     return message
-            except Exception:  # the long way says what is wrong
+            except _ODD_PAYLOAD:  # the long way says what is wrong
                 pass
         return self._decode_checked(payload, BeaconWire)
 
@@ -973,7 +979,7 @@ class WireCodec:
                 message = self._decoders[cls].decode(payload)
                 if (quick or self._quick[cls])(message):
                     return message
-            except Exception:  # DecodeError, UnicodeDecodeError, a quick check that tripped
+            except _ODD_PAYLOAD:  # bytes that do not decode, a quick check that tripped
                 pass
         return self._decode_checked(payload, cls)
 
@@ -997,7 +1003,7 @@ class WireCodec:
             return message
         except WireError:
             raise
-        except Exception as exc:  # never let anything but WireError out of a decoder
+        except Exception as exc:  # the one boundary: nothing but WireError leaves a decoder
             raise WireError(f"internal decoder error on {kind} payload: "
                             f"{type(exc).__name__}: {exc}") from None
 
@@ -1010,7 +1016,7 @@ class WireCodec:
         """Why a payload failed to decode: wrong kind and wrong version say so explicitly."""
         try:
             header = self._header.decode(payload)
-        except Exception:
+        except _ODD_PAYLOAD:
             return f"malformed {kind} message: {exc}"
         if header.kind != kind:
             shown = header.kind if header.kind in _KINDS.values() else f"{header.kind!r:.40}"
@@ -1242,5 +1248,5 @@ def _quick_ok(check: Callable[..., bool], *args: Any) -> bool:
     """``check(*args)``, False if it raises (a field of an unexpected type: validate says)."""
     try:
         return check(*args)
-    except Exception:
+    except _ODD_OBJECT:
         return False
