@@ -53,6 +53,7 @@ from swarm.messages.wire import (
     TruthWire,
 )
 from swarm.models import frames
+from swarm.net.observer import join_router, subscribe_observer
 from swarm.net.security import OBSERVER_ROLE
 from swarm.net.transport import (
     Keys,
@@ -60,9 +61,6 @@ from swarm.net.transport import (
     RejectionCounter,
     TransportError,
     local_endpoint,
-    open_session,
-    subscribe,
-    zenoh_config,
 )
 from swarm.observe.collector import TelemetryCollector
 from swarm.observe.recording import AutopilotState, Recorder, RecordingError, RecordingMetadata
@@ -623,38 +621,25 @@ class SwarmLauncher:
 
     def _connect(self, timeout_s: float) -> None:
         """Join the world's router as a client, retrying while the world starts up."""
-        deadline = time.monotonic() + timeout_s
-        while True:
+        def children_alive() -> None:
             for child in self.children:
                 if child.process.poll() is not None:
                     raise self._failure(child)
-            try:
-                self.session = open_session(zenoh_config(
-                    mode="client", connect=[self.endpoint],
-                    tls=self.options.config.security.identity(OBSERVER_ROLE)))
-                break
-            except TransportError as err:
-                if time.monotonic() > deadline:
-                    raise MissionError(f"cannot reach the world's Zenoh router at "
-                                        f"{self.endpoint}: {err}") from None
-                self.stop_requested.wait(0.1)
-        session = self.session
-        keys = self.keys
-        self._subscribers = [
-            subscribe(session, keys.all_telemetry, self.codec.decode_telemetry,
-                      self._on_telemetry, self.rejections, "telemetry"),
-            subscribe(session, keys.truth, self.codec.decode_truth, self._on_truth,
-                      self.rejections, "truth"),
-            subscribe(session, keys.clock, self.codec.decode_clock, self._on_clock,
-                      self.rejections, "clock"),
-        ]
-        if self.recorder is not None:
-            self._subscribers += [
-                subscribe(session, keys.all_beacons, self.codec.decode_beacon,
-                          self._record, self.rejections, "beacon"),
-                subscribe(session, keys.all_cameras, self.codec.decode_camera,
-                          self._record, self.rejections, "camera"),
-            ]
+
+        try:
+            self.session = join_router(
+                [self.endpoint], timeout_s,
+                tls=self.options.config.security.identity(OBSERVER_ROLE),
+                before_each_try=children_alive, pause=self.stop_requested.wait)
+        except TransportError as err:
+            raise MissionError(f"cannot reach the world's Zenoh router at "
+                               f"{self.endpoint}: {err}") from None
+        recording = self.recorder is not None
+        self._subscribers = subscribe_observer(
+            self.session, self.keys, self.codec, self.rejections,
+            on_telemetry=self._on_telemetry, on_truth=self._on_truth, on_clock=self._on_clock,
+            on_beacon=self._record if recording else None,
+            on_camera=self._record if recording else None)
 
     def _on_clock(self, _key: str, clock: ClockWire) -> None:
         latest = self.clock.get(0)

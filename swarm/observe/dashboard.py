@@ -573,15 +573,9 @@ def watch(connect_endpoint: str, run_id: str, config: ScenarioConfig, *,
     cannot be reached within ``connect_timeout_s`` (the world may still be starting).
     """
     from swarm.messages.wire import ClockWire
+    from swarm.net.observer import join_router, subscribe_observer
     from swarm.net.security import OBSERVER_ROLE
-    from swarm.net.transport import (
-        Keys,
-        LatestValues,
-        RejectionCounter,
-        open_session,
-        subscribe,
-        zenoh_config,
-    )
+    from swarm.net.transport import Keys, LatestValues, RejectionCounter
 
     console = console or Console()
     stop = stop or threading.Event()
@@ -591,16 +585,13 @@ def watch(connect_endpoint: str, run_id: str, config: ScenarioConfig, *,
     clock: LatestValues[ClockWire] = LatestValues()
     dashboard = Dashboard(config, console, headless=headless, settings=settings,
                           title=f"{config.scenario.name} ({run_id})")
-    session = open_session(zenoh_config(mode="client", connect=[connect_endpoint],
-                                        connect_timeout_s=connect_timeout_s,
-                                        tls=config.security.identity(OBSERVER_ROLE)))
+    session = join_router([connect_endpoint], 0.0, connect_timeout_s=connect_timeout_s,
+                          tls=config.security.identity(OBSERVER_ROLE))  # one try
     state = "unknown"
     try:
-        subscribers = [  # held: a subscriber lives as long as its handle
-            subscribe(session, keys.all_telemetry, codec.decode_telemetry,
-                      dashboard.on_telemetry_sample, rejections, "telemetry"),
-            subscribe(session, keys.clock, codec.decode_clock, lambda _k, c: clock.put(0, c),
-                      rejections, "clock")]
+        subscribers = subscribe_observer(  # held: a subscriber lives as long as its handle
+            session, keys, codec, rejections, on_telemetry=dashboard.on_telemetry_sample,
+            on_clock=lambda _k, c: clock.put(0, c))
         with dashboard:
             while not stop.wait(0.1):
                 latest = clock.get(0)

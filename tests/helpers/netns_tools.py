@@ -35,13 +35,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from swarm.messages.wire import ClockWire, TelemetryWire
+from swarm.net.observer import join_router, subscribe_observer
 from swarm.net.transport import (
     Keys,
     RejectionCounter,
-    TransportError,
-    open_session,
-    subscribe,
-    zenoh_config,
 )
 from swarm.observe.recording import Recordable, Recorder, RecordingMetadata
 from swarm.scenario.cli_common import load_scenario
@@ -258,26 +255,11 @@ def observe(argv: Sequence[str] | None = None) -> int:
 
         # The world may still be starting: try its router until the deadline, as agents do.
         deadline = time.monotonic() + args.timeout
-        while True:
-            try:
-                session = open_session(zenoh_config(mode="client", connect=args.connect))
-                break
-            except TransportError:
-                if time.monotonic() > deadline:
-                    raise
-                time.sleep(0.1)
+        session = join_router(args.connect, args.timeout)
         try:
-            subs = [
-                subscribe(session, keys.all_telemetry, codec.decode_telemetry, on_telemetry,
-                          rejections, "telemetry"),
-                subscribe(session, keys.truth, codec.decode_truth, record, rejections, "truth"),
-                subscribe(session, keys.all_beacons, codec.decode_beacon, record, rejections,
-                          "beacon"),
-                subscribe(session, keys.all_cameras, codec.decode_camera, record, rejections,
-                          "camera"),
-                subscribe(session, keys.clock, codec.decode_clock, on_clock, rejections,
-                          "clock"),
-            ]
+            subs = subscribe_observer(session, keys, codec, rejections,
+                                      on_telemetry=on_telemetry, on_clock=on_clock,
+                                      on_truth=record, on_beacon=record, on_camera=record)
             print(f"{OBSERVER_READY} to {', '.join(args.connect)}, recording to "
                   f"{recorder.path}", flush=True)
             done_at = None

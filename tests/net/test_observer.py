@@ -1,0 +1,116 @@
+"""The observers' one way in (``swarm.net.observer``): joining the world's router while it
+starts, and the subscriptions the launcher, the dashboard and a remote recorder hold."""
+
+from __future__ import annotations
+
+import queue
+import time
+
+import pytest
+
+from swarm.net.observer import join_router, subscribe_observer
+from swarm.net.transport import Keys, RejectionCounter, TransportError, open_session, zenoh_config
+from tests.helpers.process_tools import free_tcp_port
+from tests.helpers.wire_samples import CODEC, MESSAGES, PAYLOADS
+
+DEADLINE_S = 10.0
+
+
+def test_join_router_retries_until_the_router_is_up() -> None:
+    """The world may still be starting: tries fail until its router listens, then the
+    observer is in."""
+    port = free_tcp_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    tries: list[float] = []
+    routers = []
+
+    def count_and_start_the_router_on_the_third() -> None:
+        tries.append(time.monotonic())
+        if len(tries) == 3:
+            routers.append(open_session(zenoh_config(mode="router", listen=[endpoint])))
+
+    try:
+        client = join_router([endpoint], DEADLINE_S,
+                             before_each_try=count_and_start_the_router_on_the_third)
+        client.close()
+    finally:
+        for router in routers:
+            router.close()
+    assert len(tries) == 3
+    assert tries[2] - tries[0] >= 0.2  # paused 0.1 s between tries
+
+
+def test_join_router_gives_up_at_its_deadline_or_when_told() -> None:
+    endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"  # nobody listens
+    started = time.monotonic()
+    with pytest.raises(TransportError):
+        join_router([endpoint], 0.3)
+    assert 0.3 <= time.monotonic() - started < 5.0
+
+    class ChildDied(Exception):
+        pass
+
+    def died() -> None:
+        raise ChildDied
+
+    with pytest.raises(ChildDied):
+        join_router([endpoint], DEADLINE_S, before_each_try=died)
+
+
+def test_an_observer_hears_what_it_asked_for_and_counts_what_it_rejects() -> None:
+    """Telemetry and clock always; truth, beacons and camera frames only with a callback;
+    each payload decoded by the run's codec, junk counted under its kind."""
+    port = free_tcp_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    keys = Keys("observertest")
+    heard: queue.Queue[tuple[str, object]] = queue.Queue()
+
+    def into(kind: str):
+        return lambda _key, message: heard.put((kind, message))
+
+    router = open_session(zenoh_config(mode="router", listen=[endpoint]))
+    try:
+        observer = join_router([endpoint], DEADLINE_S)
+        full = RejectionCounter()
+        lean = RejectionCounter()
+        held = [subscribe_observer(observer, keys, CODEC, full, on_telemetry=into("telemetry"),
+                                   on_clock=into("clock"), on_truth=into("truth"),
+                                   on_beacon=into("beacon"), on_camera=into("camera")),
+                subscribe_observer(observer, keys, CODEC, lean, on_telemetry=into("lean"),
+                                   on_clock=into("lean"))]
+        assert [len(subs) for subs in held] == [5, 2]
+        telemetry = MESSAGES["telemetry"]
+        sent = {"telemetry": (keys.telemetry(telemetry.drone), PAYLOADS["telemetry"]),
+                "clock": (keys.clock, PAYLOADS["clock"]),
+                "truth": (keys.truth, PAYLOADS["truth"]),
+                "beacon": (keys.beacon(MESSAGES["beacon"].sender), PAYLOADS["beacon"]),
+                "camera": (keys.camera(MESSAGES["camera"].drone), PAYLOADS["camera"])}
+        got: dict[str, list[object]] = {}
+        deadline = time.monotonic() + DEADLINE_S
+        # Subscriptions propagate asynchronously: publish again until each kind arrived.
+        while set(got) != {*sent, "lean"} and time.monotonic() < deadline:
+            for key, payload in sent.values():
+                router.put(key, payload)
+            try:
+                while True:
+                    kind, message = heard.get(timeout=0.05)
+                    got.setdefault(kind, []).append(message)
+            except queue.Empty:
+                pass
+        assert set(got) == {*sent, "lean"}
+        for kind in sent:
+            assert got[kind][0] == MESSAGES[kind]
+        assert {type(m).__name__ for m in got["lean"]} == {"TelemetryWire", "ClockWire"}
+
+        router.put(keys.truth, b"\x93junk")
+        router.put(keys.clock, b"\x93junk")
+        assert full.wait_for_total(2, DEADLINE_S) and lean.wait_for_total(1, DEADLINE_S)
+        assert full.snapshot()["truth"]["rejected"] == 1
+        assert full.snapshot()["clock"]["rejected"] == 1
+        assert "truth" not in lean.snapshot() and lean.snapshot()["clock"]["rejected"] == 1
+        for subs in held:
+            for sub in subs:
+                sub.undeclare()
+        observer.close()
+    finally:
+        router.close()
