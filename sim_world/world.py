@@ -335,6 +335,8 @@ class World:
             self.publish_clock(opts.config.n_steps, "done")
             log(f"world: mission complete ({opts.config.n_steps} steps); rejected "
                 f"{self.rejected_total()} malformed inputs")
+            for line in self.rejections.lines():
+                log(f"world: rejected {line}")
             self.linger()
             return EXIT_OK
         except WorldAbortError as err:

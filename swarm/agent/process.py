@@ -595,6 +595,10 @@ class AgentProcess:
             return self._run()
         finally:
             self.link.end_mission(self.options.config.vehicles.end_action)
+            for line in self.rejections.lines():
+                self.options.log(f"drone {self.id}: rejected {line}")
+            for reason, count in sorted(self.link.rejections.items()):
+                self.options.log(f"drone {self.id}: rejected MAVLink: {count} × {reason}")
             if self._faulty is not None:
                 f = self._faulty
                 self.options.log(

@@ -402,6 +402,12 @@ class RejectionCounter:
         with self._cond:
             return self._total
 
+    def lines(self) -> list[str]:
+        """One line per kind that dropped anything, with its last reason (for a log)."""
+        return [f"{kind}: {entry['rejected']} rejected, {entry['unexpected']} unexpected "
+                f"(last: {entry['last_reason']})"
+                for kind, entry in sorted(self.snapshot().items())]
+
     def snapshot(self) -> dict[str, dict[str, Any]]:
         """``{kind: {"rejected": n, "unexpected": m, "last_reason": str}}`` (a copy)."""
         with self._cond:
@@ -645,26 +651,30 @@ def subscribe(
     hold at least one step's worth of sources).
     """
 
+    # Every reason names the key the payload came on (which drone, which stream): what an
+    # operator needs to find the sender.
     def callback(sample: zenoh.Sample) -> None:
         try:
             payload = sample.payload
             if len(payload) > max_payload_bytes:
                 rejections.reject(kind, f"payload of {len(payload)} bytes exceeds the "
-                                        f"{max_payload_bytes}-byte limit")
+                                        f"{max_payload_bytes}-byte limit on {sample.key_expr}")
                 return
             value = decode(payload.to_bytes())
         except WireError as exc:
-            rejections.reject(kind, exc.reason)
+            rejections.reject(kind, f"{exc.reason} on {sample.key_expr}")
             return
         except BaseException as exc:  # never into zenoh's thread
-            rejections.unexpected(kind, f"decoder raised {type(exc).__name__}: {exc}")
+            rejections.unexpected(kind, f"decoder raised {type(exc).__name__}: {exc} on "
+                                        f"{sample.key_expr}")
             return
         try:
             if on_sent_time is not None and (stamp := sample.timestamp) is not None:
                 on_sent_time(value, stamp.get_time_as_ntp64().as_secs_f64())
             on_value(str(sample.key_expr), value)
         except BaseException as exc:
-            rejections.unexpected(kind, f"handler raised {type(exc).__name__}: {exc}")
+            rejections.unexpected(kind, f"handler raised {type(exc).__name__}: {exc} on "
+                                        f"{sample.key_expr}")
 
     origin = zenoh.Locality.REMOTE if remote_only else zenoh.Locality.ANY
     if keep_latest is None:

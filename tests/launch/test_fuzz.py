@@ -35,6 +35,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import random
+import re
 import struct
 import threading
 import time
@@ -208,12 +209,13 @@ def _flood_zenoh(session: Any, plan: Plan, consumed: Callable[[int], int],
 
 
 @pytest.mark.slow
-def test_a_flood_of_bad_input_changes_nothing_and_every_rejection_is_counted() -> None:
+def test_a_flood_of_bad_input_changes_nothing_and_every_rejection_is_counted(
+        tmp_path: Path) -> None:
     started = time.monotonic()
     config = load_config(CASE1).with_duration(DURATION_S)
     n = config.swarm.n_drones
-    launcher = SwarmLauncher(LaunchOptions(config=config, config_path=str(CASE1), seed=0),
-                             log=lambda _line: None)
+    launcher = SwarmLauncher(LaunchOptions(config=config, config_path=str(CASE1), seed=0,
+                                           log_dir=tmp_path), log=lambda _line: None)
     plan = Plan(config, launcher.keys)
     generated = time.monotonic()
 
@@ -316,6 +318,12 @@ def test_a_flood_of_bad_input_changes_nothing_and_every_rejection_is_counted() -
     assert done[0].rejected_inputs == n * plan.vehicle_expected_each
     # and the launcher (a subscriber of world/clock too) in its own counter.
     assert launcher.rejections.snapshot()["clock"]["rejected"] == PER_KEY
+    # Each agent's log says, per kind, how many and the last reason with its key.
+    for i in range(n):
+        log = (tmp_path / f"agent{i}.log").read_text()
+        camera = re.escape(launcher.keys.camera(i))
+        assert re.search(rf"drone {i}: rejected camera: [1-9][0-9]* rejected, 0 unexpected "
+                         rf"\(last: .+ on {camera}\)", log), log[-2000:]
     print(f"\n[fuzz] {zenoh_sent} Zenoh payloads on {len(plan.zenoh)} keys, "
           f"{sum(flood.sent.values())} datagrams at {len(udp_plan)} UDP endpoints in "
           f"{flood_s:.1f} s; counted: agents {got}, world {done[0].rejected_inputs} "

@@ -106,6 +106,7 @@ def test_an_observer_hears_what_it_asked_for_and_counts_what_it_rejects() -> Non
         router.put(keys.clock, b"\x93junk")
         assert full.wait_for_total(2, DEADLINE_S) and lean.wait_for_total(1, DEADLINE_S)
         assert full.snapshot()["truth"]["rejected"] == 1
+        assert full.snapshot()["truth"]["last_reason"].endswith(f" on {keys.truth}")
         assert full.snapshot()["clock"]["rejected"] == 1
         assert "truth" not in lean.snapshot() and lean.snapshot()["clock"]["rejected"] == 1
         for subs in held:

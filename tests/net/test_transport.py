@@ -275,6 +275,7 @@ def test_rejection_counter_is_thread_safe() -> None:
     counter.unexpected("beacon", "KeyError: x")
     snap = counter.snapshot()
     assert snap == {"beacon": {"rejected": 4000, "unexpected": 1, "last_reason": "KeyError: x"}}
+    assert counter.lines() == ["beacon: 4000 rejected, 1 unexpected (last: KeyError: x)"]
     assert counter.total() == 4001 and counter.wait_for_total(4001, timeout_s=0.0)
     assert not counter.wait_for_total(4002, timeout_s=0.01)
 
