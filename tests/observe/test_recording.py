@@ -64,6 +64,7 @@ ROOT = Path(__file__).resolve().parents[2]
 CONFIGS = ROOT / "configs"
 CASE1 = CONFIGS / "case1.toml"
 KILL_AFTER_SIM_S = 2.0
+DT_S = 0.02  # Case 1's step
 DURABILITY_S = 1.0  # what the issue allows to be lost before a kill -9
 
 
@@ -365,8 +366,11 @@ def describe(pids: list[int]) -> str:
 @contextlib.contextmanager
 def recording_launcher(tmp_path: Path, run_id: str):
     """A realtime Case 1 launch-swarm recording to ``tmp_path/rec``, yielded as
-    (process, recording directory, output file) once KILL_AFTER_SIM_S of sim time is on disk;
-    afterwards nothing of the run is left running."""
+    (process, recording directory, output file) once the steps of KILL_AFTER_SIM_S are on
+    disk (the record's steps, which the world's truth makes: the newest message's sim time
+    can be the agents' telemetry, ahead of a world running late — a SIGTERM then found 99
+    steps of truth on disk with telemetry at 2.62 s); afterwards nothing of the run is left
+    running."""
     directory = tmp_path / "rec"
     output = tmp_path / "launcher.log"
     with output.open("wb") as sink:
@@ -377,8 +381,8 @@ def recording_launcher(tmp_path: Path, run_id: str):
             cwd=ROOT, stdout=sink, stderr=subprocess.STDOUT, start_new_session=True)
     try:
         # Reading the whole file costs CPU the swarm needs: a few reads a second suffice.
-        poll(lambda: read_recording(directory).sim_time_s >= KILL_AFTER_SIM_S
-             or process.poll() is not None, 90.0, f"{KILL_AFTER_SIM_S} s of sim time on disk",
+        poll(lambda: read_recording(directory).record.n_steps >= KILL_AFTER_SIM_S / DT_S
+             or process.poll() is not None, 90.0, f"{KILL_AFTER_SIM_S} s of steps on disk",
              period_s=0.25)
         assert process.poll() is None, f"the launcher ended early:\n{output.read_text()}"
         yield process, directory, output
@@ -403,7 +407,7 @@ def test_a_stopped_launcher_leaves_a_readable_recording(tmp_path: Path, signum: 
         assert recording.last_publish_time_ns >= sent_ns - DURABILITY_S * 1e9, (
             f"newest message {(sent_ns - recording.last_publish_time_ns) / 1e9:.2f} s "
             "before the signal")
-        assert recording.record.n_steps >= KILL_AFTER_SIM_S / 0.02
+        assert recording.record.n_steps >= KILL_AFTER_SIM_S / DT_S
         assert recording.metadata.mode == "realtime"
         if signum == signal.SIGKILL:
             assert recording.truncated
@@ -429,7 +433,7 @@ def test_a_killed_world_ends_the_mission_with_a_complete_recording(tmp_path: Pat
         assert "world" in text and "signal 9" in text, text
         recording = read_recording(directory)
         assert not recording.truncated  # the launcher closed the file properly
-        assert recording.record.n_steps >= KILL_AFTER_SIM_S / 0.02
+        assert recording.record.n_steps >= KILL_AFTER_SIM_S / DT_S
         assert recording.last_publish_time_ns >= killed_ns - DURABILITY_S * 1e9
         poll(lambda: not processes_of(run_id), 5.0, "every child of the launcher gone:",
              on_timeout=lambda: describe(processes_of(run_id)))
