@@ -278,7 +278,7 @@ class World:
         for k in range(self.options.config.n_steps):
             if self.fleet is None:
                 self._external_positions()
-                stamps = list(self.pose_stamps_ms)
+                stamps = self.pose_stamps_ms
             else:
                 self._wait(0.0)  # telemetry reports the failsafe state: setpoints count first
                 stamp = self.boot_ms()

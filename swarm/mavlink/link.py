@@ -403,9 +403,15 @@ class AutopilotLink:
 
     def position_at(self, time_boot_ms: int) -> PositionSample | None:
         """The sample stamped ``time_boot_ms`` if it is among the last ones kept, else None
-        (no wait: a realtime agent pairs a camera frame with the pose it was taken at)."""
-        self._drain()
-        return self._by_stamp.get(int(time_boot_ms))
+        (no wait: a realtime agent pairs a camera frame with the pose it was taken at). The
+        link is read again only when the stamp is not yet there: the agent has just drained
+        it for its newest sample, but the frame may have come after that sample."""
+        stamp = int(time_boot_ms)
+        sample = self._by_stamp.get(stamp)
+        if sample is None:
+            self._drain()
+            sample = self._by_stamp.get(stamp)
+        return sample
 
     def wait_position(self, time_boot_ms: int, timeout_s: float) -> PositionSample:
         stamp = int(time_boot_ms)

@@ -55,12 +55,13 @@ def join_router(endpoints: Sequence[str], timeout_s: float, *, tls: TlsIdentity 
 
 
 def subscribe_observer(session: zenoh.Session, keys: Keys, codec: WireCodec,
-            rejections: RejectionCounter, *,
-            on_telemetry: Callable[[str, TelemetryWire], None],
-            on_clock: Callable[[str, ClockWire], None],
-            on_truth: Callable[[str, TruthWire], None] | None = None,
-            on_beacon: Callable[[str, BeaconWire], None] | None = None,
-            on_camera: Callable[[str, CameraFrameWire], None] | None = None) -> list[Any]:
+                       rejections: RejectionCounter, *,
+                       on_telemetry: Callable[[str, TelemetryWire], None],
+                       on_clock: Callable[[str, ClockWire], None],
+                       on_truth: Callable[[str, TruthWire], None] | None = None,
+                       on_beacon: Callable[[str, BeaconWire], None] | None = None,
+                       on_camera: Callable[[str, CameraFrameWire], None] | None = None
+                       ) -> list[Any]:
     """Subscribe to every drone's telemetry and the world's clock, and to the truth, the
     beacons and the camera frames where a callback is given; each payload decoded by
     ``codec``, each rejection counted in ``rejections`` under its kind. Keep the returned
