@@ -29,6 +29,8 @@ from numpy.typing import NDArray
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # after MAVLINK20: MAVLink 2 framing
 
+from swarm.mavlink import px4_events
+
 Array = NDArray[np.float64]
 mav = mavutil.mavlink
 
@@ -178,10 +180,14 @@ class Pilot:
                                             mav.MAVLINK_MSG_ID_HEARTBEAT, 0, 0, 0, 0, 0, 0)
 
     def _on(self, msg: Any) -> None:
-        if msg.get_srcSystem() != self.system_id or msg.get_srcComponent() != 1:
+        if px4_events.message_source(msg) != (self.system_id, 1):
             return
         kind = msg.get_type()
         t = self.now()
+        event = px4_events.event_from_message(msg)
+        if event is not None:  # PX4 says why (a refusal, a failsafe) in EVENTs, not STATUSTEXT
+            self.texts.append((t, px4_events.describe(event)))
+            self.log(f"{t:7.2f} said {px4_events.describe(event)}")
         if kind == "LOCAL_POSITION_NED":
             self.samples.append(Sample(t, np.array([msg.x, msg.y, msg.z]),
                                        np.array([msg.vx, msg.vy, msg.vz])))
@@ -192,7 +198,9 @@ class Pilot:
             if self.heartbeat is None or (hb.mode, hb.armed) != (self.heartbeat.mode,
                                                                   self.heartbeat.armed):
                 self.modes.append((t, hb.mode, hb.armed))
-                self.log(f"{t:7.2f} mode {hb.mode} {'armed' if hb.armed else 'disarmed'}")
+                raw = f" (custom_mode 0x{hb.custom_mode:08x})" if hb.mode == "UNKNOWN" else ""
+                self.log(f"{t:7.2f} mode {hb.mode}{raw} "
+                         f"{'armed' if hb.armed else 'disarmed'}")
             self.heartbeat = hb
         elif kind == "EXTENDED_SYS_STATE":
             if msg.landed_state != self.landed_state:
