@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 # pymavlink.mavutil imports its MAVLink 1 "all" dialect (every dialect in one module) at import
 # time only so that PyInstaller bundles it: ~6 MB of RSS and ~0.1 s of CPU per agent, which
@@ -47,6 +48,10 @@ def build_parser() -> OneLineParser:
                         help="Zenoh endpoint of the world's router (default tcp/127.0.0.1:7447; "
                              "tls/... with [security])")
     parser.add_argument("--listen", action="append", default=[], metavar="ENDPOINT")
+    parser.add_argument("--qp-dump-dir", type=Path, default=None, metavar="DIR",
+                        help="save the first QPs the solver fails on there, one .npz each "
+                             "(python -m swarm.runs.failed_qp FILE solves one again); "
+                             "default: only log them")
     add_run_arguments(parser, run_id_help="the world's --run-id (default: vigil)")
     faults = parser.add_argument_group(
         "fault injection (tests; realtime only; off by default)")
@@ -86,7 +91,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         mavlink_url=args.mavlink or f"udpin:127.0.0.1:{DEFAULT_MAVLINK_BASE + args.id}",
         connect=tuple(args.connect or [local_endpoint(7447, tls=config.security.enabled)]),
         listen=tuple(args.listen),
-        mode=args.mode, log=lambda line: print(line, flush=True), consensus_faults=faults)
+        mode=args.mode, log=lambda line: print(line, flush=True), consensus_faults=faults,
+        qp_dump_dir=args.qp_dump_dir)
     process = None
     try:
         process = AgentProcess(options)

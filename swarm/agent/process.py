@@ -24,10 +24,12 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
 
+from swarm.agent.qp_failures import QpFailureLog
 from swarm.core.agent import ConsensusMessage, DroneAgent, StepDiagnostics
 from swarm.errors import EXIT_END_MISSION, EXIT_FAILED, EXIT_OK, VigilError
 from swarm.mavlink.link import AutopilotLink, LinkError, PositionSample
@@ -90,6 +92,8 @@ class AgentOptions:
     log: Callable[[str], None] = field(default=print)
     # Test option (realtime): lose or delay this drone's outgoing consensus messages.
     consensus_faults: LinkFaults = field(default_factory=LinkFaults)
+    # Where the first failed QPs are saved (swarm.agent.qp_failures); None: only logged.
+    qp_dump_dir: Path | None = None
 
 
 class AgentProcess:
@@ -121,6 +125,7 @@ class AgentProcess:
         self.clock: LatestValues[ClockWire] = LatestValues()
         self.late_steps = 0
         self.unpaired_frames = 0  # realtime frames whose pose was no longer (or not yet) kept
+        self.qp_failures = QpFailureLog(options.log, options.qp_dump_dir)
         self.steps_run = 0
         self._flying = np.zeros(3)  # the velocity setpoint last sent (what the vehicle flies)
         # vehicles.setpoints = "tracked": the reference the setpoints follow, and when the
@@ -431,6 +436,8 @@ class AgentProcess:
             beacons = self._realtime_beacons(sample_age_s)
         result = agent.finish_step(beacons)
         self.steps_run += 1
+        for failed in agent.qp_failures:
+            self.qp_failures.report(failed)
         stamp = frame.vehicle_time_ms if frame is not None else 0
         self._send_command(result.velocity, position, vehicle_velocity, stamp)
         self._flying = result.velocity
@@ -616,7 +623,8 @@ class AgentProcess:
         except MissionEnded as over:
             if over.state == "done":
                 log(f"drone {self.id}: mission complete; {self.agent.qp_fallbacks} QP "
-                    f"fallbacks, {self.late_steps} late steps, {self.unpaired_frames} "
+                    f"fallbacks ({self.qp_failures.count} QPs not solved), {self.late_steps} late "
+                    f"steps, {self.unpaired_frames} "
                     f"frames measured from the newest pose (theirs not kept), "
                     f"{self.rejections.total() + self.link.rejected_frames} rejected inputs")
                 return EXIT_OK

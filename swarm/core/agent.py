@@ -32,7 +32,13 @@ from swarm.core.formation import bearing_formation_scalars
 from swarm.core.gramian import initial_gramian
 from swarm.core.params import ControlParams, EstimationParams, GramianParams, PerceptionParams
 from swarm.core.perception import perception_constants, perception_scalars, perception_terms
-from swarm.core.qp import INACTIVE_ROW_LOWER, LocalQpWorkspace, QpSolution, rate_limited_box
+from swarm.core.qp import (
+    INACTIVE_ROW_LOWER,
+    FailedQp,
+    LocalQpWorkspace,
+    QpSolution,
+    rate_limited_box,
+)
 from swarm.errors import VigilError
 
 Array = NDArray[np.float64]
@@ -214,6 +220,9 @@ class DroneAgent:
         # Running totals.
         self.qp_fallbacks = 0
         self.rate_limit_releases = 0
+        # The QPs of the last step that got no acceptable solution (``FailedQp``), in the
+        # order they were tried; emptied when a step begins.
+        self.qp_failures: list[FailedQp] = []
         self.missing_neighbour_messages = 0
         self.rejected_inputs = 0
 
@@ -288,6 +297,8 @@ class DroneAgent:
                 raise ValueError(f"drone {setup.drone_id}: camera position must be 3 finite "
                                  f"numbers, got {camera_position!r}")
         self._missing = self._rejected = 0
+        if self.qp_failures:
+            self.qp_failures = []
         measured: list[tuple[float, ...] | None] = [None] * m
         for det in detections:
             point = np.asarray(det.image_point, dtype=float)
@@ -693,11 +704,24 @@ class DroneAgent:
             hard = self._qp_hard.solve(nominal, u_columns, lower, weights, box)
             if hard.found:
                 return hard, False, False
+            self._keep_failure("hard", self._qp_hard, hard)
         relaxed = self._qp_relaxed.solve(nominal, u_columns, lower, weights, box)
-        if box is not None and not relaxed.found:
-            released = self._qp_relaxed.solve(nominal, u_columns, lower, weights)
-            return released, True, True
-        return relaxed, self._qp_hard is not None or not relaxed.found, False
+        if relaxed.found:
+            return relaxed, self._qp_hard is not None, False
+        self._keep_failure("relaxed", self._qp_relaxed, relaxed)
+        if box is None:
+            return relaxed, True, False
+        released = self._qp_relaxed.solve(nominal, u_columns, lower, weights)
+        if not released.found:
+            self._keep_failure("relaxed, full box", self._qp_relaxed, released)
+        return released, True, True
+
+    def _keep_failure(self, attempt: str, workspace: LocalQpWorkspace,
+                      solution: QpSolution) -> None:
+        """Keep a QP that was not solved, as PIQP had it, in ``qp_failures``."""
+        self.qp_failures.append(FailedQp(
+            self.setup.drone_id, self._step, attempt, workspace.current_qp(), solution.status,
+            solution.iterations, solution.max_violation))
 
 
 class _BarrierConstants(NamedTuple):

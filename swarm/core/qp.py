@@ -113,6 +113,31 @@ class QpSolution:
         return self.z[:3]
 
 
+@dataclass(frozen=True)
+class FailedQp:
+    """A local QP that got no acceptable solution, as PIQP was given it, with PIQP's answer:
+    what it takes to solve it again outside the swarm (``QpSolver().solve(failed.qp)``).
+
+    ``attempt`` names which QP of the step it was (``DroneAgent``'s fallback order, SPEC §9):
+    "hard" (3.37), "relaxed" (3.36) or "relaxed, full box" (3.36 without the rate box)."""
+
+    drone_id: int
+    step: int
+    attempt: str
+    qp: LocalQp
+    status: str
+    iterations: int
+    max_violation: float
+
+    def describe(self) -> str:
+        """One line for a log, e.g. ``drone 2: step 41: hard QP not solved: PIQP_PRIMAL_INFEASIBLE
+        after 23 iterations (max violation inf; 3 variables, 11 rows)``."""
+        rows, n = self.qp.rows.shape
+        return (f"drone {self.drone_id}: step {self.step}: {self.attempt} QP not solved: "
+                f"{self.status} after {self.iterations} iterations (max violation "
+                f"{self.max_violation:.3g}; {n} variables, {rows} rows)")
+
+
 def _new_piqp_solver() -> piqp.DenseSolver:
     solver = piqp.DenseSolver()
     settings = solver.settings
@@ -295,6 +320,13 @@ class LocalQpWorkspace:
             status=_status_name(status), iterations=int(result.info.iter),
             solve_time_s=elapsed, max_violation=violation)
         return solution
+
+    def current_qp(self) -> LocalQp:
+        """The QP of the last solve that reached PIQP, as a solver-independent ``LocalQp`` of
+        copies: ``build_local_qp`` of the same inputs, with the box of u that solve had. (A
+        ``NOMINAL_FEASIBLE`` solve writes nothing, so it is not this QP.)"""
+        return LocalQp(self.hessian.copy(), self.linear.copy(), self.rows.copy(),
+                       self.lower.copy(), self.z_min.copy(), self.z_max.copy())
 
     def _max_violation(self, z: list[float], u_columns: list[float],
                        lower: list[float]) -> float:

@@ -403,7 +403,8 @@ class SwarmLauncher:
             else f"udpin:127.0.0.1:{self.mavlink_base + drone_id}")
         argv = [sys.executable, "-m", "swarm.agent.cli", "--id", str(drone_id),
                 "--config", common[0], *common[1:], "--connect", self.endpoint,
-                "--mavlink", url, *opts.extra_agent_args.get(drone_id, [])]
+                "--mavlink", url, "--qp-dump-dir", str(self.log_dir),
+                *opts.extra_agent_args.get(drone_id, [])]
         restarts = self._restarts_done.get(drone_id, 0)
         name = f"agent{drone_id}" + (f".restart{restarts}" if restarts else "")
         return self._spawn(name, argv, drone_id)
@@ -743,10 +744,20 @@ class SwarmLauncher:
             record = self.collector.record(self.options.seed, time.monotonic() - started)
             self.close()
             if self._own_log_dir:
-                shutil.rmtree(self.log_dir, ignore_errors=True)
+                self._remove_own_log_dir()
             return record
         finally:
             self.close()
+
+    def _remove_own_log_dir(self) -> None:
+        """After a clean run, remove the temporary log directory, unless an agent saved a QP
+        it could not solve there (``swarm.runs.failed_qp``)."""
+        dumps = sorted(self.log_dir.glob("qp-*.npz"))
+        if dumps:
+            self.log(f"{len(dumps)} QPs the agents could not solve are saved in {self.log_dir} "
+                     f"(kept; python -m swarm.runs.failed_qp FILE solves one again)")
+            return
+        shutil.rmtree(self.log_dir, ignore_errors=True)
 
     def _wait_agents_done(self) -> None:
         deadline = time.monotonic() + 5.0

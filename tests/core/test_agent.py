@@ -137,6 +137,14 @@ def test_hard_qp_infeasibility_falls_back_to_relaxed_and_is_counted() -> None:
     assert agent.qp_fallbacks > 0
     assert result.diagnostics.qp_fallback
     assert np.all(np.abs(result.velocity) <= 3.0)
+    # The step keeps the failed QP as PIQP had it: solved again, it fails the same way.
+    [failed] = agent.qp_failures
+    assert (failed.drone_id, failed.step, failed.attempt) == (0, 149, "hard")
+    assert failed.qp.n_variables == 3 and not QpSolver().solve(failed.qp).found
+    assert QpSolver().solve(failed.qp).status == failed.status
+    assert failed.describe().startswith(f"drone 0: step 149: hard QP not solved: {failed.status}")
+    run_alone(agent, 150, [0.0, 0.0, 3.0])
+    assert [f.step for f in agent.qp_failures] == [150]  # emptied when a step begins
 
 
 def test_collision_rows_keep_two_approaching_drones_apart() -> None:
@@ -344,3 +352,8 @@ def test_a_rate_box_that_blocks_a_collision_row_is_released_and_counted() -> Non
     row, lower = collision_row(np.array([0.0, 0.0, 3.0]), np.array([0.62, 0.0, 3.0]), 0.5, 1.0)
     assert float(row @ result.velocity) >= lower - 1e-6
     assert result.velocity[0] < 2.0 - 0.5 * 0.02  # beyond the box: it brakes harder
+    # The relaxed QP within the box is the one kept; without the box it is solved.
+    [failed] = agent.qp_failures
+    assert failed.attempt == "relaxed"
+    assert np.allclose(failed.qp.z_min[:3], np.array([2.0, 0.0, 0.0]) - 0.5 * 0.02)
+    assert not QpSolver().solve(failed.qp).found

@@ -372,6 +372,34 @@ def test_workspace_sequence_matches_the_brute_force_optimum(m_targets: int,
     assert qp_module.NOMINAL_FEASIBLE in statuses and "PIQP_SOLVED" in statuses
 
 
+@pytest.mark.parametrize("relaxed", [True, False], ids=["relaxed", "hard"])
+@pytest.mark.parametrize("m_targets", [1, 2, 3])
+def test_the_workspace_holds_the_qp_build_local_qp_builds(m_targets: int, relaxed: bool) -> None:
+    """Parity of the agent's preallocated QP with the readable assembly: after each solve that
+    reaches PIQP, ``current_qp()`` (the QP a failure is saved as) is ``build_local_qp`` of the
+    same inputs, and ``QpSolver`` on it gives the workspace's solution."""
+    rng = np.random.default_rng(300 + 10 * m_targets + relaxed)
+    workspace = qp_module.LocalQpWorkspace(m_targets, N_DRONES - 1, relaxed=relaxed,
+                                           slack_weight=SLACK_WEIGHT,
+                                           weight_floor=WEIGHT_FLOOR, u_max=U_MAX)
+    compared = 0
+    for _ in range(12):
+        instance = random_instance(rng, m_targets, hard_feasible=not relaxed)
+        solution = workspace.solve(*_workspace_inputs(instance))
+        if solution.status == qp_module.NOMINAL_FEASIBLE:  # PIQP not called: nothing written
+            continue
+        assert solution.status == "PIQP_SOLVED"
+        compared += 1
+        held, built = workspace.current_qp(), instance.build(relaxed=relaxed)
+        for name in ("cost_hessian", "cost_linear", "rows", "lower", "z_min", "z_max"):
+            np.testing.assert_allclose(getattr(held, name), getattr(built, name), rtol=1e-15,
+                                       atol=0, err_msg=name)
+        again = QpSolver().solve(held)
+        assert again.found
+        np.testing.assert_allclose(again.z, solution.z, rtol=0, atol=1e-9)
+    assert compared >= 8
+
+
 def test_workspace_sends_nan_nominal_to_the_solver_not_the_shortcut() -> None:
     """A NaN u_d is never 'feasible': the shortcut must not return it as the optimum."""
     instance = random_instance(np.random.default_rng(7), 1, hard_feasible=True)
