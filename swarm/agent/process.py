@@ -5,10 +5,11 @@ Inputs: its own position from the autopilot (LOCAL_POSITION_NED, converted in
 messages and every drone's beacon (collision rows). Outputs: velocity setpoints to the
 autopilot, its own consensus messages, beacon and telemetry. It never reads ``world/truth``.
 
-``lockstep``: step k waits for the camera frame of step k, the position sample stamped with
-that frame's ``vehicle_time_ms``, every neighbour's round messages and every beacon of step k
-— deterministic. ``realtime``: a 50 Hz loop with the latest of everything; neighbour data
-older than ``runtime.stale_timeout_s`` is left out of the consensus sums and counted.
+A step is the same in every mode (``AgentProcess._step``); what the mode decides (how
+messages are kept, what a step sees of its neighbours, the loop) is its ``Exchange``
+(``swarm.agent.exchange``): ``lockstep`` waits for everything of step k (deterministic),
+``realtime`` runs a 50 Hz loop with the newest of everything; neighbour data older than
+``runtime.stale_timeout_s`` is left out of the consensus sums and counted.
 
 Realtime membership: the swarm is the own drone and every drone whose beacon was heard within
 ``runtime.member_timeout_s``; its size is the N of the formulas (``DroneAgent.
@@ -20,15 +21,14 @@ at most the vehicle's setpoint-loss failsafe time).
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 
+from swarm.agent.exchange import Mode, Peers, exchange_for
 from swarm.agent.qp_failures import QpFailureLog
 from swarm.core.agent import ConsensusMessage, DroneAgent, StepDiagnostics
 from swarm.errors import EXIT_END_MISSION, EXIT_FAILED, EXIT_OK, VigilError
@@ -39,7 +39,7 @@ from swarm.messages.wire import (
     ClockWire,
     WireError,
 )
-from swarm.net.rate import RateLimiter, freeze_heap
+from swarm.net.rate import freeze_heap
 from swarm.net.security import agent_role
 from swarm.net.transport import (
     FaultyPublisher,
@@ -47,7 +47,6 @@ from swarm.net.transport import (
     LatestValues,
     LinkFaults,
     RejectionCounter,
-    StepMailbox,
     TransportError,
     declare_publisher,
     open_session,
@@ -61,8 +60,6 @@ from swarm.watch.command_reference import CommandReference
 from swarm.watch.localization_watch import LocalizationWatch
 from swarm.watch.vehicle_watch import VehicleWatch
 
-Mode = Literal["lockstep", "realtime"]
-WAIT_SLICE_S = 0.25  # lockstep waits wake at least this often to check their deadline
 ROUTER_RETRY_S = 0.05  # the world's router is not up yet: try again this soon
 
 
@@ -114,17 +111,8 @@ class AgentProcess:
         # message, not a key parse.
         self._consensus_keys = [self.keys.consensus(j) for j in range(self.n)]
         self._beacon_keys = [self.keys.beacon(j) for j in range(self.n)]
-        lockstep = options.mode == "lockstep"
-        # Lockstep keys everything by (step, round); realtime keeps only the latest value.
-        self.camera_steps: StepMailbox[CameraFrameWire] = StepMailbox()
-        self.camera_latest: LatestValues[CameraFrameWire] = LatestValues()
-        self.consensus_steps: StepMailbox[ConsensusMessage] = StepMailbox()
-        self.consensus_latest: LatestValues[ConsensusMessage] = LatestValues()
-        self.beacon_steps: StepMailbox[BeaconWire] = StepMailbox()
-        self.beacon_latest: LatestValues[BeaconWire] = LatestValues()
+        self.camera_latest: LatestValues[CameraFrameWire] = LatestValues()  # start() waits on it
         self.clock: LatestValues[ClockWire] = LatestValues()
-        self.late_steps = 0
-        self.unpaired_frames = 0  # realtime frames whose pose was no longer (or not yet) kept
         self.qp_failures = QpFailureLog(options.log, options.qp_dump_dir)
         self.steps_run = 0
         self._flying = np.zeros(3)  # the velocity setpoint last sent (what the vehicle flies)
@@ -132,19 +120,9 @@ class AgentProcess:
         # last one went out (monotonic s; realtime measures Δt_k, lockstep uses ΔT).
         self.reference = (CommandReference(cfg.vehicles.reference_reset_m)
                           if cfg.vehicles.setpoints == "tracked" else None)
-        self._last_setpoint_s: float | None = None
         self.tracking_error_m: float | None = None
         self.velocity_error_m_s: float | None = None
-        self.stale_messages = 0
-        self.neighbour_age_ms = float("nan")
-        self.members = frozenset(range(self.n))  # realtime: drones heard recently, self included
-        self._first_step_s: float | None = None
-        # Realtime: when each neighbour's newest consensus message of each round left it (its
-        # Zenoh timestamp, Unix s): the reported neighbour age includes the hop, not only the
-        # wait. Lockstep reports no age, so its hot path skips reading the timestamps.
-        self._consensus_sent: dict[tuple[int, int], float] = {}
 
-        self._lockstep = lockstep  # before the subscriptions: their callbacks read it
         # The link first: it listens for a second autopilot on its port (EXCLUSIVE_LISTEN_S)
         # while the Zenoh session and subscriptions are set up.
         self.link = AutopilotLink(options.mavlink_url, self.id, cfg.vehicles.flavour,
@@ -153,26 +131,18 @@ class AgentProcess:
         self.watch = VehicleWatch(self.link.setpoint_mode)
         self.localization = LocalizationWatch(len(cfg.targets), cfg.gramian.epsilon,
                                               cfg.checks.lambda_tolerance)
+        # Before the subscriptions: their callbacks store through it.
+        self.exchange = exchange = exchange_for(options.mode, Peers(
+            self.id, self.neighbours, self.others, cfg, self.agent, self.link,
+            self.camera_latest, self._check_clock, options.log))
         try:
             self.session = self._open_session()
         except BaseException:
             self.link.close()
             raise
-        # Lockstep: direct callbacks (on zenoh's receiving thread): every step waits on these,
-        # and each only decodes and stores. Realtime: callbacks on a Python thread of their
-        # own (zenoh queues samples without the GIL), so a receiving thread never stalls on
-        # the GIL while the step computes: Case 2 scaled to N = 12, three interleaved pairs
-        # of 10 s runs, 11-13 % late steps against 21-38 % with direct callbacks (lockstep
-        # throughput the same within the noise). Our own beacon never comes back to us.
-        # Realtime wants the newest data only: bounded rings (a few steps' worth of every
-        # source) instead of zenoh's unbounded queue, which on an overloaded machine grew
-        # by ~300 kB/s per agent (Case 2 at N = 24) while the agents fell ever further behind.
-        direct = lockstep
-        rounds = self.agent.n_rounds
-
-        def ring(per_step: int) -> int | None:
-            return None if lockstep else 4 * per_step
-
+        # How callbacks run and what they keep is the exchange's (``Exchange.direct``,
+        # ``ring``). Our own beacon never comes back to us.
+        direct, ring, rounds = exchange.direct, exchange.ring, self.agent.n_rounds
         subs = [
             subscribe(self.session, self.keys.camera(self.id), self.codec.decode_camera,
                       self._on_camera, self.rejections, "camera", direct=direct,
@@ -186,18 +156,19 @@ class AgentProcess:
         ]
         subs += [subscribe(self.session, self.keys.consensus(j), self.codec.decode_consensus,
                            self._on_consensus, self.rejections, "consensus", direct=direct,
-                           on_sent_time=None if lockstep else self._on_consensus_sent,
+                           on_sent_time=exchange.consensus_sent if exchange.sent_times
+                           else None,
                            keep_latest=ring(rounds))
                  for j in sorted(self.neighbours)]
         self._subscribers = subs
-        # Consensus: lockstep peers wait for every message, realtime wants the newest (drop).
-        # Beacons and telemetry never drop: the recorder keeps every one (in realtime, ~2-4 %
+        # Consensus: blocking or dropping, as the exchange says. Beacons and telemetry never
+        # drop: the recorder keeps every one (in realtime, ~2-4 %
         # of the telemetry used to be dropped in zenoh's tx queues on a loaded machine), and
         # a blocked put waits only while a link's queue is full, i.e. well under a step.
         self._pub_consensus = declare_publisher(self.session, self.keys.consensus(self.id),
-                                                block=lockstep)
+                                                block=exchange.block_consensus)
         faults = options.consensus_faults
-        if faults.active and lockstep:
+        if faults.active and not exchange.allows_faults:
             raise LinkError(f"drone {self.id}: consensus fault injection needs realtime mode "
                             "(in lockstep a lost message stalls every neighbour)")
         self._faulty = (FaultyPublisher(self.session, self._pub_consensus, faults)
@@ -240,16 +211,14 @@ class AgentProcess:
     def _on_clock(self, _key: str, clock: ClockWire) -> None:
         self.clock.put(0, clock)
         if clock.state in ("done", "aborted"):  # whatever the loop waits for is not coming
-            for mailbox in (self.camera_steps, self.consensus_steps, self.beacon_steps):
-                mailbox.close()
+            self.exchange.close()
 
     def _on_camera(self, _key: str, frame: CameraFrameWire) -> None:
         if frame.drone != self.id:
             self.rejections.reject("camera", f"frame for drone {frame.drone} on drone {self.id}")
             return
-        if self._lockstep:
-            self.camera_steps.put(frame.step, 0, 0, frame)
-        self.camera_latest.put(0, frame)  # both modes: start() waits on it
+        self.exchange.put_camera(frame)
+        self.camera_latest.put(0, frame)  # every mode: start() waits on it
 
     def _on_consensus(self, key: str, msg: ConsensusMessage) -> None:
         if msg.sender not in self.neighbours:
@@ -258,16 +227,7 @@ class AgentProcess:
         if key != self._consensus_keys[msg.sender]:  # j's data on another drone's key
             self.rejections.reject("consensus", f"sender {msg.sender} on {key}")
             return
-        # One store per mode: a step mailbox nobody waits on is never pruned (realtime agents
-        # piled up to its 65 536 entries, ~100 MB, over a long mission).
-        if self._lockstep:
-            self.consensus_steps.put(msg.step, msg.round, msg.sender, msg)
-        else:
-            self.consensus_latest.put((msg.sender, msg.round), msg)
-
-    def _on_consensus_sent(self, msg: ConsensusMessage, sent_unix_s: float) -> None:
-        if msg.sender in self.neighbours:
-            self._consensus_sent[(msg.sender, msg.round)] = sent_unix_s
+        self.exchange.put_consensus(msg)
 
     def _on_beacon(self, key: str, beacon: BeaconWire) -> None:
         # Our own beacons never come back (remote only): one with our id is another process
@@ -276,10 +236,7 @@ class AgentProcess:
             self.rejections.reject("beacon", f"sender {beacon.sender} on {key} (drone "
                                              f"{self.id})")
             return
-        if self._lockstep:
-            self.beacon_steps.put(beacon.step, 0, beacon.sender, beacon)
-        else:
-            self.beacon_latest.put(beacon.sender, beacon)
+        self.exchange.put_beacon(beacon)
 
     # -- helpers ------------------------------------------------------------------------------
 
@@ -287,21 +244,6 @@ class AgentProcess:
         latest = self.clock.get(0)
         if latest is not None and latest[0].state in ("done", "aborted"):
             raise MissionEnded(latest[0].state, latest[0].detail)
-
-    def _wait_steps(self, mailbox: StepMailbox, step: int, rnd: int, senders: set[int],
-                    what: str) -> dict:
-        """Lockstep wait for (step, round) from every sender, watching for the mission end."""
-        deadline = time.monotonic() + self.options.config.runtime.lockstep_timeout_s
-        got: dict = {}
-        while True:
-            got = mailbox.wait_for(step, rnd, senders, WAIT_SLICE_S)
-            if len(got) == len(senders):
-                return got
-            self._check_clock()
-            if time.monotonic() > deadline:
-                missing = sorted(senders - set(got))
-                raise LinkError(f"drone {self.id}: step {step}: no {what} from {missing} within "
-                                f"{self.options.config.runtime.lockstep_timeout_s} s")
 
     def _publish(self, publisher, message) -> None:
         """Encode (validated: peers would reject what fails) and send; count failures."""
@@ -331,84 +273,14 @@ class AgentProcess:
         else:
             put_stamped(self.session, self._pub_consensus, payload)
 
-    def _fresh_inbox(self, rnd: int) -> dict[int, ConsensusMessage]:
-        """Realtime: each neighbour's newest message of this round, if fresh enough."""
-        stale_after = self.options.config.runtime.stale_timeout_s
-        inbox: dict[int, ConsensusMessage] = {}
-        ages = []
-        now_unix = time.time()
-        for j in self.neighbours:
-            latest = self.consensus_latest.get((j, rnd))
-            if latest is None:
-                continue
-            msg, age = latest
-            if age > stale_after:
-                self.stale_messages += 1
-                continue
-            inbox[j] = msg
-            # From the neighbour's put to now (the hop included); without a timestamp, from
-            # its arrival. A skewed clock never makes an age negative.
-            sent = self._consensus_sent.get((j, rnd))
-            ages.append(max(now_unix - sent, age) if sent is not None else age)
-        self.neighbour_age_ms = 1000.0 * min(ages) if ages else float("nan")
-        return inbox
-
-    def _follow_membership(self, step: int) -> None:
-        """Realtime: N = the own drone and the drones heard within ``member_timeout_s``.
-
-        The mission starts once every vehicle is ready, which most agents learn before their
-        first beacon goes out: a drone not heard at all yet counts as present until
-        ``member_timeout_s`` after our first step."""
-        timeout = self.options.config.runtime.member_timeout_s
-        now = time.monotonic()
-        if self._first_step_s is None:
-            self._first_step_s = now
-        heard = set(self.beacon_latest.fresh(timeout))
-        if now - self._first_step_s <= timeout:
-            heard |= {j for j in self.others if self.beacon_latest.get(j) is None}
-        members = frozenset(heard) | {self.id}
-        if members == self.members:
-            return
-        left, joined = sorted(self.members - members), sorted(members - self.members)
-        self.members = members
-        self.agent.set_swarm_size(len(members))
-        changes = []
-        if left:
-            changes.append(f"drones {left} not heard for "
-                           f"{self.options.config.runtime.member_timeout_s} s left")
-        if joined:
-            changes.append(f"drones {joined} joined")
-        self.options.log(f"drone {self.id}: step {step}: {'; '.join(changes)}: swarm of "
-                         f"{len(members)} now")
-
-    def _realtime_beacons(self, own_sample_age_s: float) -> dict[int, np.ndarray]:
-        """Realtime: the other drones' latest beacons, each position carried forward to the
-        instant of our own position sample (p_j + v_j·a_j − v_i·a_i, a = age of the sample):
-        the collision rows see the relative position as it is, not as it was up to a step
-        ago. Lockstep needs none of it: every position there belongs to the same step.
-
-        A beacon older than the stale timeout belongs to a drone that is late or lost; its
-        vehicle flies the last setpoint until its failsafe holds it, so it is carried forward
-        for at most that long and kept there: nobody flies into a hovering drone."""
-        hold_after = self.options.config.vehicles.failsafe_timeout_s
-        own_shift = own_sample_age_s * self._flying
-        out: dict[int, np.ndarray] = {}
-        for j, (beacon, age) in self.beacon_latest.fresh_with_ages(math.inf).items():
-            lead = min(beacon.sample_age_s + age, hold_after)
-            out[j] = (np.asarray(beacon.position_m, dtype=float)
-                      + lead * np.asarray(beacon.velocity_m_s, dtype=float) - own_shift)
-        return out
-
     def _step(self, step: int, sample: PositionSample, frame: CameraFrameWire | None,
-              sample_age_s: float = 0.0, camera_position: np.ndarray | None = None
-              ) -> np.ndarray:
-        """One step of the core from the vehicle's ``sample``, with the exchange done the way
-        the mode wants (``sample_age_s``: how old the sample is, realtime only;
+              sample_age_s: float = 0.0, camera_position: np.ndarray | None = None) -> None:
+        """One step of the core from the vehicle's ``sample``, the same in every mode: what
+        it sees of the others is the exchange's (``sample_age_s``: how old the sample is;
         ``camera_position``: the pose ``frame`` was taken at when not the sample's)."""
-        agent = self.agent
+        agent, exchange = self.agent, self.exchange
         position, vehicle_velocity = sample.position_w, sample.velocity_w
-        if not self._lockstep:
-            self._follow_membership(step)
+        exchange.begin(step)
         if self._faulty is not None:
             self._faulty.advance(step)
         detections = frame.detection_list() if frame is not None else []
@@ -421,20 +293,9 @@ class AgentProcess:
                    velocity_m_s=self._flying, sample_age_s=sample_age_s,
                    vehicle_time_ms=sample.time_boot_ms)
         for rnd in range(agent.n_rounds):
-            if self._lockstep:
-                inbox = self._wait_steps(self.consensus_steps, step, rnd, self.neighbours,
-                                         f"round-{rnd} consensus")
-            else:
-                inbox = self._fresh_inbox(rnd)
-            msg = agent.consensus_round(inbox)
+            msg = agent.consensus_round(exchange.inbox(step, rnd))
             self._publish_consensus(msg)
-        if self._lockstep:
-            beacons = {j: np.asarray(b.position_m, dtype=float) for j, b in
-                       self._wait_steps(self.beacon_steps, step, 0, self.others,
-                                        "beacon").items()}
-        else:
-            beacons = self._realtime_beacons(sample_age_s)
-        result = agent.finish_step(beacons)
+        result = agent.finish_step(exchange.beacons(step, sample_age_s, self._flying))
         self.steps_run += 1
         for failed in agent.qp_failures:
             self.qp_failures.report(failed)
@@ -448,9 +309,9 @@ class AgentProcess:
             rejected_messages=agent.rejected_inputs + self.rejections.total()
             + self.link.rejected_frames,
             missing_neighbour_messages=agent.missing_neighbour_messages,
-            stale_neighbour_messages=self.stale_messages, late_steps=self.late_steps,
+            stale_neighbour_messages=exchange.stale_messages, late_steps=exchange.late_steps,
             steps=self.steps_run,
-            neighbour_age_ms=self.neighbour_age_ms, swarm_size=agent.swarm_size,
+            neighbour_age_ms=exchange.neighbour_age_ms, swarm_size=agent.swarm_size,
             mavlink_state=f"{'armed' if self.link.armed else 'disarmed'} {self.link.mode}",
             rate_limit_releases=agent.rate_limit_releases,
             reference_resets=self.reference.resets if self.reference is not None else 0,
@@ -461,7 +322,6 @@ class AgentProcess:
             first_lambda_breach_s=self.localization.first_breach_s,
             localization_status=self.localization.status())
         self._watch_vehicle(step, sample_age_s)
-        return result.velocity
 
     def _vehicle_status(self) -> str:
         problem = self.watch.problem
@@ -502,11 +362,7 @@ class AgentProcess:
             return
         if self.watch.problem:  # the vehicle flies a mode of its own: start again from it
             self.reference.restart()
-        now = time.monotonic()
-        dt = self.options.config.scenario.dt_s
-        elapsed = dt if self._lockstep or self._last_setpoint_s is None \
-            else max(now - self._last_setpoint_s, 1e-3)
-        self._last_setpoint_s = now
+        elapsed = self.exchange.setpoint_interval_s()
         p = position.tolist()
         v = None if vehicle_velocity is None else vehicle_velocity.tolist()
         sp = self.reference.setpoint((p[0], p[1], p[2]), v, tuple(velocity.tolist()), elapsed)
@@ -536,64 +392,12 @@ class AgentProcess:
                 raise LinkError(f"drone {self.id}: the mission did not start within "
                                 f"{cfg.runtime.start_timeout_s} s")
             self.link.keepalive(time.monotonic())
-            if not self._lockstep:
-                # A world without simulated vehicles starts when it has heard every drone.
-                sample = self.link.latest_position()
-                if sample is not None:
-                    self._publish(self._pub_beacon, BeaconWire.build(
-                        sender=self.id, step=0, time_s=0.0, position_m=sample.position_w,
-                        vehicle_time_ms=sample.time_boot_ms))
-            if self._lockstep:
-                self.camera_steps.wait_for(0, 0, {0}, 0.05)
-            else:
-                self.camera_latest.wait_for([0], 0.05)
-
-    def run_lockstep(self) -> None:
-        step = 0
-        while True:
-            frame = self._wait_steps(self.camera_steps, step, 0, {0}, "camera frame")[0]
-            sample = self.link.wait_position(frame.vehicle_time_ms,
-                                             self.options.config.runtime.lockstep_timeout_s)
-            self._step(step, sample, frame)
-            step += 1
-
-    def run_realtime(self) -> None:
-        limiter = RateLimiter(self.options.config.scenario.dt_s)
-        n_steps = self.options.config.n_steps
-        last_frame_step = -1
-        current: PositionSample | None = None
-        # Count steps from the world's step of the first frame: with both loops on the wall
-        # clock (RateLimiter keeps phase), step k here is sim time k·ΔT there, so telemetry
-        # lines up with truth and the filter predicts exactly as far as the targets moved.
-        first = self.camera_latest.get(0)
-        step = first[0].step if first is not None else 0
-        while True:
-            self._check_clock()
-            current = self.link.latest_position() or current
-            latest = self.camera_latest.get(0)
-            frame = camera_position = None
-            if latest is not None and latest[0].step != last_frame_step:
-                frame = latest[0]
-                last_frame_step = frame.step
-                # The frame was rendered from the pose stamped vehicle_time_ms, one step or
-                # more before the newest sample: measure from that pose. (Six ArduCopter
-                # SITLs on two cores: the estimate error went above 0.1 m in the last 10 s
-                # of 1 mission in 7, against 4 in 6 measuring from the newest pose.)
-                taken_at = self.link.position_at(frame.vehicle_time_ms)
-                if taken_at is None:
-                    self.unpaired_frames += 1
-                else:
-                    camera_position = taken_at.position_w
-            # The mission has n_steps: past its last step (the world's "done" not yet here)
-            # the agent only holds its vehicle (keepalive) and waits for the end.
-            if step >= n_steps:
-                self.link.keepalive()
-            elif current is not None:
-                self._step(step, current, frame,
-                           max(time.monotonic() - current.received_s, 0.0), camera_position)
-                step += 1
-            if limiter.sleep():
-                self.late_steps += 1
+            sample = self.exchange.announce()
+            if sample is not None:
+                self._publish(self._pub_beacon, BeaconWire.build(
+                    sender=self.id, step=0, time_s=0.0, position_m=sample.position_w,
+                    vehicle_time_ms=sample.time_boot_ms))
+            self.exchange.wait_first_frame(0.05)
 
     def run(self) -> int:
         """The mission; whatever ends it (done, an error, Ctrl-C/SIGTERM), the vehicle gets a
@@ -616,15 +420,12 @@ class AgentProcess:
         log = self.options.log
         try:
             self.start()
-            if self._lockstep:
-                self.run_lockstep()
-            else:
-                self.run_realtime()
+            self.exchange.run(self._step)
         except MissionEnded as over:
             if over.state == "done":
                 log(f"drone {self.id}: mission complete; {self.agent.qp_fallbacks} QP "
-                    f"fallbacks ({self.qp_failures.count} QPs not solved), {self.late_steps} late "
-                    f"steps, {self.unpaired_frames} "
+                    f"fallbacks ({self.qp_failures.count} QPs not solved), "
+                    f"{self.exchange.late_steps} late steps, {self.exchange.unpaired_frames} "
                     f"frames measured from the newest pose (theirs not kept), "
                     f"{self.rejections.total() + self.link.rejected_frames} rejected inputs")
                 return EXIT_OK

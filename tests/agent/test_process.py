@@ -59,18 +59,19 @@ def test_messages_on_another_drones_key_are_counted_and_dropped() -> None:
         # the valid beacon until it is in (zenoh declares routes asynchronously).
         def delivered() -> bool:
             router.put(*right[0])
-            return agent.beacon_latest.get(3) is not None
+            return agent.exchange.beacon_latest.get(3) is not None
 
         assert wait_until(delivered)
         for key, payload in wrong:
             router.put(key, payload)
         router.put(*right[1])
-        assert wait_until(lambda: agent.consensus_latest.get((1, 1)) is not None)
+        assert wait_until(lambda: agent.exchange.consensus_latest.get((1, 1)) is not None)
         assert wait_until(lambda: agent.rejections.total() == len(wrong))
         counts = agent.rejections.snapshot()
         assert counts["beacon"]["rejected"] == 2 and counts["consensus"]["rejected"] == 1
-        assert agent.beacon_latest.get(0) is None and agent.beacon_latest.get(2) is None
-        assert set(agent.consensus_latest.ages()) == {(1, 1)}
+        beacons = agent.exchange.beacon_latest
+        assert beacons.get(0) is None and beacons.get(2) is None
+        assert set(agent.exchange.consensus_latest.ages()) == {(1, 1)}
     finally:
         if agent is not None:
             agent.close()

@@ -1,0 +1,364 @@
+"""How one agent's step meets the rest of the swarm: one protocol, one class per mode.
+
+``AgentProcess`` owns what every mode shares (the Zenoh session, the MAVLink link, the core,
+the publishers, the checks on who sent what) and runs one step the same way in every mode
+(``AgentProcess.step``). What a mode decides is here, behind ``Exchange``:
+
+* how messages are received and kept (``direct``, ``ring``, ``sent_times``) and stored
+  (``put_camera``, ``put_consensus``, ``put_beacon``);
+* what a step sees of its neighbours (``inbox``: the consensus messages of a round) and of
+  every other drone (``beacons``: positions for the collision rows), and the swarm size N
+  (``begin``);
+* the time between two setpoints (``setpoint_interval_s``), what is sent before the mission
+  starts (``announce``) and the loop that paces the steps (``run``).
+
+``LockstepExchange``: step k waits for the camera frame of step k, the position sample
+stamped with that frame's ``vehicle_time_ms``, every neighbour's round messages and every
+beacon of step k: deterministic (equal to the in-process reference bit for bit).
+``RealtimeExchange``: a loop on the wall clock with the newest of everything; neighbour data
+older than ``runtime.stale_timeout_s`` is left out and counted; N follows the drones heard
+within ``runtime.member_timeout_s``.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Literal, Protocol
+
+import numpy as np
+
+from swarm.core.agent import ConsensusMessage, DroneAgent
+from swarm.errors import VigilError
+from swarm.mavlink.link import AutopilotLink, LinkError, PositionSample
+from swarm.messages.wire import BeaconWire, CameraFrameWire
+from swarm.net.rate import RateLimiter
+from swarm.net.transport import LatestValues, StepMailbox
+from swarm.scenario.config import ScenarioConfig
+
+Mode = Literal["lockstep", "realtime"]
+WAIT_SLICE_S = 0.25  # lockstep waits wake at least this often to check their deadline
+
+# One step of the agent: (step, the vehicle's position sample, the camera frame or None, the
+# sample's age [s], the pose the frame was taken from when not the sample's).
+StepFunction = Callable[[int, PositionSample, "CameraFrameWire | None", float,
+                         "np.ndarray | None"], None]
+
+
+@dataclass
+class Peers:
+    """What an exchange needs of the process: who is who, the core, the link, the log, the
+    frames every mode waits on before the start, and how to learn that the mission ended
+    (``check_clock`` raises when it has)."""
+
+    drone_id: int
+    neighbours: set[int]
+    others: set[int]
+    config: ScenarioConfig
+    agent: DroneAgent
+    link: AutopilotLink
+    camera_latest: LatestValues[CameraFrameWire]
+    check_clock: Callable[[], None]
+    log: Callable[[str], None]
+
+
+class Exchange(Protocol):
+    """The mode of an agent's exchange (module docstring)."""
+
+    direct: bool  # subscription callbacks on zenoh's thread (True) or a thread of their own
+    block_consensus: bool  # a consensus put waits for room (True) or drops (False)
+    sent_times: bool  # read each consensus message's Zenoh timestamp (neighbour age)
+    allows_faults: bool  # consensus fault injection can run in this mode
+    late_steps: int
+    unpaired_frames: int
+    stale_messages: int
+    neighbour_age_ms: float
+
+    def ring(self, per_step: int) -> int | None: ...
+    def put_camera(self, frame: CameraFrameWire) -> None: ...
+    def put_consensus(self, msg: ConsensusMessage) -> None: ...
+    def consensus_sent(self, msg: ConsensusMessage, sent_unix_s: float) -> None: ...
+    def put_beacon(self, beacon: BeaconWire) -> None: ...
+    def close(self) -> None: ...
+    def announce(self) -> PositionSample | None: ...
+    def wait_first_frame(self, timeout_s: float) -> None: ...
+    def begin(self, step: int) -> None: ...
+    def inbox(self, step: int, rnd: int) -> dict[int, ConsensusMessage]: ...
+    def beacons(self, step: int, sample_age_s: float,
+                flying: np.ndarray) -> dict[int, np.ndarray]: ...
+    def setpoint_interval_s(self) -> float: ...
+    def run(self, step: StepFunction) -> None: ...
+
+
+class LockstepExchange:
+    """Everything keyed by (step, round), waited for (module docstring)."""
+
+    # Direct callbacks: every step waits on them, and each only decodes and stores.
+    direct = True
+    block_consensus = True  # peers wait for every message
+    sent_times = False  # lockstep reports no neighbour age: its hot path skips them
+    allows_faults = False  # a lost message would stall every neighbour
+
+    def __init__(self, peers: Peers) -> None:
+        self.peers = peers
+        self.camera_steps: StepMailbox[CameraFrameWire] = StepMailbox()
+        self.consensus_steps: StepMailbox[ConsensusMessage] = StepMailbox()
+        self.beacon_steps: StepMailbox[BeaconWire] = StepMailbox()
+        self.late_steps = self.unpaired_frames = self.stale_messages = 0
+        self.neighbour_age_ms = math.nan
+
+    def ring(self, per_step: int) -> int | None:
+        return None  # every message is kept until its step is taken
+
+    def put_camera(self, frame: CameraFrameWire) -> None:
+        self.camera_steps.put(frame.step, 0, 0, frame)
+
+    def put_consensus(self, msg: ConsensusMessage) -> None:
+        self.consensus_steps.put(msg.step, msg.round, msg.sender, msg)
+
+    def consensus_sent(self, msg: ConsensusMessage, sent_unix_s: float) -> None:
+        return None
+
+    def put_beacon(self, beacon: BeaconWire) -> None:
+        self.beacon_steps.put(beacon.step, 0, beacon.sender, beacon)
+
+    def close(self) -> None:
+        for mailbox in (self.camera_steps, self.consensus_steps, self.beacon_steps):
+            mailbox.close()
+
+    def announce(self) -> PositionSample | None:
+        return None  # the world steps every vehicle of its own; nobody waits to hear us
+
+    def wait_first_frame(self, timeout_s: float) -> None:
+        self.camera_steps.wait_for(0, 0, {0}, timeout_s)
+
+    def begin(self, step: int) -> None:
+        return None  # N is the configured swarm
+
+    def inbox(self, step: int, rnd: int) -> dict[int, ConsensusMessage]:
+        return self._wait(self.consensus_steps, step, rnd, self.peers.neighbours,
+                          f"round-{rnd} consensus")
+
+    def beacons(self, step: int, sample_age_s: float,
+                flying: np.ndarray) -> dict[int, np.ndarray]:
+        """Every other drone's position at step k: all of the same instant."""
+        got = self._wait(self.beacon_steps, step, 0, self.peers.others, "beacon")
+        return {j: np.asarray(b.position_m, dtype=float) for j, b in got.items()}
+
+    def setpoint_interval_s(self) -> float:
+        return self.peers.config.scenario.dt_s
+
+    def run(self, step: StepFunction) -> None:
+        timeout_s = self.peers.config.runtime.lockstep_timeout_s
+        k = 0
+        while True:
+            frame = self._wait(self.camera_steps, k, 0, {0}, "camera frame")[0]
+            sample = self.peers.link.wait_position(frame.vehicle_time_ms, timeout_s)
+            step(k, sample, frame, 0.0, None)
+            k += 1
+
+    def _wait(self, mailbox: StepMailbox, step: int, rnd: int, senders: set[int],
+              what: str) -> dict:
+        """(step, round) from every sender, watching for the mission end."""
+        timeout_s = self.peers.config.runtime.lockstep_timeout_s
+        deadline = time.monotonic() + timeout_s
+        while True:
+            got = mailbox.wait_for(step, rnd, senders, WAIT_SLICE_S)
+            if len(got) == len(senders):
+                return got
+            self.peers.check_clock()
+            if time.monotonic() > deadline:
+                missing = sorted(senders - set(got))
+                raise LinkError(f"drone {self.peers.drone_id}: step {step}: no {what} from "
+                                f"{missing} within {timeout_s} s")
+
+
+class RealtimeExchange:
+    """The newest of everything, on the wall clock (module docstring)."""
+
+    # Callbacks on a Python thread of their own (zenoh queues samples without the GIL), so a
+    # receiving thread never stalls on the GIL while the step computes: Case 2 scaled to
+    # N = 12, three interleaved pairs of 10 s runs, 11-13 % late steps against 21-38 % with
+    # direct callbacks. Bounded rings (``ring``: a few steps' worth of every source) instead
+    # of zenoh's unbounded queue, which on an overloaded machine grew by ~300 kB/s per agent
+    # (Case 2 at N = 24) while the agents fell ever further behind.
+    direct = False
+    block_consensus = False  # the newest message is what counts: drop when the queue is full
+    sent_times = True
+    allows_faults = True
+
+    def __init__(self, peers: Peers) -> None:
+        self.peers = peers
+        n = peers.config.swarm.n_drones
+        # One store per mode: a step mailbox nobody waits on is never pruned (realtime agents
+        # piled up to its 65 536 entries, ~100 MB, over a long mission).
+        self.consensus_latest: LatestValues[ConsensusMessage] = LatestValues()
+        self.beacon_latest: LatestValues[BeaconWire] = LatestValues()
+        # When each neighbour's newest consensus message of each round left it (its Zenoh
+        # timestamp, Unix s): the reported neighbour age includes the hop, not only the wait.
+        self._consensus_sent: dict[tuple[int, int], float] = {}
+        self.late_steps = self.unpaired_frames = self.stale_messages = 0
+        self.neighbour_age_ms = math.nan
+        self.members = frozenset(range(n))  # drones heard recently, self included
+        self._first_step_s: float | None = None
+        self._last_setpoint_s: float | None = None  # monotonic s
+
+    def ring(self, per_step: int) -> int | None:
+        return 4 * per_step
+
+    def put_camera(self, frame: CameraFrameWire) -> None:
+        return None  # the loop reads the newest frame (``Peers.camera_latest``)
+
+    def put_consensus(self, msg: ConsensusMessage) -> None:
+        self.consensus_latest.put((msg.sender, msg.round), msg)
+
+    def consensus_sent(self, msg: ConsensusMessage, sent_unix_s: float) -> None:
+        if msg.sender in self.peers.neighbours:
+            self._consensus_sent[(msg.sender, msg.round)] = sent_unix_s
+
+    def put_beacon(self, beacon: BeaconWire) -> None:
+        self.beacon_latest.put(beacon.sender, beacon)
+
+    def close(self) -> None:
+        return None  # nothing waits: the loop checks the clock every tick
+
+    def announce(self) -> PositionSample | None:
+        """The vehicle's position before the start: a world without simulated vehicles
+        starts when it has heard every drone."""
+        return self.peers.link.latest_position()
+
+    def wait_first_frame(self, timeout_s: float) -> None:
+        self.peers.camera_latest.wait_for([0], timeout_s)
+
+    def begin(self, step: int) -> None:
+        """N = the own drone and the drones heard within ``member_timeout_s``.
+
+        The mission starts once every vehicle is ready, which most agents learn before their
+        first beacon goes out: a drone not heard at all yet counts as present until
+        ``member_timeout_s`` after our first step."""
+        peers = self.peers
+        timeout = peers.config.runtime.member_timeout_s
+        now = time.monotonic()
+        if self._first_step_s is None:
+            self._first_step_s = now
+        heard = set(self.beacon_latest.fresh(timeout))
+        if now - self._first_step_s <= timeout:
+            heard |= {j for j in peers.others if self.beacon_latest.get(j) is None}
+        members = frozenset(heard) | {peers.drone_id}
+        if members == self.members:
+            return
+        left, joined = sorted(self.members - members), sorted(members - self.members)
+        self.members = members
+        peers.agent.set_swarm_size(len(members))
+        changes = []
+        if left:
+            changes.append(f"drones {left} not heard for {timeout} s left")
+        if joined:
+            changes.append(f"drones {joined} joined")
+        peers.log(f"drone {peers.drone_id}: step {step}: {'; '.join(changes)}: swarm of "
+                  f"{len(members)} now")
+
+    def inbox(self, step: int, rnd: int) -> dict[int, ConsensusMessage]:
+        """Each neighbour's newest message of this round, if fresh enough."""
+        stale_after = self.peers.config.runtime.stale_timeout_s
+        inbox: dict[int, ConsensusMessage] = {}
+        ages = []
+        now_unix = time.time()
+        for j in self.peers.neighbours:
+            latest = self.consensus_latest.get((j, rnd))
+            if latest is None:
+                continue
+            msg, age = latest
+            if age > stale_after:
+                self.stale_messages += 1
+                continue
+            inbox[j] = msg
+            # From the neighbour's put to now (the hop included); without a timestamp, from
+            # its arrival. A skewed clock never makes an age negative.
+            sent = self._consensus_sent.get((j, rnd))
+            ages.append(max(now_unix - sent, age) if sent is not None else age)
+        self.neighbour_age_ms = 1000.0 * min(ages) if ages else math.nan
+        return inbox
+
+    def beacons(self, step: int, sample_age_s: float,
+                flying: np.ndarray) -> dict[int, np.ndarray]:
+        """The other drones' latest beacons, each position carried forward to the instant of
+        our own position sample (p_j + v_j·a_j − v_i·a_i, a = age of the sample; ``flying``
+        = v_i, the velocity last sent): the collision rows see the relative position as it
+        is, not as it was up to a step ago.
+
+        A beacon older than the stale timeout belongs to a drone that is late or lost; its
+        vehicle flies the last setpoint until its failsafe holds it, so it is carried forward
+        for at most that long and kept there: nobody flies into a hovering drone."""
+        hold_after = self.peers.config.vehicles.failsafe_timeout_s
+        own_shift = sample_age_s * flying
+        out: dict[int, np.ndarray] = {}
+        for j, (beacon, age) in self.beacon_latest.fresh_with_ages(math.inf).items():
+            lead = min(beacon.sample_age_s + age, hold_after)
+            out[j] = (np.asarray(beacon.position_m, dtype=float)
+                      + lead * np.asarray(beacon.velocity_m_s, dtype=float) - own_shift)
+        return out
+
+    def setpoint_interval_s(self) -> float:
+        """Measured: the wall time since the last setpoint (ΔT before the first)."""
+        now = time.monotonic()
+        last, self._last_setpoint_s = self._last_setpoint_s, now
+        return self.peers.config.scenario.dt_s if last is None else max(now - last, 1e-3)
+
+    def run(self, step: StepFunction) -> None:
+        peers = self.peers
+        link = peers.link
+        limiter = RateLimiter(peers.config.scenario.dt_s)
+        n_steps = peers.config.n_steps
+        last_frame_step = -1
+        current: PositionSample | None = None
+        # Count steps from the world's step of the first frame: with both loops on the wall
+        # clock (RateLimiter keeps phase), step k here is sim time k·ΔT there, so telemetry
+        # lines up with truth and the filter predicts exactly as far as the targets moved.
+        first = peers.camera_latest.get(0)
+        k = first[0].step if first is not None else 0
+        while True:
+            peers.check_clock()
+            current = link.latest_position() or current
+            latest = peers.camera_latest.get(0)
+            frame = camera_position = None
+            if latest is not None and latest[0].step != last_frame_step:
+                frame = latest[0]
+                last_frame_step = frame.step
+                # The frame was rendered from the pose stamped vehicle_time_ms, one step or
+                # more before the newest sample: measure from that pose. (Six ArduCopter
+                # SITLs on two cores: the estimate error went above 0.1 m in the last 10 s
+                # of 1 mission in 7, against 4 in 6 measuring from the newest pose.)
+                taken_at = link.position_at(frame.vehicle_time_ms)
+                if taken_at is None:
+                    self.unpaired_frames += 1
+                else:
+                    camera_position = taken_at.position_w
+            # The mission has n_steps: past its last step (the world's "done" not yet here)
+            # the agent only holds its vehicle (keepalive) and waits for the end.
+            if k >= n_steps:
+                link.keepalive()
+            elif current is not None:
+                step(k, current, frame, max(time.monotonic() - current.received_s, 0.0),
+                     camera_position)
+                k += 1
+            if limiter.sleep():
+                self.late_steps += 1
+
+
+EXCHANGES: dict[Mode, type[LockstepExchange] | type[RealtimeExchange]] = {
+    "lockstep": LockstepExchange, "realtime": RealtimeExchange}
+
+
+class ExchangeError(VigilError, ValueError):
+    """An exchange mode that does not exist."""
+
+
+def exchange_for(mode: str, peers: Peers) -> Exchange:
+    """The exchange of ``mode`` ("lockstep", "realtime")."""
+    kind = EXCHANGES.get(mode)  # type: ignore[call-overload]
+    if kind is None:
+        raise ExchangeError(f"unknown mode {mode!r} (expected one of {', '.join(EXCHANGES)})")
+    return kind(peers)

@@ -1,0 +1,145 @@
+"""The two exchanges of an agent's step (swarm.agent.exchange): what a step sees of the swarm
+in lockstep and in realtime, on the real core and a real MAVLink link (no peers needed: the
+messages are stored as the subscriptions store them; a settable clock ages them)."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from swarm.agent.exchange import (
+    ExchangeError,
+    LockstepExchange,
+    Peers,
+    RealtimeExchange,
+    exchange_for,
+)
+from swarm.core.agent import ConsensusMessage
+from swarm.mavlink.link import AutopilotLink, LinkError
+from swarm.messages.wire import BeaconWire
+from swarm.net.transport import LatestValues
+from swarm.runs.reference import build_agent
+from swarm.scenario.config import load_config
+
+CASE1 = Path(__file__).resolve().parents[2] / "configs" / "case1.toml"  # drone 0: {1, 3, 5}
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+class Ended(Exception):
+    pass
+
+
+@pytest.fixture
+def link() -> Iterator[AutopilotLink]:
+    config = load_config(CASE1)
+    link = AutopilotLink("udpin:127.0.0.1:0", 0, "ardupilot", config.vehicles.origin_w(0))
+    try:
+        yield link
+    finally:
+        link.close()
+
+
+def peers(link: AutopilotLink, *, ended: bool = False, **runtime: float) -> Peers:
+    config = load_config(CASE1)
+    config = dataclasses.replace(config, runtime=dataclasses.replace(config.runtime, **runtime))
+
+    def check_clock() -> None:
+        if ended:
+            raise Ended
+
+    lines: list[str] = []
+    return Peers(0, set(config.swarm.graph.neighbours[0]), set(range(1, 6)), config,
+                 build_agent(config, 0, 0), link, LatestValues(), check_clock, lines.append)
+
+
+def message(sender: int, step: int, rnd: int) -> ConsensusMessage:
+    return ConsensusMessage(sender, step, rnd, np.eye(6)[None], np.zeros((1, 6)))
+
+
+def test_lockstep_waits_for_every_neighbour_of_the_round(link: AutopilotLink) -> None:
+    exchange = LockstepExchange(peers(link, lockstep_timeout_s=0.3))
+    for j in (1, 3, 5):
+        exchange.put_consensus(message(j, 4, 1))
+    exchange.put_consensus(message(1, 4, 0))  # another round: not this inbox
+    inbox = exchange.inbox(4, 1)
+    assert sorted(inbox) == [1, 3, 5] and all(m.round == 1 for m in inbox.values())
+    exchange.put_consensus(message(1, 5, 0))
+    with pytest.raises(LinkError, match=r"drone 0: step 5: no round-0 consensus from \[3, 5\] "
+                                        r"within 0.3 s"):
+        exchange.inbox(5, 0)
+
+
+def test_lockstep_beacons_are_those_of_the_step_and_a_mission_end_ends_the_wait(
+        link: AutopilotLink) -> None:
+    exchange = LockstepExchange(peers(link))
+    for j in range(1, 6):
+        exchange.put_beacon(BeaconWire.build(j, 7, 0.14, (j, 0.0, 3.0), velocity_m_s=(1, 0, 0)))
+    beacons = exchange.beacons(7, 0.5, np.ones(3))
+    assert {j: p.tolist() for j, p in beacons.items()} == {
+        j: [float(j), 0.0, 3.0] for j in range(1, 6)}  # the step's positions, not carried on
+    assert exchange.setpoint_interval_s() == 0.02 == exchange.setpoint_interval_s()
+    ended = LockstepExchange(peers(link, ended=True))
+    with pytest.raises(Ended):
+        ended.inbox(0, 0)
+
+
+def test_realtime_leaves_out_stale_messages_and_counts_them(link: AutopilotLink) -> None:
+    exchange = RealtimeExchange(peers(link, stale_timeout_s=0.1))
+    exchange.consensus_latest = LatestValues(clock=(clock := Clock()))
+    exchange.put_consensus(message(1, 9, 0))
+    clock.now += 0.05
+    exchange.put_consensus(message(3, 12, 0))  # the newest of each sender, whatever its step
+    clock.now += 0.06
+    inbox = exchange.inbox(12, 0)
+    assert sorted(inbox) == [3] and exchange.stale_messages == 1
+    assert exchange.neighbour_age_ms == pytest.approx(60.0)
+    assert exchange.inbox(12, 1) == {} and np.isnan(exchange.neighbour_age_ms)
+
+
+def test_realtime_beacons_are_carried_forward_at_most_the_failsafe_time(
+        link: AutopilotLink) -> None:
+    exchange = RealtimeExchange(peers(link))
+    exchange.beacon_latest = LatestValues(clock=(clock := Clock()))
+    hold_s = load_config(CASE1).vehicles.failsafe_timeout_s
+    exchange.put_beacon(BeaconWire.build(2, 3, 0.06, (1.0, 2.0, 3.0), velocity_m_s=(1, 0, 0),
+                                         sample_age_s=0.01))
+    exchange.put_beacon(BeaconWire.build(4, 3, 0.06, (0.0, 0.0, 3.0), velocity_m_s=(0, 2, 0),
+                                         sample_age_s=hold_s))
+    clock.now += 0.03
+    flying = np.array([0.0, 0.0, 1.0])
+    beacons = exchange.beacons(5, 0.02, flying)
+    np.testing.assert_allclose(beacons[2], [1.0 + 0.04, 2.0, 3.0 - 0.02])  # p + v·a − v_i·a_i
+    np.testing.assert_allclose(beacons[4], [0.0, 2 * hold_s, 3.0 - 0.02])  # held after
+
+
+def test_realtime_swarm_size_follows_the_drones_heard(link: AutopilotLink) -> None:
+    p = peers(link, member_timeout_s=1.0)
+    exchange = RealtimeExchange(p)
+    exchange.beacon_latest = LatestValues(clock=(clock := Clock()))
+    for j in range(1, 6):
+        exchange.put_beacon(BeaconWire.build(j, 0, 0.0, (j, 0.0, 3.0)))
+    exchange.begin(0)
+    assert exchange.members == frozenset(range(6)) and p.agent.swarm_size == 6
+    clock.now += 0.5
+    for j in (1, 2, 3):
+        exchange.put_beacon(BeaconWire.build(j, 25, 0.5, (j, 0.0, 3.0)))
+    clock.now += 0.7  # 4 and 5 last heard 1.2 s ago
+    exchange.begin(60)
+    assert exchange.members == frozenset({0, 1, 2, 3}) and p.agent.swarm_size == 4
+
+
+def test_an_unknown_mode_is_refused(link: AutopilotLink) -> None:
+    assert isinstance(exchange_for("realtime", peers(link)), RealtimeExchange)
+    with pytest.raises(ExchangeError, match="unknown mode 'warp'"):
+        exchange_for("warp", peers(link))
