@@ -13,7 +13,6 @@ import time
 from collections.abc import Sequence
 
 from sim_world.fleet import VehicleFleet, serve_forever
-from swarm.runs.reference import initial_drone_positions
 from swarm.scenario.cli_common import (
     DEFAULT_MAVLINK_BASE,
     EXIT_OK,
@@ -26,6 +25,7 @@ from swarm.scenario.cli_common import (
     seed,
     terminate_on_sigterm,
 )
+from swarm.scenario.setup import initial_drone_positions
 
 PROG = "sim-vehicles"
 

@@ -31,7 +31,6 @@ from swarm.messages.wire import (
     ClockWire,
     TruthWire,
 )
-from swarm.models.camera import detect
 from swarm.net.rate import RateLimiter, freeze_heap
 from swarm.net.security import WORLD_ROLE, router_access_control
 from swarm.net.transport import (
@@ -43,9 +42,10 @@ from swarm.net.transport import (
     subscribe,
     zenoh_config,
 )
-from swarm.runs.reference import STREAM_CAMERA, initial_drone_positions, stream
 from swarm.scenario.cli_common import DEFAULT_MAVLINK_BASE
 from swarm.scenario.config import ScenarioConfig, realtime_only_reason
+from swarm.scenario.scene import Scene
+from swarm.scenario.setup import initial_drone_positions
 
 Mode = Literal["lockstep", "realtime"]
 VehicleSource = Literal["sim", "external"]
@@ -88,8 +88,7 @@ class World:
         self.n, self.m = cfg.swarm.n_drones, len(cfg.targets)
         self.dt_s = cfg.scenario.dt_s
         self.dt_ms = round(cfg.scenario.dt_s * 1000)
-        self.trajectories = [t.build() for t in cfg.targets]
-        self.cameras = [stream(options.seed, STREAM_CAMERA, i) for i in range(self.n)]
+        self.scene = Scene(cfg, options.seed)
         self.keys = Keys(options.run_id)
         self.codec = cfg.wire_codec()
         self.rejections = RejectionCounter()
@@ -170,20 +169,16 @@ class World:
         """Camera frames for every drone and the ground truth of step k; drone i's frame is
         stamped ``vehicle_times_ms[i]``, the time_boot_ms of the vehicle sample its camera
         was placed at (how an agent pairs the frame with that pose)."""
-        t = step * self.dt_s
-        targets = np.array([traj.position(t) for traj in self.trajectories])
-        target_vel = np.array([traj.velocity(t) for traj in self.trajectories])
-        communicated = (target_vel if self.options.config.estimation.model == "single_integrator"
-                        else None)
-        camera = self.options.config.camera
+        view = self.scene.at(step, self.positions)
         for i in range(self.n):
-            detections = detect(self.positions[i], targets, camera, self.cameras[i])
             self._pub_camera[i].put(self.codec.encode(CameraFrameWire.build(
-                drone=i, step=step, time_s=t, vehicle_time_ms=vehicle_times_ms[i],
-                detections=detections, target_velocities=communicated)))
+                drone=i, step=step, time_s=view.time_s, vehicle_time_ms=vehicle_times_ms[i],
+                detections=view.detections[i],
+                target_velocities=view.communicated_velocities_m_s)))
         self._pub_truth.put(self.codec.encode(TruthWire.build(
-            step=step, time_s=t, drone_positions=self.positions, target_positions=targets,
-            target_velocities=target_vel)))
+            step=step, time_s=view.time_s, drone_positions=self.positions,
+            target_positions=view.target_positions_m,
+            target_velocities=view.target_velocities_m_s)))
 
     def _not_ready(self) -> list[int]:
         if self.fleet is None:

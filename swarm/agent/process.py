@@ -54,8 +54,8 @@ from swarm.net.transport import (
     subscribe,
     zenoh_config,
 )
-from swarm.runs.reference import build_agent, initial_drone_positions
 from swarm.scenario.config import ScenarioConfig
+from swarm.scenario.setup import build_agent, initial_drone_positions
 from swarm.watch.command_reference import CommandReference
 from swarm.watch.localization_watch import LocalizationWatch
 from swarm.watch.vehicle_watch import VehicleWatch

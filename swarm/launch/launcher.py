@@ -64,9 +64,10 @@ from swarm.net.transport import (
 )
 from swarm.observe.collector import TelemetryCollector
 from swarm.observe.recording import AutopilotState, Recorder, RecordingError, RecordingMetadata
-from swarm.runs.reference import RunRecord, initial_drone_positions
+from swarm.runs.reference import RunRecord
 from swarm.scenario.cli_common import DEFAULT_MAVLINK_BASE
 from swarm.scenario.config import ScenarioConfig, write_resolved_config
+from swarm.scenario.setup import initial_drone_positions
 
 # Listen this long for datagrams before taking a block of MAVLink ports: PX4 SITL streams its
 # offboard link at tens of messages a second, ArduPilot at least a 1 Hz heartbeat (agents also

@@ -1,11 +1,12 @@
 """In-process reference runner: N ``DroneAgent``s, exact synchronous exchange, seeded.
 
-The world (targets, cameras, kinematics) and the agents live in one process and step in
-lockstep; every neighbour message of round κ is delivered before round κ + 1. Same config and
-seed → bit-identical output, and the same output as a lockstep run of the process swarm:
-the autopilot link is modelled exactly as MAVLink carries it (positions and velocity
-setpoints as float32 in each vehicle's local NED frame, ``swarm.models.frames``). Besides what the
-agents compute, the runner integrates the true and measured Gramians from ground truth
+The world (the scene of ``swarm.scenario.scene``, the very one the world process renders,
+and the vehicles' kinematics) and the agents live in one process and step in lockstep; every
+neighbour message of round κ is delivered before round κ + 1. Same config and seed →
+bit-identical output, and the same output as a lockstep run of the process swarm: the
+autopilot link is modelled exactly as MAVLink carries it (positions and velocity setpoints as
+float32 in each vehicle's local NED frame, ``swarm.models.frames``). Besides what the agents
+compute, the runner integrates the true and measured Gramians from ground truth
 (``swarm.runs.ground_truth``) for checking.
 """
 
@@ -19,8 +20,7 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from swarm.core.agent import AgentSetup, Detection, DroneAgent, StepDiagnostics
-from swarm.core.formation import circle_bearings
+from swarm.core.agent import Detection, DroneAgent, StepDiagnostics
 from swarm.messages.wire import (
     BeaconWire,
     CameraFrameWire,
@@ -29,66 +29,14 @@ from swarm.messages.wire import (
     TruthWire,
     telemetry_from_diagnostics,
 )
-from swarm.models.camera import detect
 from swarm.models.frames import position_over_link, velocity_over_link
-from swarm.models.kinematics import sample_initial_positions, step_vehicle
+from swarm.models.kinematics import step_vehicle
 from swarm.runs.ground_truth import ReferenceGramians
 from swarm.scenario.config import ScenarioConfig
+from swarm.scenario.scene import Scene
+from swarm.scenario.setup import build_agent, initial_drone_positions
 
 Array = NDArray[np.float64]
-
-# Independent random streams, keyed so that each drone's stream does not depend on how many
-# other drones or processes exist (the process swarm draws the very same numbers).
-STREAM_INITIAL_POSITIONS = 1
-STREAM_INITIAL_GUESS = 2
-STREAM_CAMERA = 3
-
-
-def stream(seed: int, purpose: int, index: int = 0) -> np.random.Generator:
-    return np.random.default_rng(np.random.SeedSequence(seed, spawn_key=(purpose, index)))
-
-
-def initial_drone_positions(config: ScenarioConfig, seed: int) -> Array:
-    sw = config.swarm
-    return sample_initial_positions(sw.n_drones, np.array(sw.initial_box_center_m),
-                                    np.array(sw.initial_box_size_m),
-                                    sw.initial_min_separation_m,
-                                    stream(seed, STREAM_INITIAL_POSITIONS))
-
-
-def initial_target_guesses(config: ScenarioConfig, seed: int, drone_id: int) -> Array:
-    """Truth at t = 0 plus U(−x, x) per axis, drawn from drone ``drone_id``'s own stream."""
-    rng = stream(seed, STREAM_INITIAL_GUESS, drone_id)
-    offset = config.estimation.initial_offset_m
-    starts = np.array([t.start_m for t in config.targets], dtype=float)
-    return starts + rng.uniform(-offset, offset, size=starts.shape)
-
-
-def agent_setup(config: ScenarioConfig, drone_id: int) -> AgentSetup:
-    graph = config.swarm.graph
-    est = config.estimation
-    desired: dict[int, Array] = {}
-    if config.control.task == "bearing_formation":
-        bearings = circle_bearings(graph.n_nodes)
-        desired = {j: bearings[drone_id, j] for j in graph.neighbours[drone_id]}
-    return AgentSetup(
-        drone_id=drone_id,
-        n_drones=graph.n_nodes,
-        n_targets=len(config.targets),
-        dt_s=config.scenario.dt_s,
-        neighbour_weights=graph.consensus_weights(drone_id, est.consensus_weights,
-                                                  est.laplacian_step),
-        perception=config.perception,
-        estimation=est,
-        gramian=config.gramian,
-        control=config.control,
-        desired_bearings=desired,
-    )
-
-
-def build_agent(config: ScenarioConfig, seed: int, drone_id: int) -> DroneAgent:
-    return DroneAgent(agent_setup(config, drone_id), initial_target_guesses(config, seed, drone_id))
-
 
 @dataclass(frozen=True)
 class RunRecord:
@@ -186,9 +134,8 @@ def _run(config: ScenarioConfig, seed: int, on_step: StepCallback | None,
     n, m, dt = config.swarm.n_drones, len(config.targets), config.scenario.dt_s
     steps = config.n_steps
     graph = config.swarm.graph
-    trajectories = [t.build() for t in config.targets]
     agents = [build_agent(config, seed, i) for i in range(n)]
-    cameras = [stream(seed, STREAM_CAMERA, i) for i in range(n)]
+    scene = Scene(config, seed)
     positions = initial_drone_positions(config, seed)
     n_state = agents[0].target_estimates.shape[1]
     origins = [config.vehicles.origin_w(i) for i in range(n)]
@@ -210,11 +157,9 @@ def _run(config: ScenarioConfig, seed: int, on_step: StepCallback | None,
         "us": np.zeros((steps, n)),
     }
     for k in range(steps):
-        t = k * dt
-        targets = np.array([traj.position(t) for traj in trajectories])
-        target_vel = np.array([traj.velocity(t) for traj in trajectories])
-        detections = [detect(positions[i], targets, config.camera, cameras[i]) for i in range(n)]
-        communicated = target_vel if config.estimation.model == "single_integrator" else None
+        view = scene.at(k, positions)
+        t, targets, target_vel = view.time_s, view.target_positions_m, view.target_velocities_m_s
+        detections, communicated = view.detections, view.communicated_velocities_m_s
         # What each agent reads from its autopilot (LOCAL_POSITION_NED, float32 NED).
         seen = [position_over_link(positions[i], origins[i]) for i in range(n)]
         messages = [agents[i].begin_step(k, seen[i], detections[i], communicated)

@@ -22,8 +22,8 @@ from swarm.core.agent import ConsensusMessage
 from swarm.mavlink.link import AutopilotLink, LinkError
 from swarm.messages.wire import BeaconWire
 from swarm.net.transport import LatestValues
-from swarm.runs.reference import build_agent
 from swarm.scenario.config import load_config
+from swarm.scenario.setup import build_agent
 
 CASE1 = Path(__file__).resolve().parents[2] / "configs" / "case1.toml"  # drone 0: {1, 3, 5}
 

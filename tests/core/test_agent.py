@@ -12,8 +12,11 @@ from swarm.core.agent import AgentSetup, AgentStateError, ConsensusMessage, Dete
 from swarm.core.barrier import collision_row
 from swarm.core.params import ControlParams, EstimationParams, GramianParams, PerceptionParams
 from swarm.core.qp import QpSolver, build_local_qp
-from swarm.runs.reference import build_agent, run_reference
+from swarm.models.kinematics import step_drone
+from swarm.runs.reference import run_reference
 from swarm.scenario.config import load_config
+from swarm.scenario.scene import Scene
+from swarm.scenario.setup import build_agent, initial_drone_positions
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
@@ -258,19 +261,14 @@ def run_case2_with_a_drone_lost(lost: int, lose_at: int, steps: int, *, follow_m
     beacon); the survivors take N = 5 from then on if ``follow_membership``. Returns the
     agents, each survivor's weights w_ir of the last step, (N, M), and its estimate of their
     sum S_w (the step's diagnostics), (N, M) (lost rows: NaN)."""
-    from swarm.models.camera import detect
-    from swarm.models.kinematics import step_drone
-    from swarm.runs.reference import STREAM_CAMERA, initial_drone_positions, stream
-
     config = load_config(CONFIGS / "case2.toml")
-    n, dt = config.swarm.n_drones, config.scenario.dt_s
+    n, m, dt = config.swarm.n_drones, len(config.targets), config.scenario.dt_s
     graph = config.swarm.graph
     agents = [build_agent(config, 0, i) for i in range(n)]
-    cameras = [stream(0, STREAM_CAMERA, i) for i in range(n)]
-    trajectories = [t.build() for t in config.targets]
+    scene = Scene(config, 0)
     positions = initial_drone_positions(config, 0)
-    weights = np.full((n, len(trajectories)), np.nan)
-    weight_sums = np.full((n, len(trajectories)), np.nan)
+    weights = np.full((n, m), np.nan)
+    weight_sums = np.full((n, m), np.nan)
     for k in range(steps):
         live = [i for i in range(n) if k < lose_at or i != lost]
         weights[:] = np.nan
@@ -278,10 +276,8 @@ def run_case2_with_a_drone_lost(lost: int, lose_at: int, steps: int, *, follow_m
         if follow_membership:
             for i in live:
                 agents[i].set_swarm_size(len(live))
-        targets = np.array([traj.position(k * dt) for traj in trajectories])
-        messages = {i: agents[i].begin_step(
-            k, positions[i], detect(positions[i], targets, config.camera, cameras[i]))
-            for i in live}
+        view = scene.at(k, positions)  # the lost drone's camera still draws: as in the world
+        messages = {i: agents[i].begin_step(k, positions[i], view.detections[i]) for i in live}
         for _ in range(agents[0].n_rounds):
             messages = {i: agents[i].consensus_round(
                 {j: messages[j] for j in graph.neighbours[i] if j in messages}) for i in live}

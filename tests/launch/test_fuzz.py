@@ -65,8 +65,8 @@ from swarm.net.transport import (
     zenoh_config,
 )
 from swarm.runs.checks import check_invariants
-from swarm.runs.reference import build_agent, initial_drone_positions
 from swarm.scenario.config import load_config
+from swarm.scenario.setup import build_agent, initial_drone_positions
 from tests.helpers.fuzz_tools import (
     UdpFlood,
     VehicleModel,

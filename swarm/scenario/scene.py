@@ -1,0 +1,58 @@
+"""What the world shows at step k: the targets where their trajectories put them and each
+drone's camera frame (SPEC §2, §11). The in-process reference and the world process both step
+it, so the world's step is written once.
+
+Each drone's camera draws its image noise from its own stream (``swarm.scenario.setup``):
+drone i sees the same frames whichever process renders them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from swarm.core.agent import Detection
+from swarm.models.camera import detect
+from swarm.scenario.config import ScenarioConfig
+from swarm.scenario.setup import STREAM_CAMERA, stream
+
+Array = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class SceneStep:
+    """The scene at one step: the truth, and what each drone's camera saw of it."""
+
+    step: int
+    time_s: float
+    target_positions_m: Array  # (M, 3)
+    target_velocities_m_s: Array  # (M, 3)
+    # What every frame carries of the targets' velocities (estimation model
+    # "single_integrator"); None otherwise.
+    communicated_velocities_m_s: Array | None
+    detections: list[list[Detection]]  # per drone, each visible target with its noise
+
+
+class Scene:
+    """The targets and the cameras of a run seeded ``seed``; ``at(k, positions)`` is step k
+    seen from the drones at ``positions`` ((N, 3), world frame [m]). Call it once per step, in
+    order: each call draws the cameras' noise."""
+
+    def __init__(self, config: ScenarioConfig, seed: int) -> None:
+        self.dt_s = config.scenario.dt_s
+        self.camera = config.camera
+        self.trajectories = [t.build() for t in config.targets]
+        self.cameras = [stream(seed, STREAM_CAMERA, i) for i in range(config.swarm.n_drones)]
+        self.communicates_velocities = config.estimation.model == "single_integrator"
+
+    def at(self, step: int, drone_positions: Array) -> SceneStep:
+        t = step * self.dt_s
+        targets = np.array([traj.position(t) for traj in self.trajectories])
+        target_velocities = np.array([traj.velocity(t) for traj in self.trajectories])
+        detections = [detect(position, targets, self.camera, rng)
+                      for position, rng in zip(drone_positions, self.cameras, strict=True)]
+        return SceneStep(step, t, targets, target_velocities,
+                         target_velocities if self.communicates_velocities else None,
+                         detections)
