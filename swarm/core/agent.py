@@ -39,6 +39,7 @@ from swarm.core.qp import (
     QpSolution,
     rate_limited_box,
 )
+from swarm.core.records import record
 from swarm.errors import VigilError
 
 Array = NDArray[np.float64]
@@ -477,8 +478,7 @@ class DroneAgent:
                           + [b.psi1 for b in barriers] + weights + weight_sums)
         if slacks is None:
             slacks, weight_slacks = np.zeros(m), np.zeros(m)
-        diagnostics = _build(
-            StepDiagnostics,
+        diagnostics = record(StepDiagnostics, dict(
             drone_id=own_id, step=self._step, time_s=time_s,
             velocity=velocity,
             nominal_velocity=np.array(nominal) if nominal is not _ZERO3 else np.zeros(3),
@@ -491,7 +491,7 @@ class DroneAgent:
             step_us=(self._busy_s + time.perf_counter() - entered) * 1e6,
             bearing_error=formation_error, missing_neighbour_messages=self._missing,
             rejected_inputs=self._rejected,
-        )
+        ))
         finished = time.perf_counter()
         sections = self._sections
         sections[0] += t1 - t0
@@ -499,7 +499,7 @@ class DroneAgent:
         sections[2] += t3 - t1
         sections[3] += t4 - t3
         sections[4] += (finished - entered) - (t4 - t0) - (t6 - t5)
-        return _build(StepResult, velocity=velocity, diagnostics=diagnostics)
+        return record(StepResult, {"velocity": velocity, "diagnostics": diagnostics})
 
     # -- helpers ------------------------------------------------------------------------
 
@@ -527,14 +527,14 @@ class DroneAgent:
         vector = icf_copy[self._n_info:]
         vector.shape = (m, n)
         if not with_states:
-            return _build(ConsensusMessage, sender=self.setup.drone_id, step=self._step,
-                          round=rnd, information=information, information_vector=vector,
-                          projector_mean=None, projector_integral=None, weight_mean=None,
-                          weight_integral=None, gramian=None)
-        return _build(
-            ConsensusMessage, sender=self.setup.drone_id, step=self._step, round=rnd,
-            information=information, information_vector=vector,
-            **self._layout.unpack(self._cons_array.copy()))
+            return record(ConsensusMessage, dict(
+                sender=self.setup.drone_id, step=self._step, round=rnd,
+                information=information, information_vector=vector, projector_mean=None,
+                projector_integral=None, weight_mean=None, weight_integral=None,
+                gramian=None))
+        return record(ConsensusMessage, dict(
+            sender=self.setup.drone_id, step=self._step, round=rnd, information=information,
+            information_vector=vector, **self._layout.unpack(self._cons_array.copy())))
 
     def _gather(self, inbox: Mapping[int, ConsensusMessage],
                 first: bool) -> tuple[tuple[int, ...], Array]:
@@ -736,15 +736,6 @@ class _BarrierConstants(NamedTuple):
 
 _ZERO3 = (0.0, 0.0, 0.0)
 _ZERO9 = (0.0,) * 9
-
-
-def _build(cls: type, **fields: object):  # type: ignore[no-untyped-def]
-    """``cls(**fields)`` for the frozen dataclasses built every step, given every field: the
-    same instance, without the generated ``__init__``'s ``object.__setattr__`` per field,
-    which costs more than everything else these objects need."""
-    obj = object.__new__(cls)
-    obj.__dict__.update(fields)
-    return obj
 
 
 def _consensus_operator(layout: ConsensusLayout, dt: float, gram: GramianParams,

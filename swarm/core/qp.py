@@ -17,6 +17,8 @@ import numpy as np
 import piqp
 from numpy.typing import NDArray
 
+from swarm.core.records import record
+
 Array = NDArray[np.float64]
 
 INACTIVE_ROW_LOWER = -1.0  # "0·z ≥ −1": an always-satisfied placeholder row
@@ -275,11 +277,9 @@ class LocalQpWorkspace:
         if self._max_violation(list(nominal), u_columns, lower) == 0.0:
             z = np.zeros(self.linear.shape[0])
             z[:3] = nominal
-            solution = object.__new__(QpSolution)
-            solution.__dict__.update(
+            return record(QpSolution, dict(
                 found=True, z=z, status=NOMINAL_FEASIBLE, iterations=0,
-                solve_time_s=time.perf_counter() - start, max_violation=0.0)
-            return solution
+                solve_time_s=time.perf_counter() - start, max_violation=0.0))
         self._u_block[:] = u_columns
         self.lower[:] = lower
         hessian_changed = linear_changed = False
@@ -314,12 +314,10 @@ class LocalQpWorkspace:
         values = z.tolist()
         solved = status == piqp.PIQP_SOLVED and all(map(math.isfinite, values))
         violation = self._max_violation(values, u_columns, lower) if solved else float("inf")
-        solution = object.__new__(QpSolution)  # QpSolution(...) without its frozen __init__
-        solution.__dict__.update(
+        return record(QpSolution, dict(
             found=solved and violation <= self.feasibility_tolerance, z=z,
             status=_status_name(status), iterations=int(result.info.iter),
-            solve_time_s=elapsed, max_violation=violation)
-        return solution
+            solve_time_s=elapsed, max_violation=violation))
 
     def current_qp(self) -> LocalQp:
         """The QP of the last solve that reached PIQP, as a solver-independent ``LocalQp`` of

@@ -49,6 +49,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from swarm.core.agent import ConsensusMessage, Detection, StepDiagnostics
+from swarm.core.records import record
 from swarm.errors import VigilError
 
 Array = NDArray[np.float64]
@@ -71,8 +72,6 @@ CLOCK_STATES: Final = ("waiting", "running", "done", "aborted")
 CLOCK_MODES: Final = ("lockstep", "realtime")
 
 _LE_F64: Final = np.dtype("<f8")
-_new_object: Final = object.__new__
-_set_attribute: Final = object.__setattr__  # a frozen dataclass's own refuses
 _F64: Final = np.dtype(np.float64)
 # The wire is little-endian: on such a machine a float64 array's own bytes are the wire bytes.
 _NATIVE_LE: Final = sys.byteorder == "little"
@@ -292,11 +291,9 @@ class CameraFrameWire(_Wire, tag="camera", kw_only=True):
 
     def detection_list(self) -> list[Detection]:
         out = []
-        for d in self.detections:  # Detection(...) without the frozen dataclass's __setattr__s
-            detection = _new_object(Detection)
-            _set_attribute(detection, "__dict__", {
-                "target": d.target, "image_point": np.array((d.x, d.y), dtype=np.float64)})
-            out.append(detection)
+        for d in self.detections:
+            out.append(record(Detection, {
+                "target": d.target, "image_point": np.array((d.x, d.y), dtype=np.float64)}))
         return out
 
     def target_velocity_array(self) -> Array | None:
@@ -526,11 +523,8 @@ _BOOL: Final = np.dtype(np.bool_)
 
 
 def _new_message(sender: int, step: int, rnd: int, arrays: dict[str, Any]) -> ConsensusMessage:
-    """``ConsensusMessage(...)`` without the frozen dataclass's per-field
-    ``object.__setattr__`` (the same instance; every field is given)."""
-    message = object.__new__(ConsensusMessage)
-    message.__dict__.update(sender=sender, step=step, round=rnd, **arrays)
-    return message
+    """``ConsensusMessage(...)``, every field given (``swarm.core.records``)."""
+    return record(ConsensusMessage, {"sender": sender, "step": step, "round": rnd, **arrays})
 
 
 def _vector3(values: ArrayLike) -> Vector3:
@@ -932,9 +926,7 @@ class WireCodec:
                             fields.update(_NO_STATES)
                         fields["sender"], fields["step"] = wire.sender, wire.step
                         fields["round"] = wire.round
-                        message = _new_object(ConsensusMessage)
-                        _set_attribute(message, "__dict__", fields)
-                        return message
+                        return record(ConsensusMessage, fields)
             except _ODD_PAYLOAD:  # the long way says what is wrong
                 pass
         wire = self._decode_checked(payload, ConsensusWire)
