@@ -26,12 +26,21 @@ import numpy as np
 from numpy.typing import NDArray
 
 from swarm.core import _lapack, icf
-from swarm.core.barrier import localization_barrier_scalars, robust_lower_bound
+from swarm.core.barrier import (
+    BarrierScalars,
+    localization_barrier_scalars,
+    robust_lower_bound,
+)
 from swarm.core.consensus_layout import ConsensusLayout
 from swarm.core.formation import bearing_formation_scalars
 from swarm.core.gramian import initial_gramian
 from swarm.core.params import ControlParams, EstimationParams, GramianParams, PerceptionParams
-from swarm.core.perception import perception_constants, perception_scalars, perception_terms
+from swarm.core.perception import (
+    PerceptionScalars,
+    perception_constants,
+    perception_scalars,
+    perception_terms,
+)
 from swarm.core.qp import (
     INACTIVE_ROW_LOWER,
     FailedQp,
@@ -141,6 +150,39 @@ class AgentStateError(VigilError, RuntimeError):
 
 # Sections of the step timed in ``DroneAgent.section_us`` (benchmarks/bench_step.py).
 SECTIONS = ("estimation", "consensus", "barrier", "qp", "other")
+ESTIMATION, CONSENSUS, BARRIER, QP, OTHER = range(len(SECTIONS))
+
+
+class SectionClock:
+    """Compute time of one step by section (``SECTIONS``), kept out of the math: each call of
+    the step starts with ``begin()`` and ends each section with ``lap(section)``, which adds
+    the time since the previous mark to it; ``busy_s`` is the step's own compute time so far
+    (waits for neighbours between its calls excluded)."""
+
+    __slots__ = ("busy_s", "mark", "seconds")
+
+    def __init__(self) -> None:
+        self.seconds = [0.0] * len(SECTIONS)
+        self.busy_s = self.mark = 0.0
+
+    def reset(self) -> None:
+        """A new step."""
+        self.seconds = [0.0] * len(SECTIONS)
+        self.busy_s = 0.0
+
+    def begin(self) -> None:
+        self.mark = time.perf_counter()
+
+    def lap(self, section: int) -> None:
+        now = time.perf_counter()
+        elapsed = now - self.mark
+        self.seconds[section] += elapsed
+        self.busy_s += elapsed
+        self.mark = now
+
+    def running_s(self) -> float:
+        """``busy_s`` including the section under way."""
+        return self.busy_s + time.perf_counter() - self.mark
 
 
 class DroneAgent:
@@ -216,8 +258,7 @@ class DroneAgent:
         self._communicated_velocity: Array | None = None
         self._missing = 0
         self._rejected = 0
-        self._busy_s = 0.0  # own compute time in this step, excluding waits for neighbours
-        self._sections = [0.0] * len(SECTIONS)
+        self._clock = SectionClock()
         # Running totals.
         self.qp_fallbacks = 0
         self.rate_limit_releases = 0
@@ -283,7 +324,9 @@ class DroneAgent:
         """
         if self._phase != "idle":
             raise AgentStateError(f"begin_step({step}) called while in phase {self._phase!r}")
-        entered = time.perf_counter()
+        clock = self._clock
+        clock.reset()
+        clock.begin()
         setup = self.setup
         m, n = setup.n_targets, self._n_state
         position = np.asarray(position, dtype=float)
@@ -314,7 +357,7 @@ class DroneAgent:
             self._communicated_velocity = np.asarray(communicated_velocities, dtype=float)
         if not self._consensus_started:
             self._initialise_consensus_states()
-        estimation_started = time.perf_counter()
+        clock.lap(OTHER)
         # V⁰ = W⁻/N + bμ[[Π,0],[0,0]], v⁰ = W⁻x̂⁻/N + bμ[Πp_i; 0] (2.4-2.5, 2.15), stacked.
         packed = np.empty_like(self._icf)
         info = packed[:self._n_info].reshape(m, n, n)
@@ -340,12 +383,9 @@ class DroneAgent:
             packed += terms
         self._icf = packed
         self._phase = "consensus"
-        done = time.perf_counter()
+        clock.lap(ESTIMATION)
         message = self._message(0, with_states=True)
-        finished = time.perf_counter()
-        self._busy_s = finished - entered
-        self._sections[:] = (done - estimation_started, 0.0, 0.0, 0.0,
-                             (finished - entered) - (done - estimation_started))
+        clock.lap(OTHER)
         return message
 
     def consensus_round(self, inbox: Mapping[int, ConsensusMessage]) -> ConsensusMessage | None:
@@ -356,7 +396,7 @@ class DroneAgent:
         """
         if self._phase != "consensus":
             raise AgentStateError(f"consensus_round called in phase {self._phase!r}")
-        entered = time.perf_counter()
+        self._clock.begin()
         first = self._round == 0
         usable, data = self._gather(inbox, first)
         if usable:
@@ -378,9 +418,7 @@ class DroneAgent:
             message = None
         else:
             message = self._message(self._round, with_states=False)
-        elapsed = time.perf_counter() - entered
-        self._busy_s += elapsed
-        self._sections[1] += elapsed
+        self._clock.lap(CONSENSUS)
         return message
 
     def finish_step(self, beacons: Mapping[int, Array]) -> StepResult:
@@ -391,17 +429,83 @@ class DroneAgent:
         """
         if self._phase != "finish":
             raise AgentStateError(f"finish_step called in phase {self._phase!r}")
-        entered = time.perf_counter()
+        clock = self._clock
+        clock.begin()
         setup, ctrl = self.setup, self.setup.control
-        m, n, n_drones = setup.n_targets, self._n_state, self._swarm_size
+        m = setup.n_targets
         time_s = self._step * setup.dt_s
-        own_id = setup.drone_id
         own = self._own
-
         clean_beacons = self._clean_beacons(beacons)
+        clock.lap(OTHER)
 
-        # ICF posterior and prediction (2.8-2.11), all targets at once.
-        t0 = time.perf_counter()
+        estimates, target_velocities = self._estimate()
+        clock.lap(ESTIMATION)
+
+        terms, barriers, weight_sums = self._barrier_terms(estimates, target_velocities)
+        weights = [t.weight for t in terms]
+        nominal, formation_error = self._nominal_velocity(own, clean_beacons)
+        control_active = time_s >= ctrl.start_s
+        box = (rate_limited_box(self._last_command, self._max_change, ctrl.u_max_m_s)
+               if self._max_change > 0.0 else None)
+        if control_active:
+            u_rows, lower = self._qp_rows(barriers, terms, target_velocities, weight_sums, own,
+                                          clean_beacons)
+            clock.lap(BARRIER)
+            solution, fallback, released = self._solve(nominal, u_rows, lower, weights, box)
+            clock.lap(QP)
+            if solution.found:
+                velocity = solution.z[:3].copy()
+            else:  # SPEC §9: the safest input; within the rate box, braking as hard as it lets
+                velocity = np.array(_clip3(_ZERO3, box) if box is not None else _ZERO3)
+            found_slacks = solution.found and solution.z.shape[0] > 3
+            slacks = solution.z[3:3 + m].copy() if found_slacks else np.zeros(m)
+            weight_slacks = solution.z[3 + m:].copy() if found_slacks else np.zeros(m)
+            qp_status, qp_iterations = solution.status, solution.iterations
+            qp_us = solution.solve_time_s * 1e6
+        else:
+            clock.lap(BARRIER)
+            u_max = ctrl.u_max_m_s
+            velocity = np.array(_clip3(nominal, box if box is not None
+                                       else ([-u_max] * 3, [u_max] * 3)))
+            slacks, weight_slacks = np.zeros(m), np.zeros(m)
+            qp_status, qp_iterations, qp_us, fallback, released = "inactive", 0, 0.0, False, False
+        self._last_command = tuple(velocity.tolist())
+        clock.lap(OTHER)
+
+        # Advance the dynamic consensus (3.30) and the Gramian copies (3.29) to step k + 1,
+        # with the neighbours' states at step k from round 0.
+        self._advance_consensus(terms, weights)
+        clock.lap(CONSENSUS)
+
+        self.qp_fallbacks += int(fallback)
+        self.rate_limit_releases += int(released)
+        self.missing_neighbour_messages += self._missing
+        self.rejected_inputs += self._rejected
+        self._phase = "idle"
+        series = np.array([b.lambda_bar for b in barriers] + [b.psi0 for b in barriers]
+                          + [b.psi1 for b in barriers] + weights + weight_sums)
+        diagnostics = record(StepDiagnostics, dict(
+            drone_id=setup.drone_id, step=self._step, time_s=time_s,
+            velocity=velocity,
+            nominal_velocity=np.array(nominal) if nominal is not _ZERO3 else np.zeros(3),
+            estimates=self._posterior_state.copy(),
+            lambda_bar=series[0:m], psi0=series[m:2 * m], psi1=series[2 * m:3 * m],
+            weights=series[3 * m:4 * m], weight_sum_estimate=series[4 * m:],
+            slacks=slacks, weight_slacks=weight_slacks, detected=self._detected,
+            control_active=control_active, qp_status=qp_status, qp_iterations=qp_iterations,
+            qp_fallback=fallback, rate_limit_released=released, qp_solve_us=qp_us,
+            step_us=clock.running_s() * 1e6,
+            bearing_error=formation_error, missing_neighbour_messages=self._missing,
+            rejected_inputs=self._rejected,
+        ))
+        clock.lap(OTHER)
+        return record(StepResult, {"velocity": velocity, "diagnostics": diagnostics})
+
+    def _estimate(self) -> tuple[list[list[float]], list[list[float]]]:
+        """ICF posterior and prediction (2.8-2.11), all targets at once, from the consensus
+        result. Returns the posterior estimates and the targets' velocities the barrier uses
+        (estimated, communicated or zero), as lists of floats."""
+        m, n = self.setup.n_targets, self._n_state
         packed = self._icf
         posterior_state, self._prior_state, self._prior_information = self._filter(
             packed[:self._n_info].reshape(m, n, n), packed[self._n_info:].reshape(m, n),
@@ -409,15 +513,19 @@ class DroneAgent:
         self._posterior_state = posterior_state
         estimates = posterior_state.tolist()
         if not self._single_integrator:
-            target_velocities = [e[3:6] for e in estimates]
-        elif self._communicated_velocity is not None:
-            target_velocities = self._communicated_velocity.tolist()
-        else:
-            target_velocities = [[0.0, 0.0, 0.0]] * m
-        t1 = time.perf_counter()
+            return estimates, [e[3:6] for e in estimates]
+        if self._communicated_velocity is not None:
+            return estimates, self._communicated_velocity.tolist()
+        return estimates, [[0.0, 0.0, 0.0]] * m
 
-        # Perception weights and barrier terms from the estimates (SPEC §3, §8).
+    def _barrier_terms(self, estimates: list[list[float]],
+                       target_velocities: list[list[float]]
+                       ) -> tuple[list[PerceptionScalars], list[BarrierScalars], list[float]]:
+        """Perception weights and barrier terms from the estimates (SPEC §3, §8), one per
+        target, and the weight sums S_w = N · s_w of the consensus."""
+        m = self.setup.n_targets
         constants = self._perception
+        own = self._own
         terms = [perception_scalars(own, estimates[r], constants) for r in range(m)]
         cons = self._cons
         layout = self._layout
@@ -431,75 +539,8 @@ class DroneAgent:
                 epsilon=epsilon, exponent=exponent, info_gain=info_gain)
             for r in range(m)
         ]
-        weights = [t.weight for t in terms]
-        weight_sums = [n_drones * w for w in cons[layout.weight_mean]]  # S_w = N · s_w
-        t2 = time.perf_counter()
-
-        nominal, formation_error = self._nominal_velocity(own, clean_beacons)
-        control_active = time_s >= ctrl.start_s
-        qp_status, qp_iterations, qp_us, fallback = "inactive", 0, 0.0, False
-        released = False
-        t3 = t4 = t2
-        slacks = weight_slacks = None
-        box = (rate_limited_box(self._last_command, self._max_change, ctrl.u_max_m_s)
-               if self._max_change > 0.0 else None)
-        if control_active:
-            u_rows, lower = self._qp_rows(barriers, terms, target_velocities, weight_sums, own,
-                                          clean_beacons)
-            t3 = time.perf_counter()
-            solution, fallback, released = self._solve(nominal, u_rows, lower, weights, box)
-            t4 = time.perf_counter()
-            if solution.found:
-                velocity = solution.z[:3].copy()
-            else:  # SPEC §9: the safest input; within the rate box, braking as hard as it lets
-                velocity = np.array(_clip3(_ZERO3, box) if box is not None else _ZERO3)
-            if solution.found and solution.z.shape[0] > 3:
-                slacks, weight_slacks = solution.z[3:3 + m].copy(), solution.z[3 + m:].copy()
-            qp_status, qp_iterations = solution.status, solution.iterations
-            qp_us = solution.solve_time_s * 1e6
-        else:
-            u_max = ctrl.u_max_m_s
-            velocity = np.array(_clip3(nominal, box if box is not None
-                                       else ([-u_max] * 3, [u_max] * 3)))
-        self._last_command = tuple(velocity.tolist())
-
-        # Advance the dynamic consensus (3.30) and the Gramian copies (3.29) to step k + 1,
-        # with the neighbours' states at step k from round 0.
-        t5 = time.perf_counter()
-        self._advance_consensus(terms, weights)
-        t6 = time.perf_counter()
-
-        self.qp_fallbacks += int(fallback)
-        self.rate_limit_releases += int(released)
-        self.missing_neighbour_messages += self._missing
-        self.rejected_inputs += self._rejected
-        self._phase = "idle"
-        series = np.array([b.lambda_bar for b in barriers] + [b.psi0 for b in barriers]
-                          + [b.psi1 for b in barriers] + weights + weight_sums)
-        if slacks is None:
-            slacks, weight_slacks = np.zeros(m), np.zeros(m)
-        diagnostics = record(StepDiagnostics, dict(
-            drone_id=own_id, step=self._step, time_s=time_s,
-            velocity=velocity,
-            nominal_velocity=np.array(nominal) if nominal is not _ZERO3 else np.zeros(3),
-            estimates=posterior_state.copy(),
-            lambda_bar=series[0:m], psi0=series[m:2 * m], psi1=series[2 * m:3 * m],
-            weights=series[3 * m:4 * m], weight_sum_estimate=series[4 * m:],
-            slacks=slacks, weight_slacks=weight_slacks, detected=self._detected,
-            control_active=control_active, qp_status=qp_status, qp_iterations=qp_iterations,
-            qp_fallback=fallback, rate_limit_released=released, qp_solve_us=qp_us,
-            step_us=(self._busy_s + time.perf_counter() - entered) * 1e6,
-            bearing_error=formation_error, missing_neighbour_messages=self._missing,
-            rejected_inputs=self._rejected,
-        ))
-        finished = time.perf_counter()
-        sections = self._sections
-        sections[0] += t1 - t0
-        sections[1] += t6 - t5
-        sections[2] += t3 - t1
-        sections[3] += t4 - t3
-        sections[4] += (finished - entered) - (t4 - t0) - (t6 - t5)
-        return record(StepResult, {"velocity": velocity, "diagnostics": diagnostics})
+        weight_sums = [self._swarm_size * w for w in cons[layout.weight_mean]]  # S_w = N · s_w
+        return terms, barriers, weight_sums
 
     # -- helpers ------------------------------------------------------------------------
 
@@ -518,7 +559,7 @@ class DroneAgent:
         consensus: rounds and the consensus/Gramian update; barrier: perception, barrier and
         constraint rows; qp: solver matrices, PIQP update and solve, feasibility check;
         other: the rest), for benchmarks/bench_step.py."""
-        return {name: 1e6 * t for name, t in zip(SECTIONS, self._sections, strict=True)}
+        return {name: 1e6 * t for name, t in zip(SECTIONS, self._clock.seconds, strict=True)}
 
     def _message(self, rnd: int, *, with_states: bool) -> ConsensusMessage:
         m, n = self.setup.n_targets, self._n_state

@@ -353,3 +353,20 @@ def test_a_rate_box_that_blocks_a_collision_row_is_released_and_counted() -> Non
     assert failed.attempt == "relaxed"
     assert np.allclose(failed.qp.z_min[:3], np.array([2.0, 0.0, 0.0]) - 0.5 * 0.02)
     assert not QpSolver().solve(failed.qp).found
+
+
+def test_the_step_time_is_split_into_its_sections() -> None:
+    """``section_us`` covers the whole step: every section ≥ 0, together at least the
+    ``step_us`` the diagnostics report (taken just before the last lap), the QP's own section
+    non-zero once the control runs, and a new step starts from zero."""
+    agent = lone_agent(ControlParams(start_s=0.02, qp="relaxed"))
+    before = run_alone(agent, 0, [0.0, 0.0, 3.0]).diagnostics
+    assert before.qp_status == "inactive" and agent.section_us["qp"] == 0.0
+    for step in (1, 2):
+        diag = run_alone(agent, step, [0.0, 0.0, 3.0]).diagnostics
+        sections = agent.section_us
+        assert set(sections) == {"estimation", "consensus", "barrier", "qp", "other"}
+        assert all(t >= 0.0 for t in sections.values())
+        assert sections["qp"] > 0.0 and sections["estimation"] > 0.0
+        # (the last lap is one record(): 50 ms leaves room for a descheduled thread)
+        assert diag.step_us <= sum(sections.values()) <= diag.step_us + 50e3
