@@ -31,6 +31,7 @@ from swarm.scenario.cli_common import (  # noqa: E402
     step_count,
     terminate_on_sigterm,
 )
+from swarm.scenario.config import realtime_only_reason  # noqa: E402
 
 PROG = "swarm-agent"
 
@@ -80,9 +81,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return fail(PROG, str(err))
     faults = LinkFaults(drop_rate=args.drop_consensus, delay_steps=args.delay_consensus,
                         seed=(args.seed or 0) * 1000 + args.id)
-    if faults.active and args.mode != "realtime":
-        return fail(PROG, "--drop-consensus and --delay-consensus need --mode realtime (in "
-                          "lockstep a lost message stalls every neighbour)")
+    reason = realtime_only_reason(config.vehicles, mode=args.mode,
+                                  faulty_consensus=faults.active)
+    if reason is not None:
+        return fail(PROG, reason)
     terminate_on_sigterm()
     options = AgentOptions(
         config=config, drone_id=args.id,

@@ -70,7 +70,6 @@ class Exchange(Protocol):
     direct: bool  # subscription callbacks on zenoh's thread (True) or a thread of their own
     block_consensus: bool  # a consensus put waits for room (True) or drops (False)
     sent_times: bool  # read each consensus message's Zenoh timestamp (neighbour age)
-    allows_faults: bool  # consensus fault injection can run in this mode
     late_steps: int
     unpaired_frames: int
     stale_messages: int
@@ -99,7 +98,6 @@ class LockstepExchange:
     direct = True
     block_consensus = True  # peers wait for every message
     sent_times = False  # lockstep reports no neighbour age: its hot path skips them
-    allows_faults = False  # a lost message would stall every neighbour
 
     def __init__(self, peers: Peers) -> None:
         self.peers = peers
@@ -187,7 +185,6 @@ class RealtimeExchange:
     direct = False
     block_consensus = False  # the newest message is what counts: drop when the queue is full
     sent_times = True
-    allows_faults = True
 
     def __init__(self, peers: Peers) -> None:
         self.peers = peers

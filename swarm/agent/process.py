@@ -54,7 +54,7 @@ from swarm.net.transport import (
     subscribe,
     zenoh_config,
 )
-from swarm.scenario.config import ScenarioConfig
+from swarm.scenario.config import ScenarioConfig, realtime_only_reason
 from swarm.scenario.setup import build_agent, initial_drone_positions
 from swarm.watch.command_reference import CommandReference
 from swarm.watch.localization_watch import LocalizationWatch
@@ -168,9 +168,10 @@ class AgentProcess:
         self._pub_consensus = declare_publisher(self.session, self.keys.consensus(self.id),
                                                 block=exchange.block_consensus)
         faults = options.consensus_faults
-        if faults.active and not exchange.allows_faults:
-            raise LinkError(f"drone {self.id}: consensus fault injection needs realtime mode "
-                            "(in lockstep a lost message stalls every neighbour)")
+        reason = realtime_only_reason(cfg.vehicles, mode=options.mode,
+                                      faulty_consensus=faults.active)
+        if reason is not None:
+            raise LinkError(f"drone {self.id}: {reason}")
         self._faulty = (FaultyPublisher(self.session, self._pub_consensus, faults)
                         if faults.active else None)
         self._pub_beacon = declare_publisher(self.session, self.keys.beacon(self.id), block=True)

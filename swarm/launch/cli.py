@@ -200,11 +200,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ConfigError as err:
         return fail_on(PROG, err, "config error: ")
     seed_value = config.scenario.seed if args.seed is None else args.seed
-    for flag, given in (("--agent-restarts", args.agent_restarts),
-                        ("--kill-agent", args.kill_agents)):
-        if given and (args.inprocess or args.mode != "realtime"):
-            return fail(PROG, f"{flag} needs --mode realtime (in lockstep every drone waits "
-                              f"for every other one)")
     try:
         sitl = sitl_firmware(args.sitl)
         config = with_mavlink_urls(config, dict(args.mavlink))
@@ -219,7 +214,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         except ConfigError as err:
             return fail_on(PROG, err, "config error: ")
     reason = realtime_only_reason(config.vehicles, mode=args.mode, inprocess=args.inprocess,
-                                  external=real)
+                                  external=real, restarts_agents=bool(args.agent_restarts),
+                                  kills_agents=bool(args.kill_agents))
     if reason is not None:
         return fail(PROG, reason)
     if args.sitl_params and sitl is None:

@@ -66,7 +66,7 @@ from swarm.observe.collector import TelemetryCollector
 from swarm.observe.recording import AutopilotState, Recorder, RecordingError, RecordingMetadata
 from swarm.runs.reference import RunRecord
 from swarm.scenario.cli_common import DEFAULT_MAVLINK_BASE
-from swarm.scenario.config import ScenarioConfig, write_resolved_config
+from swarm.scenario.config import ScenarioConfig, realtime_only_reason, write_resolved_config
 from swarm.scenario.setup import initial_drone_positions
 
 # Listen this long for datagrams before taking a block of MAVLink ports: PX4 SITL streams its
@@ -120,13 +120,14 @@ class LaunchOptions:
     def __post_init__(self) -> None:
         if self.agent_restarts < 0 or not self.agent_restart_delay_s >= 0:
             raise ValueError("agent_restarts and agent_restart_delay_s must be >= 0")
-        if self.agent_restarts and self.mode != "realtime":
-            raise ValueError("restarting agents needs realtime mode: in lockstep every drone "
-                             "waits for every other one")
+        reason = realtime_only_reason(
+            self.config.vehicles, mode=self.mode,
+            external=(self.sitl is not None or self.external_vehicles
+                      or bool(self.config.vehicles.mavlink_urls)),
+            restarts_agents=bool(self.agent_restarts), kills_agents=bool(self.kill_agents))
+        if reason is not None:
+            raise ValueError(reason)
         for drone, time_s in self.kill_agents:
-            if self.mode != "realtime":
-                raise ValueError("killing an agent needs realtime mode: in lockstep every "
-                                 "drone waits for every other one")
             if not 0 <= drone < self.config.swarm.n_drones:
                 raise ValueError(f"--kill-agent {drone}@{time_s:g}: no drone {drone} (the "
                                  f"swarm has 0..{self.config.swarm.n_drones - 1})")
@@ -135,10 +136,6 @@ class LaunchOptions:
                                  f"the mission (0, {self.config.scenario.duration_s:g}) s")
         if len({drone for drone, _ in self.kill_agents}) < len(self.kill_agents):
             raise ValueError("--kill-agent: one kill per drone")
-        if self.mode != "realtime" and (self.sitl is not None or self.external_vehicles
-                                        or self.config.vehicles.mavlink_urls):
-            raise ValueError("real or external autopilots need --mode realtime: they cannot "
-                             "wait for the simulation")
         if self.sitl is not None and self.config.vehicles.mavlink_urls:
             raise ValueError("--sitl starts its own autopilots: leave vehicles.mavlink_urls "
                              "empty (or drop --sitl to fly those)")

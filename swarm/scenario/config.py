@@ -377,14 +377,26 @@ class ScenarioConfig:
 
 
 def realtime_only_reason(vehicles: VehiclesSection, *, mode: str, inprocess: bool = False,
-                         external: bool = False) -> str | None:
-    """Why this run needs ``--mode realtime`` and does not have it (one line), else None.
-    ``external``: the agents fly autopilots the world does not serve (SITL, --mavlink)."""
+                         external: bool = False, restarts_agents: bool = False,
+                         kills_agents: bool = False, faulty_consensus: bool = False
+                         ) -> str | None:
+    """Why this run needs ``--mode realtime`` and does not have it (one line), else None: the
+    mode rules of every executable and of the launcher's options, stated here only.
+    ``external``: the agents fly autopilots the world does not serve (SITL, --mavlink);
+    ``restarts_agents``, ``kills_agents``: --agent-restarts, --kill-agent;
+    ``faulty_consensus``: an agent's --drop-consensus or --delay-consensus."""
     if not inprocess and mode == "realtime":
         return None
     if external:
         return ("real or external autopilots (--sitl, --mavlink, vehicles.mavlink_urls) need "
                 "--mode realtime: they cannot wait for the simulation")
+    for flag, given in (("--agent-restarts", restarts_agents), ("--kill-agent", kills_agents)):
+        if given:
+            return (f"{flag} needs --mode realtime (in lockstep every drone waits for every "
+                    f"other one)")
+    if faulty_consensus:
+        return ("--drop-consensus and --delay-consensus need --mode realtime (in lockstep a "
+                "lost message stalls every neighbour)")
     if vehicles.start == "ground":
         return ("vehicles.start = 'ground' needs --mode realtime: the take-off runs on the wall "
                 "clock (lockstep and --inprocess start the drones in the air, as the thesis)")

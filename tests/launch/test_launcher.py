@@ -52,7 +52,7 @@ def test_the_world_has_a_session_of_its_own_and_the_agents_share_the_launchers(
 
 
 @pytest.mark.parametrize(("mode", "kills", "message"), [
-    ("lockstep", ((1, 5.0),), "needs realtime mode"),
+    ("lockstep", ((1, 5.0),), "--kill-agent needs --mode realtime"),
     ("realtime", ((6, 5.0),), "no drone 6 (the swarm has 0..5)"),
     ("realtime", ((1, 31.0),), "within the mission (0, 30) s"),
     ("realtime", ((1, 0.0),), "within the mission"),

@@ -28,7 +28,13 @@ from swarm.models.targets import (
     ramp,
     ramp_distance,
 )
-from swarm.scenario.config import ConfigError, ScenarioConfig, config_from_dict, load_config
+from swarm.scenario.config import (
+    ConfigError,
+    ScenarioConfig,
+    config_from_dict,
+    load_config,
+    realtime_only_reason,
+)
 from tests.helpers.cli_tools import launch_swarm_in_process, run_cli
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -466,3 +472,22 @@ def test_every_process_builds_its_codec_from_the_config(model: str, size: int) -
     assert config.state_dimension == size
     codec = config.wire_codec()
     assert (codec.n_drones, codec.n_targets, codec.n_state) == (6, 2, size)
+
+
+@pytest.mark.parametrize(("flags", "says"), [
+    ({"external": True}, "real or external autopilots"),
+    ({"restarts_agents": True}, "--agent-restarts needs --mode realtime"),
+    ({"kills_agents": True}, "--kill-agent needs --mode realtime"),
+    ({"faulty_consensus": True}, "--drop-consensus and --delay-consensus need"),
+])
+def test_the_mode_rules_hold_outside_realtime_only(flags: dict, says: str) -> None:
+    """One home for what needs realtime (launch-swarm, sim-world, swarm-agent and the
+    launcher's options all ask ``realtime_only_reason``)."""
+    vehicles = load_config(CONFIGS / "case1.toml").vehicles
+    assert realtime_only_reason(vehicles, mode="realtime", **flags) is None
+    for mode, inprocess in (("lockstep", False), ("realtime", True)):
+        reason = realtime_only_reason(vehicles, mode=mode, inprocess=inprocess, **flags)
+        assert reason is not None and says in reason and "\n" not in reason
+    assert realtime_only_reason(vehicles, mode="lockstep") is None
+    ground = dataclasses.replace(vehicles, start="ground")
+    assert "vehicles.start = 'ground'" in realtime_only_reason(ground, mode="lockstep")
