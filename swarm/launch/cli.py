@@ -33,7 +33,8 @@ from swarm.models.kinematics import InitialPlacementError
 from swarm.observe.dashboard import Dashboard, DashboardSettings, InProcessFeed
 from swarm.observe.recording import RecordingError, record_directory, record_reference
 from swarm.observe.report import build_report, render_report
-from swarm.runs.reference import RunRecord, run_reference
+from swarm.runs.record import RunRecord
+from swarm.runs.reference import run_reference
 from swarm.scenario.cli_common import (
     DEFAULT_MAVLINK_BASE,
     EXIT_FAILED,

@@ -64,7 +64,7 @@ from swarm.net.transport import (
 )
 from swarm.observe.collector import TelemetryCollector
 from swarm.observe.recording import AutopilotState, Recorder, RecordingError, RecordingMetadata
-from swarm.runs.reference import RunRecord
+from swarm.runs.record import RunRecord
 from swarm.scenario.cli_common import DEFAULT_MAVLINK_BASE
 from swarm.scenario.config import ScenarioConfig, realtime_only_reason, write_resolved_config
 from swarm.scenario.setup import initial_drone_positions

@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 
 from swarm.messages.wire import F64Array, TelemetryCounters, TelemetryWire, TruthWire
 from swarm.runs.ground_truth import ReferenceGramians
-from swarm.runs.reference import RunRecord
+from swarm.runs.record import RunRecord
 from swarm.scenario.config import ScenarioConfig
 
 Array = NDArray[np.float64]

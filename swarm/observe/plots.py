@@ -33,7 +33,7 @@ from mpl_toolkits.mplot3d.art3d import Line3DCollection
 from numpy.typing import NDArray
 
 from swarm.runs.checks import SENSING_WEIGHT, last_present, nanmax, nanmin, start_index
-from swarm.runs.reference import RunRecord
+from swarm.runs.record import RunRecord
 
 Array = NDArray[np.float64]
 DPI = 110

@@ -64,7 +64,8 @@ from swarm.messages.wire import (
     WireError,
 )
 from swarm.observe.collector import TelemetryCollector
-from swarm.runs.reference import RunRecord, StepCallback, run_reference
+from swarm.runs.record import RunRecord
+from swarm.runs.reference import StepCallback, run_reference
 from swarm.scenario.config import ConfigError, ScenarioConfig, config_from_dict, config_to_data
 
 RECORDING_FILE: Final = "run.mcap"

@@ -35,7 +35,7 @@ from swarm.runs.checks import (
     summarize_drones,
     summarize_targets,
 )
-from swarm.runs.reference import RunRecord
+from swarm.runs.record import RunRecord
 
 Mode = Literal["lockstep", "realtime", "inprocess"]
 MODES: tuple[str, ...] = ("lockstep", "realtime", "inprocess")

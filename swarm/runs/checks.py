@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from swarm.runs.reference import RunRecord
+from swarm.runs.record import RunRecord
 
 SENSING_WEIGHT = 0.1  # a drone "senses" a target when w > this (issue 4's definition)
 

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Protocol
 
 import numpy as np
@@ -32,54 +31,12 @@ from swarm.messages.wire import (
 from swarm.models.frames import position_over_link, velocity_over_link
 from swarm.models.kinematics import step_vehicle
 from swarm.runs.ground_truth import ReferenceGramians
+from swarm.runs.record import RunRecord
 from swarm.scenario.config import ScenarioConfig
 from swarm.scenario.scene import Scene
 from swarm.scenario.setup import build_agent, initial_drone_positions
 
 Array = NDArray[np.float64]
-
-@dataclass(frozen=True)
-class RunRecord:
-    """Time series of a run; index k is step k (t = k·ΔT), before the motion of step k."""
-
-    config: ScenarioConfig
-    seed: int
-    times_s: Array  # (K,)
-    drone_positions_m: Array  # (K, N, 3)
-    velocities_m_s: Array  # (K, N, 3) commanded
-    target_positions_m: Array  # (K, M, 3)
-    target_velocities_m_s: Array  # (K, M, 3)
-    estimates: Array  # (K, N, M, n)
-    lambda_bar: Array  # (K, N, M) λ̄ of each drone's copy
-    psi0: Array  # (K, N, M)
-    psi1: Array  # (K, N, M)
-    weights: Array  # (K, N, M)
-    slacks: Array  # (K, N, M)
-    weight_slacks: Array  # (K, N, M)
-    detected: Array  # (K, N, M) bool
-    true_lambda_min: Array  # (K, M)
-    measured_lambda_min: Array  # (K, M)
-    bearing_errors: Array  # (K, N), NaN without a formation task
-    qp_fallback: Array  # (K, N) bool
-    step_us: Array  # (K, N)
-    wall_time_s: float
-
-    @property
-    def n_steps(self) -> int:
-        return int(self.times_s.shape[0])
-
-    def position_errors(self) -> Array:
-        """‖p̂_ir − p_r‖ per step, drone and target, (K, N, M) [m]."""
-        return np.linalg.norm(self.estimates[..., :3] - self.target_positions_m[:, None], axis=-1)
-
-    def min_pairwise_distance(self) -> float:
-        p = self.drone_positions_m
-        diff = p[:, :, None, :] - p[:, None, :, :]
-        dist = np.linalg.norm(diff, axis=-1)
-        n = p.shape[1]
-        dist[:, np.arange(n), np.arange(n)] = np.inf
-        return float(dist.min())
-
 
 StepCallback = Callable[[int, list[StepDiagnostics]], None]
 

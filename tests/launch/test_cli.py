@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 
 from swarm.runs.checks import summarize_drones, summarize_targets
-from swarm.runs.reference import RunRecord, run_reference
+from swarm.runs.record import RunRecord
+from swarm.runs.reference import run_reference
 from swarm.scenario.config import load_config
 from tests.helpers.cli_tools import launch_swarm_in_process, run_cli
 

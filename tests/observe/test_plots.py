@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from swarm.observe.plots import figures_for, fov_segments, write_plots
-from swarm.runs.reference import RunRecord, run_reference
+from swarm.runs.record import RunRecord
+from swarm.runs.reference import run_reference
 from swarm.scenario.config import load_config
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -57,7 +57,8 @@ from swarm.observe.recording import (
     truth_from_json,
     truth_to_json,
 )
-from swarm.runs.reference import RunRecord, run_reference
+from swarm.runs.record import RunRecord
+from swarm.runs.reference import run_reference
 from swarm.scenario.config import config_from_dict, config_to_data, load_config
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -19,7 +19,8 @@ from rich.console import Console
 from swarm.messages.wire import TelemetryCounters
 from swarm.observe.report import build_report, render_report, report_to_json
 from swarm.runs.checks import check_invariants, start_index
-from swarm.runs.reference import RunRecord, run_reference
+from swarm.runs.record import RunRecord
+from swarm.runs.reference import run_reference
 from swarm.scenario.config import load_config
 
 ROOT = Path(__file__).resolve().parents[2]

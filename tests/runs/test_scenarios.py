@@ -15,7 +15,8 @@ import numpy as np
 import pytest
 
 from swarm.runs.checks import check_invariants
-from swarm.runs.reference import RunRecord, run_reference
+from swarm.runs.record import RunRecord
+from swarm.runs.reference import run_reference
 from swarm.scenario.config import load_config
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
