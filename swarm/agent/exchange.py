@@ -31,7 +31,7 @@ from typing import Literal, Protocol
 import numpy as np
 
 from swarm.core.agent import ConsensusMessage, DroneAgent
-from swarm.errors import VigilError
+from swarm.errors import UsageError
 from swarm.mavlink.link import AutopilotLink, LinkError, PositionSample
 from swarm.messages.wire import BeaconWire, CameraFrameWire
 from swarm.net.rate import RateLimiter
@@ -349,7 +349,7 @@ EXCHANGES: dict[Mode, type[LockstepExchange] | type[RealtimeExchange]] = {
     "lockstep": LockstepExchange, "realtime": RealtimeExchange}
 
 
-class ExchangeError(VigilError, ValueError):
+class ExchangeError(UsageError, ValueError):
     """An exchange mode that does not exist."""
 
 

@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from swarm.core.qp import FailedQp, LocalQp, QpSolver
-from swarm.errors import EXIT_OK, UsageError, exit_code
+from swarm.errors import EXIT_OK, EXIT_USAGE, UsageError, exit_code
 
 FORMAT = "vigil-failed-qp/1"
 _ARRAYS = ("cost_hessian", "cost_linear", "rows", "lower", "z_min", "z_max")
@@ -77,7 +77,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if len(args) != 1 or args[0].startswith("-"):
         print("usage: python -m swarm.runs.failed_qp FILE.npz  (a QP an agent saved when it "
               "failed: solve it again)", file=sys.stderr)
-        return 2
+        return EXIT_USAGE
     try:
         failed = load_failed_qp(Path(args[0]))
     except FailedQpFileError as err:
