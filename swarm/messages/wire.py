@@ -369,14 +369,28 @@ class TelemetryCounters(msgspec.Struct, frozen=True, array_like=True,
     localization_status: Label = ""
 
 
-# The counters that are integers >= 0, and those that are floats >= 0 or None.
-_INT_COUNTERS: Final = ("qp_fallbacks", "rejected_messages", "missing_neighbour_messages",
-                        "stale_neighbour_messages", "late_steps", "steps", "swarm_size",
-                        "rate_limit_releases", "reference_resets", "vehicle_events",
-                        "lambda_breaches")
-_OPTIONAL_FLOAT_COUNTERS: Final = ("neighbour_age_ms", "tracking_error_m", "velocity_error_m_s",
-                                   "first_lambda_breach_s")
-_LABEL_COUNTERS: Final = ("mavlink_state", "vehicle_status", "localization_status")
+
+
+def _counters_of(kind: type, *, optional: bool = False) -> tuple[str, ...]:
+    """The counters declared as ``kind`` (a ``msgspec.inspect`` type; ``optional``: as
+    ``kind | None``), in field order: the groups the checks and the fast encoder walk are read
+    from ``TelemetryCounters``' annotations, not listed a second time."""
+    names = []
+    for f in msgspec.inspect.type_info(TelemetryCounters).fields:
+        t, is_optional = f.type, False
+        if isinstance(t, msgspec.inspect.UnionType):
+            members = [m for m in t.types if not isinstance(m, msgspec.inspect.NoneType)]
+            t, is_optional = members[0], len(members) == 1 < len(t.types)
+        if isinstance(t, kind) and is_optional == optional:
+            names.append(f.name)
+    return tuple(names)
+
+
+# The counters that are integers >= 0, floats (checked >= 0) or None, and bounded labels;
+# tests/messages/test_wire.py checks that every counter is in exactly one group.
+_INT_COUNTERS: Final = _counters_of(msgspec.inspect.IntType)
+_OPTIONAL_FLOAT_COUNTERS: Final = _counters_of(msgspec.inspect.FloatType, optional=True)
+_LABEL_COUNTERS: Final = _counters_of(msgspec.inspect.StrType)
 
 
 class TelemetryWire(_Wire, tag="telemetry", kw_only=True):
@@ -572,8 +586,10 @@ _NO_COUNTERS: Final = TelemetryCounters()
 _COUNTER_NAMES: Final = frozenset(TelemetryCounters.__struct_fields__)
 _COUNTER_FIELDS: Final = TelemetryCounters.__struct_fields__
 _COUNTER_DEFAULTS: Final = msgspec.structs.astuple(_NO_COUNTERS)
-TELEMETRY_ARRAYS: Final = ("velocity", "nominal_velocity", "estimates", "lambda_bar", "psi0",
-                           "psi1", "weights", "weight_sum_estimate", "slacks", "weight_slacks")
+# The arrays of a telemetry message, in field order: its F64Array fields.
+TELEMETRY_ARRAYS: Final = tuple(
+    f.name for f in msgspec.inspect.type_info(TelemetryWire).fields
+    if isinstance(f.type, msgspec.inspect.StructType) and f.type.cls is F64Array)
 # WireCodec's encode_* write these messages as plain tuples in this field order.
 assert TelemetryWire.__struct_fields__ == (
     "version", "drone", "step", "time_s", "position_m", *TELEMETRY_ARRAYS, "detected",
@@ -738,7 +754,9 @@ class WireCodec:
             for layout in (_consensus_layout(M, n, False), _consensus_layout(M, n, True)))
         self._consensus_bytes = (8 * _consensus_layout(M, n, False)[-1][3],  # round > 0
                                  8 * _consensus_layout(M, n, True)[-1][3])  # round 0
-        self._telemetry_shapes = ((3,), (3,), (M, n)) + ((M,),) * 7
+        # The shapes of TELEMETRY_ARRAYS: velocity, nominal_velocity, estimates, then the
+        # per-target series.
+        self._telemetry_shapes = ((3,), (3,), (M, n)) + ((M,),) * (len(TELEMETRY_ARRAYS) - 3)
         self._telemetry_arrays = operator.attrgetter(*TELEMETRY_ARRAYS)
         # What the arrays must be for the short way: native float64 = the wire's little-endian.
         self._telemetry_dtypes = (_F64 if _NATIVE_LE else None,) * len(TELEMETRY_ARRAYS)
@@ -1105,12 +1123,8 @@ class WireCodec:
         _check_float("time_s", m.time_s, non_negative=True)
         _check_vector3("position_m", m.position_m)
         arrays = _Arrays()
-        arrays.check("velocity", m.velocity, (3,))
-        arrays.check("nominal_velocity", m.nominal_velocity, (3,))
-        arrays.check("estimates", m.estimates, (M, self.n_state))
-        for name in ("lambda_bar", "psi0", "psi1", "weights", "weight_sum_estimate", "slacks",
-                     "weight_slacks"):
-            arrays.check(name, getattr(m, name), (M,))
+        for name, shape in zip(TELEMETRY_ARRAYS, self._telemetry_shapes, strict=True):
+            arrays.check(name, getattr(m, name), shape)
         arrays.all_finite()
         if not isinstance(m.detected, tuple | list) or len(m.detected) != M:
             _fail(f"detected must hold {M} bools")
