@@ -256,7 +256,7 @@ class AgentProcess:
         try:
             return encode(*args, **kwargs)
         except WireError as err:
-            self.rejections.reject("outgoing", err.reason)
+            self.rejections.reject("outgoing", err.reason, err.rule)
             return None
 
     def _send(self, publisher, encode: Callable[..., bytes], *args, **kwargs) -> None:

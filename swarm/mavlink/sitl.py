@@ -439,6 +439,8 @@ class SitlMonitor:
         self.log = log
         self.on_state = on_state
         self.views = [VehicleView(inst.spec.system_id) for inst in self.instances]
+        # Datagrams pymavlink could not parse, per vehicle (the first is logged).
+        self.malformed = [0] * len(self.instances)
         self._lock = threading.Lock()
         self._links: list[Any] = []
         try:
@@ -470,7 +472,11 @@ class SitlMonitor:
                 for _ in range(1000):
                     try:
                         msg = link.recv_msg()
-                    except Exception:  # a malformed datagram: skip it
+                    except Exception as exc:  # pymavlink's parse errors have no common base
+                        self.malformed[i] += 1
+                        if self.malformed[i] == 1:
+                            self.log(f"monitor link {i}: malformed datagram skipped "
+                                     f"({type(exc).__name__}: {exc})")
                         continue
                     if msg is None:
                         break

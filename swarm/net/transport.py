@@ -370,10 +370,13 @@ class Keys:
 
 
 class RejectionCounter:
-    """Thread-safe counts of dropped payloads per key kind, with the last reason of each.
+    """Thread-safe counts of dropped payloads per key kind, by the rule each broke, with the
+    last reason of each kind.
 
-    ``rejected``: the payload was not a valid wire message (``WireError``). ``unexpected``: the
-    decoder or the value handler raised anything else — a bug, counted instead of crashing.
+    ``rejected``: the payload was not a valid wire message (``WireError``: its ``rule``, e.g.
+    "finite", "range", "shape") or came from a source it may not come from ("source").
+    ``unexpected``: the decoder or the value handler raised anything else — a bug, counted
+    instead of crashing.
     """
 
     def __init__(self) -> None:
@@ -381,21 +384,22 @@ class RejectionCounter:
         self._counts: dict[str, dict[str, Any]] = {}
         self._total = 0
 
-    def _add(self, kind: str, field: str, reason: str) -> None:
+    def _add(self, kind: str, field: str, reason: str, rule: str) -> None:
         reason = " ".join(str(reason).split())[:_MAX_REASON_CHARS]
         with self._cond:
             entry = self._counts.setdefault(
-                kind, {"rejected": 0, "unexpected": 0, "last_reason": ""})
+                kind, {"rejected": 0, "unexpected": 0, "last_reason": "", "rules": {}})
             entry[field] += 1
+            entry["rules"][rule] = entry["rules"].get(rule, 0) + 1
             entry["last_reason"] = reason
             self._total += 1
             self._cond.notify_all()
 
-    def reject(self, kind: str, reason: str) -> None:
-        self._add(kind, "rejected", reason)
+    def reject(self, kind: str, reason: str, rule: str = "source") -> None:
+        self._add(kind, "rejected", reason, rule)
 
     def unexpected(self, kind: str, reason: str) -> None:
-        self._add(kind, "unexpected", reason)
+        self._add(kind, "unexpected", reason, "unexpected")
 
     def total(self) -> int:
         """All payloads dropped so far, every kind and both causes."""
@@ -404,14 +408,19 @@ class RejectionCounter:
 
     def lines(self) -> list[str]:
         """One line per kind that dropped anything, with its last reason (for a log)."""
-        return [f"{kind}: {entry['rejected']} rejected, {entry['unexpected']} unexpected "
-                f"(last: {entry['last_reason']})"
-                for kind, entry in sorted(self.snapshot().items())]
+        lines = []
+        for kind, entry in sorted(self.snapshot().items()):
+            rules = ", ".join(f"{rule} {count}" for rule, count in sorted(entry["rules"].items()))
+            lines.append(f"{kind}: {entry['rejected']} rejected, {entry['unexpected']} "
+                         f"unexpected ({rules}; last: {entry['last_reason']})")
+        return lines
 
     def snapshot(self) -> dict[str, dict[str, Any]]:
-        """``{kind: {"rejected": n, "unexpected": m, "last_reason": str}}`` (a copy)."""
+        """``{kind: {"rejected": n, "unexpected": m, "last_reason": str, "rules": {rule: n}}}``
+        (a copy)."""
         with self._cond:
-            return {kind: dict(entry) for kind, entry in self._counts.items()}
+            return {kind: {**entry, "rules": dict(entry["rules"])}
+                    for kind, entry in self._counts.items()}
 
     def wait_for_total(self, count: int, timeout_s: float) -> bool:
         """Block until at least ``count`` payloads were dropped in all; False at the deadline."""
@@ -658,11 +667,12 @@ def subscribe(
             payload = sample.payload
             if len(payload) > max_payload_bytes:
                 rejections.reject(kind, f"payload of {len(payload)} bytes exceeds the "
-                                        f"{max_payload_bytes}-byte limit on {sample.key_expr}")
+                                        f"{max_payload_bytes}-byte limit on {sample.key_expr}",
+                                  "size")
                 return
             value = decode(payload.to_bytes())
         except WireError as exc:
-            rejections.reject(kind, f"{exc.reason} on {sample.key_expr}")
+            rejections.reject(kind, f"{exc.reason} on {sample.key_expr}", exc.rule)
             return
         except BaseException as exc:  # never into zenoh's thread
             rejections.unexpected(kind, f"decoder raised {type(exc).__name__}: {exc} on "

@@ -69,6 +69,7 @@ def test_messages_on_another_drones_key_are_counted_and_dropped() -> None:
         assert wait_until(lambda: agent.rejections.total() == len(wrong))
         counts = agent.rejections.snapshot()
         assert counts["beacon"]["rejected"] == 2 and counts["consensus"]["rejected"] == 1
+        assert counts["beacon"]["rules"] == {"source": 2}  # valid messages on the wrong key
         beacons = agent.exchange.beacon_latest
         assert beacons.get(0) is None and beacons.get(2) is None
         assert set(agent.exchange.consensus_latest.ages()) == {(1, 1)}

@@ -318,12 +318,13 @@ def test_a_flood_of_bad_input_changes_nothing_and_every_rejection_is_counted(
     assert done[0].rejected_inputs == n * plan.vehicle_expected_each
     # and the launcher (a subscriber of world/clock too) in its own counter.
     assert launcher.rejections.snapshot()["clock"]["rejected"] == PER_KEY
-    # Each agent's log says, per kind, how many and the last reason with its key.
+    # Each agent's log says, per kind, how many, by rule, and the last reason with its key.
     for i in range(n):
         log = (tmp_path / f"agent{i}.log").read_text()
         camera = re.escape(launcher.keys.camera(i))
         assert re.search(rf"drone {i}: rejected camera: [1-9][0-9]* rejected, 0 unexpected "
-                         rf"\(last: .+ on {camera}\)", log), log[-2000:]
+                         rf"\((?:[a-z]+ [0-9]+, )*[a-z]+ [0-9]+; last: .+ on {camera}\)", log), \
+            log[-2000:]
     print(f"\n[fuzz] {zenoh_sent} Zenoh payloads on {len(plan.zenoh)} keys, "
           f"{sum(flood.sent.values())} datagrams at {len(udp_plan)} UDP endpoints in "
           f"{flood_s:.1f} s; counted: agents {got}, world {done[0].rejected_inputs} "
@@ -412,6 +413,7 @@ def _zenoh_boundaries(config: Any, bad: float) -> None:
         counts = rejections.snapshot()[kind]
         assert (counts["rejected"], counts["unexpected"]) == (len(poisoned), 0), counts
         assert "finite" in counts["last_reason"], counts["last_reason"]
+        assert counts["rules"] == {"finite": len(poisoned)}, counts  # counted by the rule broken
         assert len(delivered[kind]) == 1  # only the valid one got through
 
 

@@ -15,7 +15,6 @@ from hypothesis import strategies as st
 
 from swarm.core.agent import ConsensusMessage
 from swarm.messages.wire import (
-    MAX_LABEL_CHARS,
     WIRE_VERSION,
     BeaconWire,
     CameraFrameWire,
@@ -467,19 +466,3 @@ def test_one_codec_shared_by_threads() -> None:
     for t in threads:
         t.join()
     assert errors == []
-
-
-def test_every_telemetry_counter_is_in_exactly_one_checked_group() -> None:
-    """The counter groups the checks walk are read from ``TelemetryCounters``' annotations
-    (wire._counters_of): each counter is in one group, so a counter of a new kind cannot go
-    unchecked; the integers are declared ≥ 0 and the labels bounded."""
-    from swarm.messages import wire
-
-    groups = (wire._INT_COUNTERS, wire._OPTIONAL_FLOAT_COUNTERS, wire._LABEL_COUNTERS)
-    names = [name for group in groups for name in group]
-    assert sorted(names) == sorted(TelemetryCounters.__struct_fields__)
-    assert len(names) == len(set(names))
-    types = {f.name: f.type for f in msgspec.inspect.type_info(TelemetryCounters).fields}
-    assert all(types[name].ge == 0 for name in wire._INT_COUNTERS)
-    assert all(types[name].max_length == MAX_LABEL_CHARS for name in wire._LABEL_COUNTERS)
-    assert "neighbour_age_ms" in wire._OPTIONAL_FLOAT_COUNTERS

@@ -273,11 +273,17 @@ def test_rejection_counter_is_thread_safe() -> None:
     for t in threads:
         t.join()
     counter.unexpected("beacon", "KeyError: x")
+    counter.reject("beacon", "time_s is not finite (nan)", "finite")
     snap = counter.snapshot()
-    assert snap == {"beacon": {"rejected": 4000, "unexpected": 1, "last_reason": "KeyError: x"}}
-    assert counter.lines() == ["beacon: 4000 rejected, 1 unexpected (last: KeyError: x)"]
-    assert counter.total() == 4001 and counter.wait_for_total(4001, timeout_s=0.0)
-    assert not counter.wait_for_total(4002, timeout_s=0.01)
+    assert snap == {"beacon": {"rejected": 4001, "unexpected": 1,
+                               "last_reason": "time_s is not finite (nan)",
+                               "rules": {"source": 4000, "unexpected": 1, "finite": 1}}}
+    assert counter.lines() == ["beacon: 4001 rejected, 1 unexpected (finite 1, source 4000, "
+                               "unexpected 1; last: time_s is not finite (nan))"]
+    assert counter.total() == 4002 and counter.wait_for_total(4002, timeout_s=0.0)
+    assert not counter.wait_for_total(4003, timeout_s=0.01)
+    snap["beacon"]["rules"]["finite"] = 7  # a copy
+    assert counter.snapshot()["beacon"]["rules"]["finite"] == 1
 
 
 # -- sockets of a process ------------------------------------------------------------------------
