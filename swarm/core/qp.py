@@ -5,6 +5,9 @@ Cost ``‖u − u_d‖² + Σ_r K_δ max(w_r, w_floor)(δ_r² + δw_r²)``, writ
 ``½ zᵀPz + qᵀz``. Rows ``a·z ≥ lower``. The number of rows is fixed per drone (M localization,
 M weight-sum and N − 1 collision rows) so one PIQP solver is set up once and updated each
 step; a collision row for a drone out of range is the always-true ``0 ≥ −1``.
+
+PIQP (an interior-point method) is run to a duality gap of 1e-14; where a slack's force makes
+its answer inexact, ``polish_active_set`` solves the KKT system of the active constraints.
 """
 
 from __future__ import annotations
