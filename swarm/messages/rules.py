@@ -26,6 +26,7 @@ here states a rule a second time.
 
 from __future__ import annotations
 
+import functools
 import math
 import operator
 import re
@@ -128,9 +129,18 @@ def _unwrap(t: Any) -> tuple[Any, dict[str, Any], bool]:
     return t, extra, optional
 
 
-def declared_fields(cls: type) -> list[tuple[str, Any, dict[str, Any], bool]]:
+@functools.cache
+def _type_info(cls: type) -> Any:
+    """``msgspec.inspect.type_info(cls)``, once per class: it evaluates every annotation
+    (~0.3 ms for a beacon, 1.4 ms for telemetry), and a flood of refused payloads asks for
+    it once each."""
+    return msgspec.inspect.type_info(cls)
+
+
+@functools.cache
+def declared_fields(cls: type) -> tuple[tuple[str, Any, dict[str, Any], bool], ...]:
     """(name, msgspec.inspect type, swarm markers, optional) of each field of ``cls``."""
-    return [(f.name, *_unwrap(f.type)) for f in msgspec.inspect.type_info(cls).fields]
+    return tuple((f.name, *_unwrap(f.type)) for f in _type_info(cls).fields)
 
 
 # -- the swarm's rules, compiled ---------------------------------------------------------------
@@ -364,7 +374,7 @@ def _walk(cls: type, indices: list[int], value: Any, *, tagged: bool
     """The dotted name and declared type of the element at ``indices`` of an array-like
     struct (``tagged``: element 0 is its tag), and whether ``value`` has it."""
     name = ""
-    t: Any = msgspec.inspect.type_info(cls)
+    t: Any = _type_info(cls)
     found = True
     cursor = value
     for depth, k in enumerate(indices):
