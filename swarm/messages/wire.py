@@ -357,19 +357,11 @@ class TelemetryCounters(msgspec.Struct, frozen=True, array_like=True,
 
 
 
-def _optional_floats(cls: type) -> tuple[str, ...]:
-    """The fields of ``cls`` declared ``float | None`` (None: not measured), in field order."""
-    names = []
-    for f in msgspec.inspect.type_info(cls).fields:
-        t = f.type
-        if isinstance(t, msgspec.inspect.UnionType) and any(
-                isinstance(m, msgspec.inspect.FloatType) for m in t.types):
-            names.append(f.name)
-    return tuple(names)
-
-
-# The counters a caller may give as NaN for "not measured": sent as None.
-_OPTIONAL_FLOAT_COUNTERS: Final = _optional_floats(TelemetryCounters)
+# The counters a caller may give as NaN for "not measured": sent as None (the fields declared
+# ``float | None``, read from the declarations like every rule).
+_OPTIONAL_FLOAT_COUNTERS: Final = tuple(
+    name for name, t, _, optional in declared_fields(TelemetryCounters)
+    if optional and isinstance(t, msgspec.inspect.FloatType))
 
 
 class TelemetryWire(_Wire, tag="telemetry", kw_only=True):
