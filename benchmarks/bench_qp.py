@@ -1,4 +1,4 @@
-"""The local QP of a real step solved by our PIQP path and by CVXPY (issue 5).
+"""The local QP of a real step solved by our DAQP path and by CVXPY (issue 5).
 
     python benchmarks/bench_qp.py [--profile quick] [--out FILE]
     (or as the ``qp`` section of ``python benchmarks/run_all.py``)
@@ -10,13 +10,13 @@ those with an active constraint (a positive slack, or a row within 1e-6 of its b
 there are enough, and solves every one of them by
 
 - ours: ``LocalQpWorkspace.solve`` (one workspace, set up on the first QP and updated
-  afterwards, as in an agent: rows written, PIQP update + solve, feasibility check);
+  afterwards, as in an agent: rows written, DAQP update + solve, feasibility check);
 - CVXPY rebuilt: ``cp.Variable``s, constraints and ``cp.Problem(...).solve()`` from scratch at
   every call, as the thesis did (``cvxpy_qp.solve_rebuilt``);
 - CVXPY parametrized: one problem with ``cp.Parameter``s, new values and ``solve()`` per QP
   (``cvxpy_qp.ParametrizedQp``; its first solve, which compiles, is not timed),
 
-with PIQP underneath (dense, our tolerances) and also CLARABEL and OSQP. Each pass solves
+with PIQP underneath (dense, tight tolerances) and also CLARABEL and OSQP. Each pass solves
 every QP once by every method, interleaved in chunks of 10 QPs (so that the machine's load
 falls on all methods alike); the table shows the median over the passes of each pass's
 median and p99, the ratio to ours (by wall and by thread CPU time, which leaves out waiting
@@ -66,7 +66,7 @@ CHUNK = 10  # QPs a method solves in a row before the next method's turn
 @dataclasses.dataclass(frozen=True)
 class CapturedQp:
     data: QpData
-    z: np.ndarray  # what the agent's PIQP path returned in the run
+    z: np.ndarray  # what the agent's QP path returned in the run
     time_s: float  # sim time of the capture [s] (from the call order)
 
     @property
@@ -157,7 +157,7 @@ def parametrized(qps: list[CapturedQp], solver: str) -> Callable[[QpData], np.nd
 
 
 def methods(qps: list[CapturedQp]) -> dict[str, Callable[[QpData], np.ndarray]]:
-    found: dict[str, Callable[[QpData], np.ndarray]] = {"ours (LocalQpWorkspace, PIQP)": ours(qps)}
+    found: dict[str, Callable[[QpData], np.ndarray]] = {"ours (LocalQpWorkspace, DAQP)": ours(qps)}
     installed = set(cp.installed_solvers())
     for solver in SOLVERS:
         if solver not in installed:
@@ -243,7 +243,7 @@ def whole_step_ratio(results: list[dict[str, Any]],
     if step_result is None:
         return None
     ours_step = next((r for r in step_result["results"]
-                      if r["m_targets"] == 2 and r["qp"] == "piqp"), None)
+                      if r["m_targets"] == 2 and r["qp"] == "ours"), None)
     rebuilt = next((r for r in results if r["method"] == "CVXPY rebuilt, PIQP"), None)
     if ours_step is None or rebuilt is None or rebuilt["median_us"]["median"] is None:
         return None

@@ -17,7 +17,7 @@ Per sample, wall clock (``time.perf_counter``):
 - core: the agent's own ``step_us`` (``begin_step`` + K × ``consensus_round`` +
   ``finish_step``, no waiting for neighbours), split by ``DroneAgent.section_us`` into
   estimation (ICF local steps), consensus (the K rounds and the PI-consensus/Gramian update),
-  barrier (perception weights, HOCBF terms, constraint rows), qp (solver matrices, PIQP update
+  barrier (perception weights, HOCBF terms, constraint rows), qp (solver matrices, DAQP update
   and solve, feasibility check) and other;
 - encode: what ``swarm.agent.process`` encodes for that step with ``swarm.messages.wire.WireCodec``:
   the consensus message of every round, the beacon and the telemetry (``encode_consensus``,
@@ -84,7 +84,8 @@ class Scenario:
     label: str
     m_targets: int
     config: ScenarioConfig
-    qp: str = "piqp"  # "piqp" (ours) or "cvxpy" (rebuilt every step, from qp_switch_s on)
+    # "ours" (the agent's DAQP workspace) or "cvxpy" (rebuilt every step, from qp_switch_s on)
+    qp: str = "ours"
     qp_switch_s: float = 0.0  # cvxpy: our path until here, samples only after
 
 
@@ -264,7 +265,7 @@ def run_once(scenario: Scenario) -> dict[str, Any]:
     trajectory is ours).
     """
     samples: dict[str, list[float]] = {
-        name: [] for name in ("core", "total", "cpu", "core_cpu", "piqp", *SECTIONS,
+        name: [] for name in ("core", "total", "cpu", "core_cpu", "qp_solve", *SECTIONS,
                               *WIRE_KINDS)}
     paired: dict[str, list[float]] = {"core": [], "total": [], "cpu": []}
     config = scenario.config
@@ -274,7 +275,7 @@ def run_once(scenario: Scenario) -> dict[str, Any]:
         warm_up_cvxpy()
 
     def backend(k: int) -> str:
-        return "piqp" if switch is None or k < switch or (k - switch) % 2 else "cvxpy"
+        return "ours" if switch is None or k < switch or (k - switch) % 2 else "cvxpy"
 
     progress(f"step: {scenario.label}, {config.scenario.duration_s:g} s simulated")
     with probed_agents(config) as probes:
@@ -292,7 +293,7 @@ def run_once(scenario: Scenario) -> dict[str, Any]:
                 encode_us, decode_us = probe.encode_s * 1e6, probe.decode_s * 1e6
                 total_us = diag.step_us + encode_us + decode_us
                 cpu_us = (probe.core_cpu_s + probe.wire_cpu_s) * 1e6
-                if switch is not None and backend(k) == "piqp":
+                if switch is not None and backend(k) == "ours":
                     paired["core"].append(diag.step_us)
                     paired["total"].append(total_us)
                     paired["cpu"].append(cpu_us)
@@ -301,7 +302,7 @@ def run_once(scenario: Scenario) -> dict[str, Any]:
                 samples["total"].append(total_us)
                 samples["core_cpu"].append(probe.core_cpu_s * 1e6)
                 samples["cpu"].append(cpu_us)
-                samples["piqp"].append(diag.qp_solve_us)
+                samples["qp_solve"].append(diag.qp_solve_us)
                 samples["encode"].append(encode_us)
                 samples["decode"].append(decode_us)
                 for kind, seconds in probe.wire_s.items():
@@ -373,14 +374,14 @@ def cvxpy_ratio(results: list[dict[str, Any]]) -> dict[str, Any] | None:
 
 def tables(result: dict[str, Any]) -> list[Table]:
     columns = ["scenario", "M", "total med", "total p99", "core med", "core p99", "cpu med",
-               *SECTIONS, "PIQP", "samples"]
+               *SECTIONS, "QP solve", "samples"]
     table = new_table(
         "Per-drone step [µs] (6 drones in process; wire encode/decode as the process swarm)",
         columns,
         caption=("total = core + encode + decode (everything included); medians over "
                  f"{result['repeats']} repeats of each run's median/p99, (min–max) over the "
-                 "repeats;\nsections: median of each; PIQP: update + solve; cpu: thread CPU "
-                 "of core + wire"))
+                 "repeats;\nsections: median of each; QP solve: DAQP update + solve; cpu: "
+                 "thread CPU of core + wire"))
     for res in result["results"]:
         s = res["summary"]
         table.add_row(
@@ -388,7 +389,7 @@ def tables(result: dict[str, Any]) -> list[Table]:
             fmt_spread(s["total"]["p99"]), fmt(s["core"]["median"]["median"]),
             fmt(s["core"]["p99"]["median"]), fmt(s["cpu"]["median"]["median"]),
             *(fmt(s[name]["median"]["median"]) for name in SECTIONS),
-            fmt(s["piqp"]["median"]["median"]), str(res["runs"][0]["samples"]))
+            fmt(s["qp_solve"]["median"]["median"]), str(res["runs"][0]["samples"]))
     wire = new_table(
         "Wire work of one drone step [µs], by message (medians; M = number of targets)",
         ["scenario", "M", *WIRE_KINDS],

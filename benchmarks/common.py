@@ -165,7 +165,7 @@ def git_commit() -> str:
 def versions() -> dict[str, str]:
     """Versions of the interpreter and of the libraries on the measured paths."""
     found = {"python": platform.python_version()}
-    for name in ("numpy", "scipy", "piqp", "msgspec", "zenoh", "pymavlink", "cvxpy",
+    for name in ("numpy", "scipy", "daqp", "piqp", "msgspec", "zenoh", "pymavlink", "cvxpy",
                  "clarabel", "osqp"):
         try:
             module = __import__(name)

@@ -8,7 +8,7 @@ weight-sum, N − 1 collision slots), their lower bounds and the weights w_r. Th
     s.t. L_gψ1,r u + δ_r ≥ b_r,  ∂w_r/∂p u + δw_r ≥ c_r,  2(p − p_j)ᵀu ≥ −α h_j/2 (drones in
          range),  −u_max ≤ u ≤ u_max,  δ ≥ 0,  δw ≥ 0,
 
-the same minimizer as the PIQP form ½zᵀPz + qᵀz (it differs by the constant ‖u_d‖²).
+the same minimizer as the solver form ½zᵀPz + qᵀz (it differs by the constant ‖u_d‖²).
 
 - ``solve_rebuilt``: everything built from scratch at every call (``cp.Variable``, the
   constraints, ``cp.Problem(...).solve()``), as the thesis' simulations did.
@@ -30,8 +30,8 @@ from swarm.core.qp import INACTIVE_ROW_LOWER, QpSolution
 
 Array = NDArray[np.float64]
 
-# Solver settings as close to our PIQP path as each solver allows (swarm.core.qp: PIQP
-# eps_abs 1e-9, eps_rel 1e-10, 200 iterations, dense backend).
+# Tight settings for each solver (PIQP as the agents ran it before DAQP replaced it: eps_abs
+# 1e-9, eps_rel 1e-10, 200 iterations, dense backend).
 SOLVER_OPTIONS: dict[str, dict[str, object]] = {
     "PIQP": {"backend": "dense", "eps_abs": 1e-9, "eps_rel": 1e-10, "max_iter": 200},
     "CLARABEL": {"tol_gap_abs": 1e-9, "tol_gap_rel": 1e-10, "tol_feas": 1e-9},

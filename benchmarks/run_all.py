@@ -92,7 +92,7 @@ def targets(done: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
     step, startup = done.get("step"), done.get("startup")
     step_m2 = cvxpy_ratio = cpu_ratio = None
     if step is not None:
-        ours = next((r for r in step["results"] if r["m_targets"] == 2 and r["qp"] == "piqp"),
+        ours = next((r for r in step["results"] if r["m_targets"] == 2 and r["qp"] == "ours"),
                     None)
         step_m2 = None if ours is None else ours["summary"]["total"]["median"]["median"]
         ratio = step.get("cvxpy_step_ratio")

@@ -52,7 +52,7 @@ def test_every_section_runs_and_writes_its_fields(tmp_path: Path) -> None:
         assert "load_before" in summary["sections"][section]
 
     step = load("step")
-    ours = next(r for r in step["results"] if r["qp"] == "piqp")
+    ours = next(r for r in step["results"] if r["qp"] == "ours")
     for name in ("total", "core", "estimation", "consensus", "barrier", "qp", "encode",
                  "decode"):
         assert ours["summary"][name]["median"]["median"] > 0, name

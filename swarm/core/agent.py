@@ -557,7 +557,7 @@ class DroneAgent:
     def section_us(self) -> dict[str, float]:
         """Compute time of the last step by section [µs] (estimation: ICF local steps;
         consensus: rounds and the consensus/Gramian update; barrier: perception, barrier and
-        constraint rows; qp: solver matrices, PIQP update and solve, feasibility check;
+        constraint rows; qp: solver matrices, DAQP update and solve, feasibility check;
         other: the rest), for benchmarks/bench_step.py."""
         return {name: 1e6 * t for name, t in zip(SECTIONS, self._clock.seconds, strict=True)}
 
@@ -759,7 +759,7 @@ class DroneAgent:
 
     def _keep_failure(self, attempt: str, workspace: LocalQpWorkspace,
                       solution: QpSolution) -> None:
-        """Keep a QP that was not solved, as PIQP had it, in ``qp_failures``."""
+        """Keep a QP that was not solved, as the solver had it, in ``qp_failures``."""
         self.qp_failures.append(FailedQp(
             self.setup.drone_id, self._step, attempt, workspace.current_qp(), solution.status,
             solution.iterations, solution.max_violation))

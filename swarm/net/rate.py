@@ -11,7 +11,7 @@ from collections.abc import Callable
 def freeze_heap() -> None:
     """Collect once, then move every surviving object out of the collector's reach.
 
-    After the imports and the setup (numpy, zenoh, pymavlink, PIQP) a process holds hundreds
+    After the imports and the setup (numpy, zenoh, pymavlink, DAQP) a process holds hundreds
     of thousands of long-lived objects; a full collection walking them can stall a 20 ms loop.
     Frozen, they are never scanned again and the loop's collections see only new objects.
     """

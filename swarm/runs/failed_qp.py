@@ -2,8 +2,9 @@
 and solve it again, away from the swarm.
 
 ``save_failed_qp(failed, path)`` writes one ``FailedQp`` (``swarm.core.qp``) as an ``.npz``:
-the QP's arrays (P, q, A, lower, z_min, z_max) and what PIQP answered. ``load_failed_qp(path)``
-reads it back; a file that is not one says so in one line (``FailedQpFileError``).
+the QP's arrays (P, q, A, lower, z_min, z_max) and what the solver answered.
+``load_failed_qp(path)`` reads it back; a file that is not one says so in one line
+(``FailedQpFileError``).
 
     python -m swarm.runs.failed_qp LOGS/qp-drone2-step41-hard.npz
 

@@ -140,7 +140,7 @@ def test_hard_qp_infeasibility_falls_back_to_relaxed_and_is_counted() -> None:
     assert agent.qp_fallbacks > 0
     assert result.diagnostics.qp_fallback
     assert np.all(np.abs(result.velocity) <= 3.0)
-    # The step keeps the failed QP as PIQP had it: solved again, it fails the same way.
+    # The step keeps the failed QP as the solver had it: solved again, it fails the same way.
     [failed] = agent.qp_failures
     assert (failed.drone_id, failed.step, failed.attempt) == (0, 149, "hard")
     assert failed.qp.n_variables == 3 and not QpSolver().solve(failed.qp).found

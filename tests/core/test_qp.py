@@ -1,6 +1,6 @@
-"""The local QP: its assembly and its PIQP solution (SPEC §9, thesis 3.36-3.37).
+"""The local QP: its assembly and its DAQP solution (SPEC §9, thesis 3.36-3.37).
 
-The reference optimum is computed by brute force, independently of PIQP: the velocity u has
+The reference optimum is computed by brute force, independently of the solver: the velocity u has
 only 3 components, so the optimum is the minimiser of an equality-constrained problem for
 some set of at most 3 active hard constraints (collision rows and box), and in the relaxed QP
 the optimal slacks are δ_r = max(0, l_r − a_r·u), so it is enough to also enumerate which
@@ -13,8 +13,8 @@ from __future__ import annotations
 import itertools
 from dataclasses import dataclass, field
 
+import daqp
 import numpy as np
-import piqp
 import pytest
 
 from swarm.core import qp as qp_module
@@ -185,13 +185,11 @@ def test_assembly_matches_the_spec_objective_and_rows() -> None:
                                        all_u_rows @ z[:3] - all_lower, rtol=1e-12, atol=1e-12)
 
 
-# Tolerances of the comparison with the brute-force optimum. PIQP stops at residuals
-# eps_abs 1e-9 / eps_rel 1e-10 and a duality gap 1e-9 relative to the objective, which
-# reaches ~1e7 when slacks of weight K_δ = 1e6 are active; the KKT system is conditioned by
-# K_δ/1, so PIQP's u alone was up to ~1e-3 m/s off when slacks were large (issue 16).
-# ``polish_active_set`` then solves the KKT system of the active constraints: u is exact up
-# to round-off, and compared to 1e-6 m/s (the issue's bound; observed ≤ 2e-7 with slack
-# forces up to 1e9, ≤ 5e-12 on Case 2's QPs).
+# Tolerances of the comparison with the brute-force optimum. DAQP, an active-set method, ends
+# on the optimum's active set and solves its equations: u is exact up to round-off (observed
+# ≤ 6.4e-9 m/s against the brute force with slack forces up to 1e9). Compared to 1e-6 m/s,
+# issue 16's bound; PIQP, the interior-point solver used before, was up to 9e-3 m/s off when
+# slacks were large.
 OBJECTIVE_RTOL = 1e-6
 OBJECTIVE_ATOL = 1e-7
 VELOCITY_ATOL = 1e-6
@@ -199,7 +197,7 @@ VELOCITY_ATOL = 1e-6
 
 @pytest.mark.parametrize("relaxed", [True, False], ids=["relaxed", "hard"])
 @pytest.mark.parametrize("m_targets", [1, 2, 3])
-def test_piqp_solution_is_feasible_and_optimal(m_targets: int, relaxed: bool) -> None:
+def test_solution_is_feasible_and_optimal(m_targets: int, relaxed: bool) -> None:
     """Random instances: found, every row and bound within 1e-6, optimum = brute force."""
     rng = np.random.default_rng(10 * m_targets + relaxed)
     solver = QpSolver()
@@ -208,7 +206,7 @@ def test_piqp_solution_is_feasible_and_optimal(m_targets: int, relaxed: bool) ->
         local_qp = instance.build(relaxed=relaxed)
         solution = solver.solve(local_qp)
         assert solution.found, solution.status
-        assert solution.status == "PIQP_SOLVED"
+        assert solution.status == qp_module.SOLVED
         assert solution.max_violation <= 1e-6
         assert local_qp.max_violation(solution.z) == solution.max_violation
         reference = brute_force_optimum(instance, relaxed=relaxed)
@@ -254,7 +252,7 @@ def test_infeasible_hard_instance_is_not_found() -> None:
     instance.localization_lower = np.array([1.0, 1.0])
     hard = QpSolver().solve(instance.build(relaxed=False))
     assert not hard.found
-    assert hard.status != "PIQP_SOLVED"
+    assert hard.status != qp_module.SOLVED
     relaxed = QpSolver().solve(instance.build(relaxed=True))
     assert relaxed.found
 
@@ -268,16 +266,16 @@ def test_box_bound_beyond_u_max_is_infeasible_when_hard() -> None:
 
 
 def test_solver_is_set_up_once_per_shape_and_updated(monkeypatch: pytest.MonkeyPatch) -> None:
-    """One PIQP DenseSolver per QP shape: new data with the same shape reuses it (and gives the
-    right answer each time); a new shape creates one new solver."""
-    created: list[piqp.DenseSolver] = []
-    original = piqp.DenseSolver
+    """One DAQP workspace per QP shape: new data with the same shape reuses it (and gives the
+    right answer each time); a new shape creates one new workspace."""
+    created: list[daqp.Model] = []
+    original = daqp.Model
 
-    def counting_factory() -> piqp.DenseSolver:
+    def counting_factory() -> daqp.Model:
         created.append(original())
         return created[-1]
 
-    monkeypatch.setattr(qp_module.piqp, "DenseSolver", counting_factory)
+    monkeypatch.setattr(qp_module.daqp, "Model", counting_factory)
     rng = np.random.default_rng(6)
     solver = QpSolver()
     for _ in range(5):
@@ -374,8 +372,8 @@ def test_workspace_sequence_matches_the_brute_force_optimum(m_targets: int,
             np.testing.assert_array_equal(solution.velocity, instance.nominal)
             np.testing.assert_array_equal(solution.z[3:], 0.0)
         else:
-            assert solution.status == "PIQP_SOLVED"
-    assert qp_module.NOMINAL_FEASIBLE in statuses and "PIQP_SOLVED" in statuses
+            assert solution.status == qp_module.SOLVED
+    assert qp_module.NOMINAL_FEASIBLE in statuses and qp_module.SOLVED in statuses
 
 
 @pytest.mark.parametrize("relaxed", [True, False], ids=["relaxed", "hard"])
@@ -394,7 +392,7 @@ def test_the_workspace_holds_the_qp_build_local_qp_builds(m_targets: int, relaxe
         solution = workspace.solve(*_workspace_inputs(instance))
         if solution.status == qp_module.NOMINAL_FEASIBLE:  # PIQP not called: nothing written
             continue
-        assert solution.status == "PIQP_SOLVED"
+        assert solution.status == qp_module.SOLVED
         compared += 1
         held, built = workspace.current_qp(), instance.build(relaxed=relaxed)
         for name in ("cost_hessian", "cost_linear", "rows", "lower", "z_min", "z_max"):
@@ -481,25 +479,14 @@ def large_slack_instance(rng: np.random.Generator, slack: float, family: str) ->
 
 @pytest.mark.parametrize("family", ["same", "big", "tiny"])
 @pytest.mark.parametrize("slack", [1.0, 12.5, 50.0, 200.0])
-def test_large_slacks_keep_u_at_the_exact_optimum(slack: float, family: str,
-                                                  monkeypatch: pytest.MonkeyPatch) -> None:
+def test_large_slacks_keep_u_at_the_exact_optimum(slack: float, family: str) -> None:
     """Both paths (``QpSolver`` and the agent's workspace) give u within 1e-6 of the brute-force
-    optimum and the least slacks, however large the slacks: PIQP alone was up to 4e-5 m/s off
-    at δ ≈ 12.5 and 9e-3 m/s at δ ≈ 200 (family ``big``). Polished exactly when a slack's force
-    exceeds ``POLISH_FORCE``."""
-    polished = []
-    original = qp_module.polish_active_set
-
-    def counting(*args):
-        polished.append(1)
-        return original(*args)
-
-    monkeypatch.setattr(qp_module, "polish_active_set", counting)
+    optimum and the least slacks, however large the slacks: PIQP, the interior-point solver
+    used before, was up to 4e-5 m/s off at δ ≈ 12.5 and 9e-3 m/s at δ ≈ 200 (family ``big``)."""
     rng = np.random.default_rng(int(slack * 10) + len(family))
     workspace = qp_module.LocalQpWorkspace(2, N_DRONES - 1, relaxed=True,
                                            slack_weight=SLACK_WEIGHT,
                                            weight_floor=WEIGHT_FLOOR, u_max=U_MAX)
-    forces = []
     for _ in range(6):
         instance = large_slack_instance(rng, slack, family)
         reference = brute_force_optimum(instance, relaxed=True)
@@ -508,16 +495,15 @@ def test_large_slacks_keep_u_at_the_exact_optimum(slack: float, family: str,
         soft_a, soft_l, penalty = instance.soft_rows
         for solution in (QpSolver().solve(instance.build(relaxed=True)),
                          workspace.solve(*_workspace_inputs(instance))):
-            assert solution.found and solution.status == "PIQP_SOLVED"
+            assert solution.found and solution.status == qp_module.SOLVED
             np.testing.assert_allclose(solution.velocity, u_star, rtol=0, atol=VELOCITY_ATOL)
             needed = np.maximum(0.0, soft_l - soft_a @ solution.velocity)
             assert needed[:2].min() > 0.5 * slack  # the slacks are as large as meant
-            # The least slacks (PIQP alone left unneeded ones at 1e-5-1e-3), to the round-off
-            # of the largest force F in the KKT solve: 1e-14·F (measured ≤ 1.1e-15·F).
-            forces.append(float(np.max(2.0 * penalty * solution.z[3:])))
+            # The least slacks, to the round-off of the largest force F = 2 K_δ w δ of the
+            # active set's equations: 1e-14·F.
+            force = float(np.max(2.0 * penalty * solution.z[3:]))
             np.testing.assert_allclose(solution.z[3:], needed, rtol=1e-9,
-                                       atol=max(1e-9, 1e-14 * forces[-1]))
-    assert len(polished) == sum(f > qp_module.POLISH_FORCE for f in forces)
+                                       atol=max(1e-9, 1e-14 * force))
 
 
 def instance_of(qp: LocalQp, m_targets: int) -> Instance:
@@ -533,9 +519,8 @@ def instance_of(qp: LocalQp, m_targets: int) -> Instance:
 
 
 def test_the_qps_of_a_case2_run_are_solved_exactly(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Every QP the agents of 16 s of Case 2 handed to PIQP (in process, seed 0), as the
-    workspace held it: the velocity they flew is within 1e-6 of the brute-force optimum
-    (PIQP alone: slack forces stay far below ``POLISH_FORCE``, so no polish is called)."""
+    """Every QP the agents of 16 s of Case 2 handed to the solver (in process, seed 0), as the
+    workspace held it: the velocity they flew is within 1e-6 of the brute-force optimum."""
     from pathlib import Path
 
     from swarm.runs.reference import run_reference
@@ -550,12 +535,11 @@ def test_the_qps_of_a_case2_run_are_solved_exactly(monkeypatch: pytest.MonkeyPat
 
     def solve(self, *args, **kwargs):
         solution = original(self, *args, **kwargs)
-        if solution.status == "PIQP_SOLVED":
+        if solution.status == qp_module.SOLVED:
             captured.append((self.current_qp(), solution.z.copy()))
         return solution
 
     monkeypatch.setattr(qp_module.LocalQpWorkspace, "solve", solve)
-    monkeypatch.setattr(qp_module, "polish_active_set", None)  # Case 2 never needs it
     run_reference(config, seed=0)
     assert len(captured) >= 100, len(captured)
     picks = np.unique(np.linspace(0, len(captured) - 1, 80).round().astype(int))
@@ -567,45 +551,3 @@ def test_the_qps_of_a_case2_run_are_solved_exactly(monkeypatch: pytest.MonkeyPat
         assert reference is not None
         worst = max(worst, float(np.abs(z[:3] - reference[0]).max()))
     assert worst <= VELOCITY_ATOL, worst
-
-
-def test_polish_finds_the_optimum_from_a_nearby_point() -> None:
-    """From PIQP's point moved by up to 1e-4 (active set still recognisable) and from a point
-    with a wrong guess (an inactive row taken as active), the KKT solve of the active set
-    gives the brute-force optimum."""
-    rng = np.random.default_rng(21)
-    for _ in range(10):
-        instance = random_instance(rng, 2, hard_feasible=False)
-        qp = instance.build(relaxed=True)
-        reference = brute_force_optimum(instance, relaxed=True)
-        assert reference is not None
-        exact = qp_module.polish_active_set(qp.cost_hessian, qp.cost_linear, qp.rows,
-                                            qp.lower, qp.z_min, qp.z_max,
-                                            QpSolver().solve(qp).z)
-        assert exact is not None
-        np.testing.assert_allclose(exact[:3], reference[0], rtol=0, atol=1e-9)
-        nudged = exact + rng.uniform(-1e-7, 1e-7, exact.shape)
-        again = qp_module.polish_active_set(qp.cost_hessian, qp.cost_linear, qp.rows,
-                                            qp.lower, qp.z_min, qp.z_max, nudged)
-        assert again is not None
-        np.testing.assert_allclose(again, exact, rtol=0, atol=1e-9)
-    # A one-variable QP min (z − 2)² s.t. z ≥ 0, z ≤ 5, row z ≥ 1: the optimum z = 2 has no
-    # active constraint; starting at z = 1 (row taken as active) the negative multiplier
-    # drops it.
-    start = qp_module.polish_active_set(
-        np.array([[2.0]]), np.array([-4.0]), np.array([[1.0]]), np.array([1.0]),
-        np.array([0.0]), np.array([5.0]), np.array([1.0]))
-    assert start is not None and start[0] == pytest.approx(2.0, abs=1e-12)
-    # Starting at z = 4 with the optimum at the row's bound z ≥ 3: the violated row is added.
-    start = qp_module.polish_active_set(
-        np.array([[2.0]]), np.array([-4.0]), np.array([[1.0]]), np.array([3.0]),
-        np.array([0.0]), np.array([5.0]), np.array([2.5]))
-    assert start is not None and start[0] == pytest.approx(3.0, abs=1e-12)
-
-
-def test_polish_gives_up_on_dependent_active_rows() -> None:
-    """Two copies of one active row make the KKT matrix singular: None (PIQP's z is kept)."""
-    rows = np.array([[1.0], [1.0]])
-    assert qp_module.polish_active_set(
-        np.array([[2.0]]), np.array([-4.0]), rows, np.array([3.0, 3.0]), np.array([0.0]),
-        np.array([5.0]), np.array([3.0])) is None

@@ -8,7 +8,7 @@ from swarm.core.qp import FailedQp, QpSolver, build_local_qp
 
 
 def infeasible_hard_qp(drone_id: int = 2, step: int = 41) -> FailedQp:
-    """Rows u_x ≥ 1 and −u_x ≥ 1: no u meets both; as PIQP answers it."""
+    """Rows u_x ≥ 1 and −u_x ≥ 1: no u meets both; as the solver answers it."""
     qp = build_local_qp(np.zeros(3), np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]]),
                         np.array([1.0, 1.0]), np.zeros((2, 3)), np.full(2, -1.0),
                         np.zeros((1, 3)), np.full(1, -1.0), np.ones(2), relaxed=False,
