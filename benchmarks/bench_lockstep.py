@@ -1,4 +1,4 @@
-"""Lockstep process-swarm throughput for N = 6, 12, 24 drones (issue 5).
+"""Lockstep process-swarm throughput for N = 6, 12, 24, 48 drones (issues 5, 16).
 
     python benchmarks/bench_lockstep.py [--profile quick] [--out FILE]
     (or as the ``lockstep`` section of ``python benchmarks/run_all.py``)
@@ -9,7 +9,8 @@ Each run is a real process swarm (``SwarmLauncher``, mode lockstep: one ``sim-wo
 the world's first "running" clock message (step 0) to its "done" (``swarm_probe``) —
 simulated steps per wall second and the real-time factor (simulated s / wall s); the wall
 time between consecutive steps (median and p99); CPU per agent process and of the world over
-the same window, in cores (1.0 = one CPU busy).
+the same window, in cores (1.0 = one CPU busy). Also draws ``scaling.png`` (CPU per
+simulated step against N, ``plot_scaling.py``) next to the JSON.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from common import (
     report_section,
     section_parser,
 )
+from plot_scaling import write_scaling_plot
 from rich.table import Table
 from swarm_probe import THREAD_GROUPS, swarm_section
 
@@ -64,7 +66,7 @@ def summarise(runs: list[dict[str, Any]]) -> dict[str, Any]:
 
 
 def run(profile: Profile) -> dict[str, Any]:
-    return swarm_section("lockstep", profile.name, profile.swarm_sizes, "lockstep",
+    return swarm_section("lockstep", profile.name, profile.lockstep_sizes, "lockstep",
                          profile.lockstep_duration_s, profile.lockstep_repeats, summarise)
 
 
@@ -118,7 +120,10 @@ def _violations(summary: dict[str, Any]) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = section_parser(__doc__, "lockstep.json")
     args = parser.parse_args(argv)
-    return report_section(run(PROFILES[args.profile]), tables, "bench_lockstep.py", argv, args.out)
+    result = run(PROFILES[args.profile])
+    code = report_section(result, tables, "bench_lockstep.py", argv, args.out)
+    print(f"wrote {write_scaling_plot(result, args.out.with_name('scaling.png'))}")
+    return code
 
 
 if __name__ == "__main__":

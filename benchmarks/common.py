@@ -43,7 +43,8 @@ class Profile:
     qp_count: int  # captured QPs solved by every method
     qp_passes: int  # passes over them (repeats)
     qp_capture_duration_s: float
-    swarm_sizes: tuple[int, ...]  # N of the lockstep and realtime sections
+    swarm_sizes: tuple[int, ...]  # N of the realtime section
+    lockstep_sizes: tuple[int, ...]  # N of the lockstep section (up to 48: cost against N)
     lockstep_duration_s: float
     lockstep_repeats: int
     realtime_duration_s: float
@@ -57,18 +58,21 @@ PROFILES: dict[str, Profile] = {
     "full": Profile("full", step_duration_s=30.0, step_repeats=3, step_targets=(1, 2, 3),
                     cvxpy_step_start_s=12.0, cvxpy_step_duration_s=3.0, qp_count=200,
                     qp_passes=3, qp_capture_duration_s=30.0, swarm_sizes=(6, 12, 24),
+                    lockstep_sizes=(6, 12, 24, 48),
                     lockstep_duration_s=10.0, lockstep_repeats=3, realtime_duration_s=10.0,
                     realtime_repeats=3, startup_repeats=5, startup_duration_s=1.5,
                     import_repeats=5),
     "quick": Profile("quick", step_duration_s=15.0, step_repeats=2, step_targets=(1, 2, 3),
                      cvxpy_step_start_s=12.0, cvxpy_step_duration_s=1.0, qp_count=60,
                      qp_passes=2, qp_capture_duration_s=20.0, swarm_sizes=(6, 12, 24),
+                     lockstep_sizes=(6, 12, 24, 48),
                      lockstep_duration_s=4.0, lockstep_repeats=2, realtime_duration_s=6.0,
                      realtime_repeats=2, startup_repeats=3, startup_duration_s=1.5,
                      import_repeats=3),
     "smoke": Profile("smoke", step_duration_s=1.2, step_repeats=1, step_targets=(2,),
                      cvxpy_step_start_s=1.0, cvxpy_step_duration_s=0.1, qp_count=4,
                      qp_passes=1, qp_capture_duration_s=1.2, swarm_sizes=(6,),
+                     lockstep_sizes=(6,),
                      lockstep_duration_s=1.2, lockstep_repeats=1, realtime_duration_s=2.0,
                      realtime_repeats=1, startup_repeats=1, startup_duration_s=1.2,
                      import_repeats=1),

@@ -1,4 +1,4 @@
-"""Case 2 scaled to N = 12 and 24 drones for the swarm benchmarks (configs/bench/).
+"""Case 2 scaled to N = 12, 24 and 48 drones for the swarm benchmarks (configs/bench/).
 
 The process swarm's agents read their scenario from a file, so the scaled scenarios are TOML
 files: Case 2 (``configs/case2.toml``) with only the ``[swarm]`` section changed —
@@ -6,7 +6,7 @@ files: Case 2 (``configs/case2.toml``) with only the ``[swarm]`` section changed
 - the graph: a ring plus every diameter (i, i + N/2), i.e. 3-regular (Case 2's ring with two
   chords has degree 2-3), connected, and K_p·λ_max(L)·ΔT well under 2 (λ_max ≤ 6);
 - the start box: Case 2's 2 m height and its density (6 drones on 4 × 4 m²), so the side
-  grows as √N: 5.7 m for 12 drones, 8 m for 24.
+  grows as √N: 5.7 m for 12 drones, 8 m for 24, 11.3 m for 48.
 
 Everything else (two targets, gains, camera, QP) is Case 2's. ``N = 6`` is Case 2 itself.
 
@@ -26,7 +26,7 @@ from swarm.scenario.config import ScenarioConfig, load_config
 
 BENCH_CONFIGS = CONFIGS / "bench"
 CASE2 = CONFIGS / "case2.toml"
-SCALED_SIZES = (12, 24)
+SCALED_SIZES = (12, 24, 48)
 CASE2_AREA_PER_DRONE_M2 = 16.0 / 6.0
 
 

@@ -47,7 +47,8 @@ def test_every_section_runs_and_writes_its_fields(tmp_path: Path) -> None:
     summary = load("summary")
     assert summary["machine"]["cpus"] >= 1 and "numpy" in summary["machine"]["versions"]
     assert set(summary["sections"]) == set(run_all.SECTIONS)
-    assert len(summary["targets"]) == 6
+    assert len(summary["targets"]) == 8
+    assert (tmp_path / "scaling.png").stat().st_size > 0
     for section in run_all.SECTIONS:
         assert "load_before" in summary["sections"][section]
 
