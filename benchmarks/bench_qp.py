@@ -4,10 +4,10 @@
     (or as the ``qp`` section of ``python benchmarks/run_all.py``)
 
 The QPs are captured from a Case 2 run (in process, seed 0, 6 drones, M = 2, relaxed QP with
-5 collision slots): every ``LocalQpWorkspace.solve`` call once the barrier QP is active, with
-its inputs and the solution the agent got. The benchmark takes an evenly spaced sample of
-those with an active constraint (a positive slack, or a row within 1e-6 of its bound) when
-there are enough, and solves every one of them by
+a collision row per drone within R_ca): every ``LocalQpWorkspace.solve`` call once the
+barrier QP is active, with its inputs and the solution the agent got. The benchmark takes an
+evenly spaced sample of those with an active constraint (a positive slack, or a row within
+1e-6 of its bound) when there are enough, and solves every one of them by
 
 - ours: ``LocalQpWorkspace.solve`` (one workspace, set up on the first QP and updated
   afterwards, as in an agent: rows written, DAQP update + solve, feasibility check);
@@ -30,7 +30,7 @@ import contextlib
 import dataclasses
 import gc
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from typing import Any
 
 import cvxpy as cp
@@ -125,10 +125,17 @@ def capture(profile: Profile) -> tuple[list[CapturedQp], dict[str, Any]]:
             "sampled_active": sum(q.active for q in chosen),
             "time_span_s": [min(q.time_s for q in chosen), max(q.time_s for q in chosen)],
             "shape": {"m_targets": chosen[0].data.m_targets,
-                      "n_collision": chosen[0].data.n_collision,
+                      "n_collision": [min(q.data.n_collision for q in chosen),
+                                      max(q.data.n_collision for q in chosen)],
                       "variables": 3 + 2 * chosen[0].data.m_targets,
-                      "rows": len(chosen[0].data.lower)}}
+                      "rows": _span(len(q.data.lower) for q in chosen)}}
     return chosen, info
+
+
+def _span(values: Iterable[int]) -> str:
+    """"9" or "5-9": the values' range."""
+    values = sorted(set(values))
+    return str(values[0]) if len(values) == 1 else f"{values[0]}-{values[-1]}"
 
 
 # -- the methods --------------------------------------------------------------------------
@@ -151,7 +158,9 @@ def ours(qps: list[CapturedQp]) -> Callable[[QpData], np.ndarray]:
 
 def parametrized(qps: list[CapturedQp], solver: str) -> Callable[[QpData], np.ndarray]:
     first = qps[0].data
-    problem = ParametrizedQp(first.m_targets, first.n_collision, first.u_max, solver)
+    # One shape for every QP: as many collision rows as the most any captured QP had.
+    problem = ParametrizedQp(first.m_targets, max(q.data.n_collision for q in qps),
+                             first.u_max, solver)
     problem.solve(first)  # compiles the problem; not timed
     return problem.solve
 

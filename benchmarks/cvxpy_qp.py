@@ -19,6 +19,7 @@ the same minimizer as the solver form ½zᵀPz + qᵀz (it differs by the consta
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass
 
@@ -58,6 +59,20 @@ class QpData:
         """(rows, 3): the velocity coefficients of every row."""
         n_rows = len(self.lower)
         return np.asarray(self.u_columns, dtype=float).reshape(3, n_rows).T
+
+    def padded(self, n_collision: int) -> QpData:
+        """The same QP with always-true placeholder rows ``0 ≥ −1`` up to ``n_collision``
+        collision rows (an agent passes only the drones within R_ca; a parametrized problem
+        has one fixed shape)."""
+        extra = n_collision - self.n_collision
+        if extra < 0:
+            raise ValueError(f"{self.n_collision} collision rows do not fit in {n_collision}")
+        n_rows = len(self.lower)
+        columns = np.asarray(self.u_columns, dtype=float).reshape(3, n_rows)
+        columns = np.hstack((columns, np.zeros((3, extra))))
+        return dataclasses.replace(
+            self, n_collision=n_collision, u_columns=tuple(columns.ravel().tolist()),
+            lower=(*self.lower, *([INACTIVE_ROW_LOWER] * extra)))
 
     @property
     def penalties(self) -> Array:
@@ -113,6 +128,7 @@ class ParametrizedQp:
             raise RuntimeError("the parametrized QP is not DPP")
 
     def solve(self, qp: QpData) -> Array:
+        qp = qp.padded(self.rows.shape[0] - 2 * qp.m_targets)
         self.nominal.value = np.asarray(qp.nominal)
         self.rows.value = qp.u_rows
         self.lower.value = np.asarray(qp.lower)
@@ -137,7 +153,8 @@ class CvxpyRebuiltWorkspace:
         if u_box is not None:  # the thesis' QP has the fixed box |u_k| ≤ u_max only
             raise ValueError("CvxpyRebuiltWorkspace: no rate box (command_accel_limit_m_s2 "
                              "must be 0 for the CVXPY comparison)")
-        qp = QpData(self.m_targets, self.n_collision, tuple(nominal), tuple(u_columns),
+        qp = QpData(self.m_targets, len(lower) - 2 * self.m_targets, tuple(nominal),
+                    tuple(u_columns),
                     tuple(lower), tuple(weights), self.slack_weight, self.weight_floor,
                     self.u_max)
         start = time.perf_counter()

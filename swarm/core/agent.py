@@ -42,7 +42,6 @@ from swarm.core.perception import (
     perception_terms,
 )
 from swarm.core.qp import (
-    INACTIVE_ROW_LOWER,
     FailedQp,
     LocalQpWorkspace,
     QpSolution,
@@ -239,12 +238,13 @@ class DroneAgent:
                                                     gram.epsilon, gram.smooth_min_exponent,
                                                     est.info_gain)
         self._single_integrator = est.model == "single_integrator"
+        # Rows for the drones within R_ca only: the QP's size depends on them, not on N.
         self._qp_relaxed = LocalQpWorkspace(
-            m, setup.n_drones - 1, relaxed=True, slack_weight=ctrl.slack_weight,
-            weight_floor=ctrl.weight_floor, u_max=ctrl.u_max_m_s)
+            m, relaxed=True, slack_weight=ctrl.slack_weight, weight_floor=ctrl.weight_floor,
+            u_max=ctrl.u_max_m_s)
         self._qp_hard = (LocalQpWorkspace(
-            m, setup.n_drones - 1, relaxed=False, slack_weight=ctrl.slack_weight,
-            weight_floor=ctrl.weight_floor, u_max=ctrl.u_max_m_s) if ctrl.qp == "hard" else None)
+            m, relaxed=False, slack_weight=ctrl.slack_weight, weight_floor=ctrl.weight_floor,
+            u_max=ctrl.u_max_m_s) if ctrl.qp == "hard" else None)
         # |u_k − u_(k−1)| ≤ a_max·ΔT per component (0: no limit), from the last command.
         self._max_change = ctrl.command_accel_limit_m_s2 * setup.dt_s
         self._last_command = _ZERO3
@@ -699,10 +699,10 @@ class DroneAgent:
 
     def _qp_rows(self, barriers, terms, target_velocities, weight_sums, position, beacons):
         """Velocity parts (column-major: x, y, z coefficients of every row) and lower bounds
-        of the QP rows: localization (3.32), weight-sum (3.34-3.36), collision (4.1-4.2,
-        inactive slots "0 ≥ −1"), each bound tightened by ē‖a‖ for the vehicle's tracking
-        error (``robust_lower_bound``; ē = ``control.tracking_error_bound_m_s``)."""
-        ctrl, n, slots = self.setup.control, self._swarm_size, self.setup.n_drones - 1
+        of the QP rows: localization (3.32), weight-sum (3.34-3.36), and one collision row
+        (4.1-4.2) per drone within R_ca, each bound tightened by ē‖a‖ for the vehicle's
+        tracking error (``robust_lower_bound``; ē = ``control.tracking_error_bound_m_s``)."""
+        ctrl, n = self.setup.control, self._swarm_size
         rows = [b.lie_g for b in barriers] + [t.weight_grad_drone for t in terms]
         lower = [b.lower_bound for b in barriers]
         gamma = ctrl.gamma
@@ -712,23 +712,16 @@ class DroneAgent:
         px, py, pz = position
         radius, delta, gain = (ctrl.collision_radius_m, ctrl.collision_distance_m,
                                ctrl.collision_gain)
-        slot = 0
         for j in sorted(beacons):
-            if slot >= slots:
-                break
             qx, qy, qz = beacons[j]
             ox, oy, oz = px - qx, py - qy, pz - qz
             square = ox * ox + oy * oy + oz * oz
             if math.sqrt(square) <= radius:
                 rows.append((2.0 * ox, 2.0 * oy, 2.0 * oz))
                 lower.append(-0.5 * gain * (square - delta * delta))
-                slot += 1
         bound = ctrl.tracking_error_bound_m_s
         if bound > 0.0:
             lower = [robust_lower_bound(b, a, bound) for a, b in zip(rows, lower, strict=True)]
-        for _ in range(slot, slots):
-            rows.append(_ZERO3)
-            lower.append(INACTIVE_ROW_LOWER)
         xs, ys, zs = zip(*rows, strict=True)
         return [*xs, *ys, *zs], lower
 

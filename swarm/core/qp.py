@@ -2,9 +2,10 @@
 
 Decision vector ``z = [u (3), δ_1..δ_M, δw_1..δw_M]`` (relaxed, 3.36) or ``z = u`` (hard, 3.37).
 Cost ``‖u − u_d‖² + Σ_r K_δ max(w_r, w_floor)(δ_r² + δw_r²)``, written for the solver as
-``½ zᵀPz + qᵀz``. Rows ``a·z ≥ lower``. The number of rows is fixed per drone (M localization,
-M weight-sum and N − 1 collision rows) so one DAQP workspace is set up once and updated each
-step; a collision row for a drone out of range is the always-true ``0 ≥ −1``.
+``½ zᵀPz + qᵀz``. Rows ``a·z ≥ lower``: M localization, M weight-sum and one collision row per
+drone within R_ca, so the QP's size depends on the drones near this one, not on N; a DAQP
+workspace per number of rows is set up once and updated each step. (``0 ≥ −1``,
+``INACTIVE_ROW_LOWER``, is an always-true row a caller may pad with.)
 
 DAQP is a dual active-set method: it ends on the active set of the optimum and solves its
 equations, so u is the exact optimum up to round-off even when slacks of weight K_δ ~ 1e6
@@ -246,46 +247,79 @@ def rate_limited_box(previous: tuple[float, float, float], max_change: float,
     return low, high
 
 
-class LocalQpWorkspace:
-    """The local QP of one drone in preallocated matrices, with its own DAQP workspace.
+@dataclass
+class _RowBlock:
+    """The rows of the local QP for one number of collision rows, with their DAQP workspace."""
 
-    ``solve(...)`` is ``QpSolver().solve(build_local_qp(...))`` for a drone whose QP shape
-    (M targets, ``n_collision`` collision slots, relaxed or hard) never changes: the same
-    matrices, the same solver settings, set up on the first solve and updated afterwards, so
-    the same solution up to round-off. Only the entries that change are written: the velocity
-    columns of the rows, the bounds, u_d, the slack penalties and the box of u (a rate box,
-    ``rate_limited_box``, moves every solve); DAQP refactors P only when the penalties
-    changed.
+    rows: Array  # (2M + collisions, n), C order
+    lower: Array
+    u_block: Array  # writable view: the u columns of ``rows``, column-major as ``solve`` takes
+    model: _DaqpModel
+    hessian_version: int = -1  # the P its model was last given (``LocalQpWorkspace``)
+
+
+class LocalQpWorkspace:
+    """The local QP of one drone in preallocated matrices, with its own DAQP workspaces.
+
+    ``solve(...)`` is ``QpSolver().solve(build_local_qp(...))`` for a drone whose M targets
+    and kind (relaxed or hard) never change: the same matrices, the same solver settings,
+    set up on the first solve and updated afterwards, so the same solution up to round-off.
+    The collision rows are those of the drones within R_ca at this step, so their number
+    changes: each number gets its own rows and DAQP workspace the first time it comes up
+    (``n_collision``: the one to prepare first), kept for when it comes back. Only the entries
+    that change are written: the velocity columns of the rows, the bounds, u_d, the slack
+    penalties and the box of u (a rate box, ``rate_limited_box``, moves every solve); DAQP
+    refactors P only when the penalties changed since its workspace last saw them.
     """
 
-    def __init__(self, m_targets: int, n_collision: int, *, relaxed: bool, slack_weight: float,
-                 weight_floor: float, u_max: float, feasibility_tolerance: float = 1e-6) -> None:
+    def __init__(self, m_targets: int, n_collision: int = 0, *, relaxed: bool,
+                 slack_weight: float, weight_floor: float, u_max: float,
+                 feasibility_tolerance: float = 1e-6) -> None:
         n_slack = 2 * m_targets if relaxed else 0
         n = 3 + n_slack
-        n_rows = 2 * m_targets + n_collision
         self.m_targets, self.relaxed, self.u_max = m_targets, relaxed, float(u_max)
         self.slack_weight, self.weight_floor = slack_weight, weight_floor
         self.feasibility_tolerance = feasibility_tolerance
         self.hessian = np.zeros((n, n))
         self.hessian[0, 0] = self.hessian[1, 1] = self.hessian[2, 2] = 2.0
         self.linear = np.zeros(n)
-        self.rows = np.zeros((n_rows, n))
-        self.lower = np.zeros(n_rows)
         self.z_min = np.full(n, -u_max)
         self.z_max = np.full(n, u_max)
         if relaxed:
             self.z_min[3:] = 0.0
             self.z_max[3:] = np.inf
-            self.rows[np.arange(n_slack), 3 + np.arange(n_slack)] = 1.0
-        # Writable views: the u columns of the rows (column-major, as ``solve`` takes them)
-        # and the slack part of P's diagonal.
-        self._u_block = self.rows[:, :3].T
+        # The slack part of P's diagonal (a writable view), and how often it changed.
         self._slack_diagonal = self.hessian.reshape(-1)[3 * (n + 1)::n + 1]
+        self._hessian_version = 0
+        self._blocks: dict[int, _RowBlock] = {}
+        self._block = self._row_block(2 * m_targets + n_collision)
         self._penalties: list[float] | None = None
         self._nominal: tuple[float, float, float] | None = None
-        self._model = _DaqpModel()
         self._u_low = [-self.u_max] * 3  # the box of u of the current solve
         self._u_high = [self.u_max] * 3
+
+    @property
+    def rows(self) -> Array:
+        """The rows of the last solve that reached DAQP (or of the first block prepared)."""
+        return self._block.rows
+
+    @property
+    def lower(self) -> Array:
+        return self._block.lower
+
+    def _row_block(self, n_rows: int) -> _RowBlock:
+        block = self._blocks.get(n_rows)
+        if block is None:
+            n_slack = self.linear.shape[0] - 3
+            if n_rows < 2 * self.m_targets:
+                raise ValueError(f"the local QP has at least 2M = {2 * self.m_targets} rows, "
+                                 f"got {n_rows}")
+            rows = np.zeros((n_rows, 3 + n_slack))
+            if self.relaxed:
+                rows[np.arange(n_slack), 3 + np.arange(n_slack)] = 1.0
+            block = self._blocks[n_rows] = _RowBlock(rows, np.zeros(n_rows), rows[:, :3].T,
+                                                     _DaqpModel())
+        return block
 
     def solve(self, nominal: tuple[float, float, float], u_columns: list[float],
               lower: list[float], weights: list[float],
@@ -313,23 +347,24 @@ class LocalQpWorkspace:
                 found=True, z=z, status=NOMINAL_FEASIBLE, iterations=0,
                 solve_time_s=time.perf_counter() - start, max_violation=0.0))
         n_rows = len(lower)
-        self._u_block[:] = np.reshape(u_columns, (3, n_rows))
-        self.lower[:] = lower
-        hessian_changed = False
+        block = self._block = self._row_block(n_rows)
+        block.u_block[:] = np.reshape(u_columns, (3, n_rows))
+        block.lower[:] = lower
         if self.relaxed:
             k, floor = self.slack_weight, self.weight_floor
             penalties = [2.0 * k * max(w, floor) for w in weights]
             if penalties != self._penalties:
                 self._slack_diagonal[:] = penalties + penalties
                 self._penalties = penalties
-                hessian_changed = True
+                self._hessian_version += 1
         if nominal != self._nominal:
             self.linear[:3] = (-2.0 * nominal[0], -2.0 * nominal[1], -2.0 * nominal[2])
             self._nominal = nominal
         self.z_min[:3], self.z_max[:3] = u_low, u_high
-        z, exit_flag, iterations = self._model.solve(
-            self.hessian, self.linear, self.rows, self.lower, self.z_min, self.z_max,
-            hessian_changed=hessian_changed)
+        z, exit_flag, iterations = block.model.solve(
+            self.hessian, self.linear, block.rows, block.lower, self.z_min, self.z_max,
+            hessian_changed=block.hessian_version != self._hessian_version)
+        block.hessian_version = self._hessian_version
         values = z.tolist()
         solved = exit_flag == 1 and all(map(math.isfinite, values))
         elapsed = time.perf_counter() - start

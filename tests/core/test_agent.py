@@ -150,6 +150,29 @@ def test_hard_qp_infeasibility_falls_back_to_relaxed_and_is_counted() -> None:
     assert [f.step for f in agent.qp_failures] == [150]  # emptied when a step begins
 
 
+def test_the_qp_has_a_collision_row_per_drone_within_range_only(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Drone 0 of a 40-drone swarm with two drones within R_ca and 37 far away: its QP has
+    2M + 2 rows, whatever N (issue 16: the step's cost depends on the drones near it)."""
+    from swarm.core import qp as qp_module
+
+    sizes = []
+    original = qp_module.LocalQpWorkspace.solve
+
+    def solve(self, nominal, u_columns, lower, weights, u_box=None):
+        sizes.append(len(lower))
+        return original(self, nominal, u_columns, lower, weights, u_box)
+
+    monkeypatch.setattr(qp_module.LocalQpWorkspace, "solve", solve)
+    agent = lone_agent(ControlParams(start_s=0.0), n_drones=40)
+    own = np.array([0.0, 0.0, 3.0])
+    beacons = {1: own + np.array([1.0, 0.0, 0.0]), 2: own + np.array([0.0, -2.5, 0.0]),
+               **{j: own + np.array([10.0 + j, 0.0, 0.0]) for j in range(3, 40)}}
+    for step in range(3):
+        run_alone(agent, step, own, beacons=beacons)
+    assert sizes and set(sizes) == {2 * 1 + 2}
+
+
 def test_collision_rows_keep_two_approaching_drones_apart() -> None:
     """Two drones whose nominal inputs fly them head-on, each solving its own QP with only its
     half of the collision constraint (SPEC §8): the pair never gets closer than Δ."""

@@ -377,6 +377,34 @@ def test_workspace_sequence_matches_the_brute_force_optimum(m_targets: int,
 
 
 @pytest.mark.parametrize("relaxed", [True, False], ids=["relaxed", "hard"])
+def test_the_workspace_takes_any_number_of_collision_rows(relaxed: bool) -> None:
+    """The agent passes one collision row per drone within R_ca, so the number of rows
+    changes from step to step: a sequence of instances with 0-2 collision rows (the inactive
+    placeholders left out) and back finds the brute-force optimum every time, and each
+    number of rows gets one DAQP workspace, reused when it comes back."""
+    rng = np.random.default_rng(500 + relaxed)
+    workspace = qp_module.LocalQpWorkspace(2, relaxed=relaxed, slack_weight=SLACK_WEIGHT,
+                                           weight_floor=WEIGHT_FLOOR, u_max=U_MAX)
+    models = []
+    for k in range(18):
+        instance = random_instance(rng, 2, hard_feasible=not relaxed)
+        keep = k % 3  # 0, 1 or 2 of the active collision rows
+        instance.collision_rows = instance.collision_rows[:keep]
+        instance.collision_lower = instance.collision_lower[:keep]
+        solution = workspace.solve(*_workspace_inputs(instance))
+        reference = brute_force_optimum(instance, relaxed=relaxed)
+        assert reference is not None and solution.found, solution.status
+        np.testing.assert_allclose(solution.velocity, reference[0], rtol=0, atol=VELOCITY_ATOL)
+        if solution.status == qp_module.SOLVED:
+            assert workspace.rows.shape[0] == 4 + keep
+            held, built = workspace.current_qp(), instance.build(relaxed=relaxed)
+            np.testing.assert_array_equal(held.rows, built.rows)
+            models.append((keep, id(workspace._row_block(4 + keep).model)))
+    assert {keep for keep, _ in models} == {0, 1, 2}
+    assert len(set(models)) == 3  # one workspace per number of rows, reused
+
+
+@pytest.mark.parametrize("relaxed", [True, False], ids=["relaxed", "hard"])
 @pytest.mark.parametrize("m_targets", [1, 2, 3])
 def test_the_workspace_holds_the_qp_build_local_qp_builds(m_targets: int, relaxed: bool) -> None:
     """Parity of the agent's preallocated QP with the readable assembly: after each solve that
