@@ -139,8 +139,8 @@ def targets(done: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
          _swarm_figure(done.get("realtime"), 24, "late_fraction"),
          lambda v: v <= 0.01, lambda v: f"{100 * v:.2f} %"),
         ("agent peak RSS (largest agent's VmHWM)", "≤ 150 MB", rss,
-         lambda v: v * MIB_PER_MB <= 150.0,
-         lambda v: f"{v:.1f} MiB = {v * MIB_PER_MB:.1f} MB"),
+         lambda v: v / MIB_PER_MB <= 150.0,
+         lambda v: f"{v:.1f} MiB = {v / MIB_PER_MB:.1f} MB"),
         ("launch of N = 6 → every drone streaming setpoints", "≤ 2 s", launch,
          lambda v: v <= 2.0, lambda v: f"{v:.2f} s"),
     ]
