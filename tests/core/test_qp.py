@@ -216,10 +216,9 @@ def test_solution_is_feasible_and_optimal(m_targets: int, relaxed: bool) -> None
             objective_star, rel=OBJECTIVE_RTOL, abs=OBJECTIVE_ATOL)
         np.testing.assert_allclose(solution.velocity, u_star, rtol=0, atol=VELOCITY_ATOL)
         if relaxed:
-            # The slacks are (nearly) the least that satisfy their rows. PIQP stops at a
-            # duality gap of 1e-9 relative to the objective, which is ~K_δ·δ² (up to 1e7)
-            # when some row needs a slack: unneeded slacks may then stay at 1e-5-1e-3 (seen:
-            # 2.5e-4). Their extra cost is bounded by 1e-8 of the objective.
+            # The slacks are the least that satisfy their rows, up to an extra cost of 1e-8 of
+            # the objective (the bound PIQP, an interior-point solver, needed: it left
+            # unneeded slacks at 1e-5-1e-3; DAQP ends on the active set).
             soft_a, soft_l, penalty = instance.soft_rows
             needed = np.maximum(0.0, soft_l - soft_a @ solution.velocity)
             assert np.all(solution.z[3:] >= needed - 1e-6)
@@ -338,7 +337,7 @@ def test_workspace_sequence_matches_the_brute_force_optimum(m_targets: int,
                                                              relaxed: bool) -> None:
     """The agent's per-step path (one ``LocalQpWorkspace`` set up once and updated with each
     new instance) finds the brute-force optimum on a sequence that mixes instances whose u_d
-    is feasible (answered without PIQP) and instances that need the solver: skipping PIQP
+    is feasible (answered without the solver) and instances that need it: skipping the solver
     must not leave its data stale for the next solve."""
     rng = np.random.default_rng(100 + 10 * m_targets + relaxed)
     workspace = qp_module.LocalQpWorkspace(m_targets, N_DRONES - 1, relaxed=relaxed,
@@ -408,8 +407,10 @@ def test_the_workspace_takes_any_number_of_collision_rows(relaxed: bool) -> None
 @pytest.mark.parametrize("m_targets", [1, 2, 3])
 def test_the_workspace_holds_the_qp_build_local_qp_builds(m_targets: int, relaxed: bool) -> None:
     """Parity of the agent's preallocated QP with the readable assembly: after each solve that
-    reaches PIQP, ``current_qp()`` (the QP a failure is saved as) is ``build_local_qp`` of the
-    same inputs, and ``QpSolver`` on it gives the workspace's solution."""
+    reaches the solver, ``current_qp()`` (the QP a failure is saved as) is ``build_local_qp``
+    of the same inputs, ``QpSolver`` on it gives the workspace's solution, and the
+    workspace's plain-float feasibility check agrees with ``LocalQp.max_violation`` at the
+    solution and at points that violate rows and bounds."""
     rng = np.random.default_rng(300 + 10 * m_targets + relaxed)
     workspace = qp_module.LocalQpWorkspace(m_targets, N_DRONES - 1, relaxed=relaxed,
                                            slack_weight=SLACK_WEIGHT,
@@ -418,10 +419,14 @@ def test_the_workspace_holds_the_qp_build_local_qp_builds(m_targets: int, relaxe
     for _ in range(12):
         instance = random_instance(rng, m_targets, hard_feasible=not relaxed)
         solution = workspace.solve(*_workspace_inputs(instance))
-        if solution.status == qp_module.NOMINAL_FEASIBLE:  # PIQP not called: nothing written
+        if solution.status == qp_module.NOMINAL_FEASIBLE:  # solver not called: nothing written
             continue
         assert solution.status == qp_module.SOLVED
         compared += 1
+        _, columns, lower, _ = _workspace_inputs(instance)
+        for z in (solution.z, solution.z + rng.normal(0.0, 2.0, solution.z.shape)):
+            assert workspace._max_violation(z.tolist(), columns, lower) == pytest.approx(
+                instance.build(relaxed=relaxed).max_violation(z), rel=1e-12, abs=1e-12)
         held, built = workspace.current_qp(), instance.build(relaxed=relaxed)
         for name in ("cost_hessian", "cost_linear", "rows", "lower", "z_min", "z_max"):
             np.testing.assert_allclose(getattr(held, name), getattr(built, name), rtol=1e-15,
