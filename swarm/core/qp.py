@@ -197,8 +197,11 @@ class _DaqpModel:
             self._upper[:n] = z_max
             self._lower[:n] = z_min
             self._lower[n:] = lower
-            self._model.update(H=hessian if hessian_changed else None, f=linear, A=rows,
-                               bupper=self._upper, blower=self._lower)
+            exit_flag = self._model.update(H=hessian if hessian_changed else None, f=linear,
+                                           A=rows, bupper=self._upper, blower=self._lower)
+            if exit_flag < 0:  # a new P that is not positive definite: not solved
+                self._model = None  # set up afresh next time
+                return np.full(n, np.nan), int(exit_flag), 0
         z, _objective, exit_flag, info = self._model.solve()
         return z, int(exit_flag), int(info["iterations"])
 

@@ -309,6 +309,22 @@ def test_infeasible_solve_does_not_poison_the_reused_solver() -> None:
     np.testing.assert_allclose(solution.velocity, reference[0], atol=VELOCITY_ATOL)
 
 
+def test_a_hessian_that_is_not_positive_definite_is_refused_not_solved() -> None:
+    """DAQP factorizes P: an indefinite one (never built by the agent: its P has 2 on u and
+    positive slack penalties) is reported not found at set-up and at an update, with a NaN
+    z, and the same solver solves the next proper QP."""
+    good = LocalQp(2.0 * np.eye(2), np.array([-2.0, 0.0]), np.array([[1.0, 0.0]]),
+                   np.array([-5.0]), np.full(2, -3.0), np.full(2, 3.0))
+    bad = LocalQp(np.diag([1.0, -1.0]), good.cost_linear, good.rows, good.lower, good.z_min,
+                  good.z_max)
+    solver = QpSolver()
+    for when in ("set-up", "update"):  # the second time, the workspace has solved before
+        refused = solver.solve(bad)
+        assert not refused.found and refused.status == "DAQP_NONCONVEX", when
+        assert np.all(np.isnan(refused.z)), when
+        np.testing.assert_allclose(solver.solve(good).z, [1.0, 0.0], atol=1e-12)
+
+
 def _workspace_inputs(instance: Instance) -> tuple[tuple[float, float, float], list[float],
                                                    list[float], list[float]]:
     """``LocalQpWorkspace.solve`` arguments for an instance: u columns x, y, z of every row
