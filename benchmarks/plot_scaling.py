@@ -19,11 +19,11 @@ from pathlib import Path
 from typing import Any
 
 import matplotlib
+from common import RESULTS
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 
-RESULTS = Path(__file__).resolve().parent / "results"
 WORLD_TARGET_MS_PER_DRONE = 0.3  # issue 16: world CPU per step ≤ 0.3 ms per drone up to N = 48
 
 # (summary key, label, how its design line grows with N: "per_drone" or "flat")

