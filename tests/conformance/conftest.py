@@ -7,11 +7,11 @@ dialogue (which runs first) starts that flavour's SITL booting, if its SITL dial
 the tests to run (``SitlFlights.start``), and the SITL test then takes the result over
 (``SitlFlights.result``). ArduCopter's dialogue also flies in a thread beside the emulator's
 (its figures are the same either way); PX4's flies only once the emulator dialogue is over:
-SIH's response changes when the machine is busy (a velocity step took 1.55 s to 63 % beside
-the emulator dialogue in one CI run, 0.86-0.93 s alone), so PX4's boot overlaps, its flight
-does not. Run alone (``-k sitl``), a SITL test boots and flies itself. At most one SITL
-instance exists at a time; every instance is stopped when its test ends (or at the end of the
-session if its test never ran).
+SIH's response changes when the machine is busy (beside four busy loops a velocity step
+reached 63 % of its speed in 0.62-0.77 s, against 0.51-0.54 s on an idle machine), so PX4's
+boot overlaps, its flight does not. Run alone (``-k sitl``), a SITL test boots and flies
+itself. At most one SITL instance exists at a time; every instance is stopped when its test
+ends (or at the end of the session if its test never ran).
 """
 
 from __future__ import annotations

@@ -108,8 +108,8 @@ def _ground_reference(pilot: Pilot, record: Record, rate_window_s: float = 1.0) 
 def _velocity_step(pilot: Pilot, record: Record, speed_m_s: float, hold_s: float,
                    still_m_s: float, end_band: tuple[float, float],
                    t63_band: tuple[float, float]) -> None:
-    """From rest, velocity setpoints east at ``speed_m_s`` for ``hold_s``: the time to 63 % of
-    the step and the speed at its end (mean over its last 0.5 s); the height kept."""
+    """From rest, velocity setpoints east at ``speed_m_s`` for ``hold_s``: the speed reached
+    (mean over the last 0.5 s), the time to 63 % of it, and the height kept."""
     pilot.setpoint = Setpoint.velocity(0.0, 0.0, 0.0)
     pilot.until(lambda: _speed_xy(pilot.sample) < still_m_s, 5.0, "at rest before the step")
     start = pilot.now()
@@ -117,11 +117,16 @@ def _velocity_step(pilot: Pilot, record: Record, speed_m_s: float, hold_s: float
     pilot.setpoint = Setpoint.velocity(0.0, speed_m_s, 0.0)
     pilot.pump(hold_s)
     window = pilot.since(start)
-    t63 = _first_time(window, lambda s: s.velocity_ned_m_s[1] >= 0.63 * speed_m_s) - start
-    record.figure(f"velocity step {speed_m_s:g} m/s east: time to 63 %", t63, *t63_band, "s")
-    end = [s.velocity_ned_m_s[1] for s in window if s.t_s >= pilot.now() - 0.5]
-    record.figure(f"velocity step {speed_m_s:g} m/s east: speed after {hold_s:g} s",
-                  float(np.mean(end)), *end_band, "m/s")
+    reached = float(np.mean([s.velocity_ned_m_s[1] for s in window
+                             if s.t_s >= pilot.now() - 0.5]))
+    # 63 % of the speed the vehicle reaches, not of the command: PX4 SIH levels off near
+    # 0.6-0.65 m/s for ~0.5 s on its way to ~0.8 m/s, so a crossing of 0.63 m/s came anywhere
+    # from 0.6 to 1.5 s after the step (four traces: 0.60-1.37 s; of what it reaches: 0.51-0.77).
+    t63 = _first_time(window, lambda s: s.velocity_ned_m_s[1] >= 0.63 * reached) - start
+    record.figure(f"velocity step {speed_m_s:g} m/s east: time to 63 % of the speed reached",
+                  t63, *t63_band, "s")
+    record.figure(f"velocity step {speed_m_s:g} m/s east: speed after {hold_s:g} s", reached,
+                  *end_band, "m/s")
     drift = max(abs(s.ned_m[2] - z_start) for s in window)
     record.figure("velocity step: height change", drift, 0.0, 0.4, "m")
 
@@ -224,7 +229,8 @@ def ardupilot_dialogue(pilot: Pilot, record: Record) -> None:
     record.answer("armed after DISARM in the air", pilot.armed, True)
     record.answer("ARM in the air (already armed)", pilot.arm(), ACCEPTED)
 
-    # --- velocity following (measured: 63 % after ~0.65 s, 1.01-1.04 m/s after 3-4 s)
+    # --- velocity following (measured: 63 % of the speed reached after 0.65-0.73 s, 0.99-1.04
+    # m/s after 3-4 s)
     _velocity_step(pilot, record, 1.0, 3.0, STILL_M_S, (0.9, 1.1), (0.35, 1.1))
 
     # --- setpoint loss: the last velocity for GUID_TIMEOUT, then stop; still GUIDED, armed
@@ -374,8 +380,9 @@ def px4_dialogue(pilot: Pilot, record: Record) -> None:
     record.figure("OFFBOARD in a takeoff climb: height above where it was asked",
                   _height(pilot, ground) - interrupted, -0.2, 1.5, "m")
 
-    # --- velocity following (measured: 63 % after 0.86-0.93 s; 0.71-0.86 m/s after 3 s: PX4
-    # SIH plateaus at ~0.76 of the command for seconds, README "How the vehicles move")
+    # --- velocity following (measured: 63 % of the speed reached after 0.51-0.77 s, idle or
+    # beside four busy loops; 0.68-0.87 m/s after 3 s: PX4 SIH plateaus at ~0.76 of the
+    # command for seconds, README "How the vehicles move")
     _velocity_step(pilot, record, 1.0, 3.0, PX4_STILL_M_S, (0.6, 1.1), (0.2, 1.2))
 
     # --- offboard loss: Hold after COM_OF_LOSS_T (1 s); setpoints again: OFFBOARD again
