@@ -12,10 +12,12 @@ from swarm.scenario.cli_common import (
     DEFAULT_MAVLINK_BASE,
     ConfigError,
     OneLineParser,
+    add_gcs_arguments,
     add_run_arguments,
     exit_code,
     fail,
     fail_on,
+    gcs_problem,
     load_scenario,
     port,
     terminate_on_sigterm,
@@ -44,6 +46,7 @@ def build_parser() -> OneLineParser:
                              f"{DEFAULT_MAVLINK_BASE}: no autopilot SITL sends there)")
     parser.add_argument("--vehicles", choices=("sim", "external"), default="sim",
                         help="external: serve no vehicles, take positions from beacons")
+    add_gcs_arguments(parser)
     return parser
 
 
@@ -57,6 +60,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         mavlink_hosts(args.mavlink_host, config.swarm.n_drones)
     except ValueError as err:
         return fail(PROG, str(err))
+    gcs = args.gcs
+    problem = gcs_problem(gcs, args.gcs_control,
+                          signing=bool(config.vehicles.signing_key_file))
+    if problem is not None:
+        return fail(PROG, problem)
+    if gcs is not None and args.vehicles == "external":
+        return fail(PROG, "--gcs: with --vehicles external the world serves no vehicles; "
+                          "connect the ground station to the autopilots")
     reason = realtime_only_reason(config.vehicles, mode=args.mode,
                                   external=args.vehicles == "external")
     if reason is not None:
@@ -72,6 +83,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         listen=tuple(args.listen or [local_endpoint(7447, tls=config.security.enabled)]),
         connect=tuple(args.connect),
         mavlink_host=args.mavlink_host, mavlink_base=args.mavlink_base, vehicles=args.vehicles,
+        gcs=gcs, gcs_control=args.gcs_control,
         log=lambda line: print(line, flush=True))
     world = None
     try:

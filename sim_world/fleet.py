@@ -12,12 +12,20 @@ took one of its frames (valid checksum, a message it handles, sane values): junk
 starts like MAVLink (0xFD) is counted and dropped and never takes the stream away from the
 agent, and neither does a valid frame it ignores (another GCS's heartbeat).
 
+With a ground station (``gcs=(host, port)``) every vehicle also has a ground-station link
+(``sim_world.gcs_link``): its own UDP socket sending to that one address, as every PX4 SITL
+instance sends to 14550, so one ground station (``mavproxy.py --master udpin:HOST:PORT``,
+QGroundControl) sees the whole fleet, one system id per vehicle. It may only watch unless
+``gcs_control``; what it asks and is refused is logged through ``log``.
+
 Public API: ``VehicleFleet(positions_w, origins_w, flavour, *, host, base_port, u_max_m_s,
-setpoint_timeout_s, clock, signing_key=None, start="air", response=VelocityResponse())``
+setpoint_timeout_s, clock, signing_key=None, start="air", response=VelocityResponse(),
+gcs=None, gcs_control=False, geo_origin=GeoPoint(*DEFAULT_GEO_ORIGIN), log=None)``
 (``start`` and ``response`` as ``EmulatedVehicle`` takes them, the same for every vehicle)
 with ``service(timeout_s)``, ``send_telemetry(time_boot_ms)``, ``fly(dt_s)`` (every vehicle
-flies itself: ``EmulatedVehicle.fly``), ``positions_w``, ``rejected_frames()``, ``close()``;
-``serve_forever(fleet, dt_s, started, stop)``; ``mavlink_hosts``, ``bind_address_for``.
+flies itself: ``EmulatedVehicle.fly``), ``positions_w``, ``rejected_frames()``,
+``gcs_links``, ``close()``; ``serve_forever(fleet, dt_s, started, stop)``;
+``mavlink_hosts``, ``bind_address_for``.
 """
 
 from __future__ import annotations
@@ -30,9 +38,12 @@ from collections.abc import Callable, Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from sim_world.gcs_link import GcsLink
 from sim_world.mavlink_endpoint import VehicleEndpoint
 from sim_world.vehicle import EmulatedVehicle, Flavour, Start
+from swarm.mavlink.sitl import GeoPoint
 from swarm.models.kinematics import VelocityResponse
+from swarm.scenario.config import DEFAULT_GEO_ORIGIN
 
 HEARTBEAT_PERIOD_S = 1.0
 
@@ -68,7 +79,10 @@ class VehicleFleet:
                  host: str, base_port: int, u_max_m_s: float, setpoint_timeout_s: float,
                  clock: Callable[[], float], signing_key: bytes | None = None,
                  start: Start = "air",
-                 response: VelocityResponse = VelocityResponse()) -> None:  # noqa: B008
+                 response: VelocityResponse = VelocityResponse(),  # noqa: B008
+                 gcs: tuple[str, int] | None = None, gcs_control: bool = False,
+                 geo_origin: GeoPoint = GeoPoint(*DEFAULT_GEO_ORIGIN),  # noqa: B008
+                 log: Callable[[str], None] | None = None) -> None:
         self.clock = clock  # the fleet's notion of "now" [s] (wall, or a lockstep sim clock)
         # ``clock`` is the wall clock: each frame is handled at its datagram's arrival time,
         # so a stall of the serving loop never fails a vehicle safe whose setpoints came in
@@ -78,6 +92,8 @@ class VehicleFleet:
         self.endpoints: list[VehicleEndpoint] = []
         self.selector = selectors.DefaultSelector()
         self._last_heartbeat = -np.inf
+        self.gcs_links: list[GcsLink] = []
+        self.gcs_endpoints: list[VehicleEndpoint] = []
         hosts = mavlink_hosts(host, len(positions_w))
         try:
             for i, position in enumerate(positions_w):
@@ -90,7 +106,15 @@ class VehicleFleet:
                                            follow_sender=False)  # service() decides
                 self.endpoints.append(endpoint)
                 self.selector.register(endpoint.fileno(), selectors.EVENT_READ, i)
-        except OSError:
+                if gcs is not None:
+                    self.gcs_links.append(GcsLink(self.vehicles[i], geo_origin,
+                                                  control=gcs_control, log=log))
+                    gcs_endpoint = VehicleEndpoint(gcs, bind_address=bind_address_for(gcs[0]),
+                                                   follow_sender=False)
+                    self.gcs_endpoints.append(gcs_endpoint)
+                    self.selector.register(gcs_endpoint.fileno(), selectors.EVENT_READ,
+                                           -1 - i)
+        except (OSError, ValueError):
             self.close()
             raise
 
@@ -110,6 +134,9 @@ class VehicleFleet:
                 endpoint.send([vehicle.heartbeat()])
         for key, _ in self.selector.select(timeout=max(timeout_s, 0.0)):
             i = key.data
+            if i < 0:  # a vehicle's ground-station link (-1 - vehicle index)
+                self._service_gcs(-1 - i)
+                continue
             vehicle, endpoint = self.vehicles[i], self.endpoints[i]
             for chunk, sender, age in endpoint.poll_from():
                 taken = vehicle.authenticated_frames if vehicle.signing \
@@ -124,10 +151,21 @@ class VehicleFleet:
                 if replies:
                     endpoint.send(replies)
 
+    def _service_gcs(self, i: int) -> None:
+        link, endpoint = self.gcs_links[i], self.gcs_endpoints[i]
+        # Answers go to the ground station's address, as the streams do (a GCS listening on
+        # a port also sends from it); another sender never takes the link over.
+        for chunk, _sender, _age in endpoint.poll_from():
+            replies = link.receive(chunk, self.clock())
+            if replies:
+                endpoint.send(replies)
+
     def send_telemetry(self, time_boot_ms: int) -> None:
         now = self.clock()
         for vehicle, endpoint in zip(self.vehicles, self.endpoints, strict=True):
             endpoint.send(vehicle.telemetry(time_boot_ms, now))
+        for link, endpoint in zip(self.gcs_links, self.gcs_endpoints, strict=True):
+            endpoint.send(link.telemetry(time_boot_ms, now))
 
     def fly(self, dt_s: float) -> None:
         """Every vehicle flies itself for dt up to now (``EmulatedVehicle.fly``: its mode's
@@ -140,7 +178,7 @@ class VehicleFleet:
         return sum(v.rejected_frames for v in self.vehicles)
 
     def close(self) -> None:
-        for endpoint in self.endpoints:
+        for endpoint in [*self.endpoints, *self.gcs_endpoints]:
             endpoint.close()
         self.selector.close()
 

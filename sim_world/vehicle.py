@@ -92,6 +92,8 @@ datagram_framing=True, signing_key=None, signing_clock=time.time)``
 ``heartbeat() -> bytes``
     One HEARTBEAT now; the caller sends one per second (SPEC: 1 Hz). telemetry() adds
     HEARTBEATs only if a client sets an interval for them (ardupilot; px4 refuses: FAILED).
+    ``heartbeat_fields()``: its fields, and ``SYS_STATUS_SENSORS`` SYS_STATUS's, for the
+    vehicle's other link (``sim_world.gcs_link``).
 ``telemetry(time_boot_ms, now_s) -> list[bytes]``
     The streams that are due: LOCAL_POSITION_NED (px4: on every call by default; ardupilot:
     only once requested), ATTITUDE (px4 10 Hz, ardupilot 1 Hz), SYS_STATUS and
@@ -232,6 +234,7 @@ __all__ = [
     "AUTOPILOT_COMPONENT_ID",
     "FLIGHT_MODELS",
     "MEASURED_RESPONSE",
+    "SYS_STATUS_SENSORS",
     "EmulatedVehicle",
     "Flavour",
     "FlightModel",
@@ -435,6 +438,9 @@ _MAX_PENDING_TEXTS = 8
 _SENSORS = (_MSG.MAV_SYS_STATUS_SENSOR_3D_GYRO | _MSG.MAV_SYS_STATUS_SENSOR_3D_ACCEL
             | _MSG.MAV_SYS_STATUS_SENSOR_3D_MAG | _MSG.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE
             | _MSG.MAV_SYS_STATUS_SENSOR_GPS | _MSG.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS)
+# SYS_STATUS's fields (every link): sensors present, enabled and healthy; load 10 %; 16.2 V,
+# current unknown, 100 % battery; no errors.
+SYS_STATUS_SENSORS = (_SENSORS, _SENSORS, _SENSORS, 100, 16200, -1, 100, 0, 0, 0, 0, 0, 0)
 _MAX_STAMPED = 256
 _ZERO3 = np.zeros(3)
 
@@ -1484,15 +1490,19 @@ class EmulatedVehicle:
         stream.last_sent_s = now_s
         return True
 
-    def _heartbeat_msg(self) -> Any:
+    def heartbeat_fields(self) -> tuple[int, int, int, int, int, int]:
+        """HEARTBEAT's fields now (type, autopilot, base_mode, custom_mode, system_status,
+        mavlink_version), for every link of the vehicle."""
         base_mode = _MSG.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
         if self._armed:
             base_mode |= _MSG.MAV_MODE_FLAG_SAFETY_ARMED
         autopilot = _MSG.MAV_AUTOPILOT_PX4 if self._flavour == "px4" \
             else _MSG.MAV_AUTOPILOT_ARDUPILOTMEGA
         status = _MSG.MAV_STATE_ACTIVE if self._armed else _MSG.MAV_STATE_STANDBY
-        return self._tx.heartbeat_encode(_MSG.MAV_TYPE_QUADROTOR, autopilot, base_mode,
-                                         self.custom_mode, status, 3)
+        return (_MSG.MAV_TYPE_QUADROTOR, autopilot, base_mode, self.custom_mode, status, 3)
+
+    def _heartbeat_msg(self) -> Any:
+        return self._tx.heartbeat_encode(*self.heartbeat_fields())
 
     def _statustext_msg(self, severity: int, text: str) -> Any:
         return self._tx.statustext_encode(severity, text.encode()[:50])
@@ -1516,8 +1526,7 @@ class EmulatedVehicle:
         if name == "ATTITUDE":
             return self._tx.attitude_encode(time_boot_ms, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
         if name == "SYS_STATUS":
-            return self._tx.sys_status_encode(_SENSORS, _SENSORS, _SENSORS, 100, 16200, -1, 100,
-                                              0, 0, 0, 0, 0, 0)
+            return self._tx.sys_status_encode(*SYS_STATUS_SENSORS)
         return self._tx.extended_sys_state_encode(_MSG.MAV_VTOL_STATE_UNDEFINED, self._landed)
 
     def _autopilot_version_msg(self) -> Any:

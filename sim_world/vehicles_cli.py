@@ -13,13 +13,17 @@ import time
 from collections.abc import Sequence
 
 from sim_world.fleet import VehicleFleet, serve_forever
+from swarm.mavlink.sitl import GeoPoint
 from swarm.scenario.cli_common import (
     DEFAULT_MAVLINK_BASE,
     EXIT_OK,
     ConfigError,
     OneLineParser,
+    add_gcs_arguments,
     exit_code,
+    fail,
     fail_on,
+    gcs_problem,
     load_scenario,
     port,
     seed,
@@ -40,6 +44,7 @@ def build_parser() -> OneLineParser:
     parser.add_argument("--mavlink-base", type=port, default=DEFAULT_MAVLINK_BASE,
                         help=f"vehicle i sends to UDP port base+i (default "
                              f"{DEFAULT_MAVLINK_BASE}: no autopilot SITL sends there)")
+    add_gcs_arguments(parser)
     return parser
 
 
@@ -53,6 +58,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         signing_key = config.vehicles.signing_key()
     except ConfigError as err:
         return fail_on(PROG, err, "config error: ")
+    problem = gcs_problem(args.gcs, args.gcs_control, signing=signing_key is not None)
+    if problem is not None:
+        return fail(PROG, problem)
     terminate_on_sigterm()
     seed_value = config.scenario.seed if args.seed is None else args.seed
     started = time.monotonic()
@@ -64,12 +72,17 @@ def main(argv: Sequence[str] | None = None) -> int:
             u_max_m_s=config.control.u_max_m_s,
             setpoint_timeout_s=config.vehicles.failsafe_timeout_s,
             clock=lambda: time.monotonic() - started, signing_key=signing_key,
-            start=config.vehicles.start, response=config.vehicles.velocity_response)
+            start=config.vehicles.start, response=config.vehicles.velocity_response,
+            gcs=args.gcs, gcs_control=args.gcs_control,
+            geo_origin=GeoPoint(*config.vehicles.geo_origin),
+            log=lambda line: print(line, flush=True))
     except OSError as err:
         return fail_on(PROG, err, "cannot open the vehicles' sockets: ")
     print(f"sim-vehicles: {len(fleet)} {config.vehicles.flavour} vehicles sending to "
           f"{args.mavlink_host}:{args.mavlink_base}..{args.mavlink_base + len(fleet) - 1}"
-          f"{', MAVLink 2 signing on' if signing_key is not None else ''}", flush=True)
+          f"{', MAVLink 2 signing on' if signing_key is not None else ''}"
+          f"{'' if args.gcs is None else ', ground station at {}:{}'.format(*args.gcs)}",
+          flush=True)
     try:
         serve_forever(fleet, config.scenario.dt_s, started)
     except KeyboardInterrupt as err:

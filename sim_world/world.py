@@ -25,6 +25,7 @@ import numpy as np
 
 from sim_world.fleet import VehicleFleet
 from swarm.errors import EXIT_FAILED, EXIT_OK, VigilError
+from swarm.mavlink.sitl import GeoPoint
 from swarm.messages.wire import (
     BeaconWire,
     CameraFrameWire,
@@ -72,6 +73,9 @@ class WorldOptions:
     mavlink_host: str = "127.0.0.1"
     mavlink_base: int = DEFAULT_MAVLINK_BASE
     vehicles: VehicleSource = "sim"
+    # Every vehicle's ground-station link sends here (``sim_world.gcs_link``); None: none.
+    gcs: tuple[str, int] | None = None
+    gcs_control: bool = False  # may the ground station command the vehicles?
     log: Callable[[str], None] = field(default=print)
 
 
@@ -117,7 +121,9 @@ class World:
                     base_port=options.mavlink_base, u_max_m_s=cfg.control.u_max_m_s,
                     setpoint_timeout_s=cfg.vehicles.failsafe_timeout_s, clock=self.now_s,
                     signing_key=cfg.vehicles.signing_key(), start=cfg.vehicles.start,
-                    response=cfg.vehicles.velocity_response)
+                    response=cfg.vehicles.velocity_response, gcs=options.gcs,
+                    gcs_control=options.gcs_control,
+                    geo_origin=GeoPoint(*cfg.vehicles.geo_origin), log=options.log)
             else:
                 # Not direct: this process hosts the router, whose threads must never wait
                 # for the GIL.

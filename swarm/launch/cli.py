@@ -40,9 +40,11 @@ from swarm.scenario.cli_common import (
     EXIT_FAILED,
     ConfigError,
     OneLineParser,
+    add_gcs_arguments,
     exit_code,
     fail,
     fail_on,
+    gcs_problem,
     load_scenario,
     port,
     positive_float,
@@ -77,6 +79,7 @@ def build_parser() -> OneLineParser:
     parser.add_argument("--mavlink-base", type=port, default=0, metavar="PORT",
                         help=f"vehicle i talks to agent i on UDP PORT+i (default: "
                              f"{DEFAULT_MAVLINK_BASE}, or the next free, quiet block)")
+    add_gcs_arguments(parser)
     parser.add_argument("--run-id", type=run_id, default=None,
                         help="Zenoh key prefix vigil/<run-id>/ (default: random)")
     parser.add_argument("--log-dir", default=None, metavar="DIR",
@@ -225,6 +228,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     if sitl is not None and config.vehicles.mavlink_urls:
         return fail(PROG, "--sitl starts its own autopilots: leave out --mavlink and "
                           "vehicles.mavlink_urls")
+    problem = gcs_problem(args.gcs, args.gcs_control,
+                          signing=bool(config.vehicles.signing_key_file))
+    if problem is not None:
+        return fail(PROG, problem)
+    if args.gcs is not None and (args.inprocess or sitl is not None
+                                 or config.vehicles.mavlink_urls):
+        return fail(PROG, "--gcs gives the world's emulated vehicles a ground-station link; "
+                          "with --inprocess there are none, and real autopilots have their own "
+                          "(PX4 SITL sends to 14550)")
     options = None
     if not args.inprocess:
         try:
@@ -234,7 +246,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 log_dir=Path(args.log_dir) if args.log_dir else None, record_dir=args.record,
                 agent_restarts=args.agent_restarts,
                 agent_restart_delay_s=args.agent_restart_delay, sitl=sitl,
-                sitl_params=tuple(args.sitl_params), kill_agents=tuple(args.kill_agents))
+                sitl_params=tuple(args.sitl_params), kill_agents=tuple(args.kill_agents),
+                gcs=args.gcs, gcs_control=args.gcs_control)
         except ValueError as err:
             return fail(PROG, str(err))
     terminate_on_sigterm()

@@ -106,6 +106,10 @@ class LaunchOptions:
     sitl: Firmware | None = None
     sitl_boot_speedup: float = DEFAULT_BOOT_SPEEDUP
     sitl_params: tuple[tuple[str, float], ...] = ()  # --sitl-param: set at boot on every one
+    # Every emulated vehicle also streams to a ground station at this (host, port)
+    # (sim_world.gcs_link); with gcs_control the ground station may command them.
+    gcs: tuple[str, int] | None = None
+    gcs_control: bool = False
     # Record telemetry, beacons, detections and truth to record_dir/run.mcap
     # (swarm.observe.recording).
     record_dir: Path | None = None
@@ -385,6 +389,9 @@ class SwarmLauncher:
                 "--listen", self.endpoint, "--mavlink-base", str(self.mavlink_base)]
         if self.external_autopilots:
             argv += ["--vehicles", "external"]
+        if self.options.gcs is not None:
+            argv += ["--gcs", "{}:{}".format(*self.options.gcs)]
+            argv += ["--gcs-control"] if self.options.gcs_control else []
         return self._spawn("world", argv)
 
     def start_vehicles(self) -> Child:

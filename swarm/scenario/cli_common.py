@@ -6,6 +6,7 @@ import argparse
 import math
 import re
 import signal
+import socket
 import sys
 import typing
 
@@ -92,6 +93,45 @@ def restart_count(text: str) -> int:
 
 def port(text: str) -> int:
     return _int_in(text, 1, 65535, "a port number", "[1, 65535]")
+
+
+def gcs_address(text: str) -> tuple[str, int]:
+    """``--gcs HOST:PORT``, or ``PORT`` alone for 127.0.0.1; the host must resolve to IPv4
+    (the vehicles' sockets are IPv4, as SITL's links)."""
+    host, sep, number = text.rpartition(":")
+    host = host if sep else "127.0.0.1"
+    try:
+        checked = port(number)
+        if not host:
+            raise argparse.ArgumentTypeError("no host")
+        socket.getaddrinfo(host, checked, socket.AF_INET, socket.SOCK_DGRAM)
+    except (argparse.ArgumentTypeError, OSError) as err:
+        raise argparse.ArgumentTypeError(
+            f"want HOST:PORT with an IPv4 host and a port in [1, 65535], e.g. "
+            f"127.0.0.1:14550 (got {text!r}: {err})") from None
+    return host, checked
+
+
+def add_gcs_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--gcs HOST:PORT`` and ``--gcs-control``: each emulated vehicle's ground-station link
+    (``sim_world.gcs_link``), for ``sim-world``, ``sim-vehicles`` and ``launch-swarm``."""
+    parser.add_argument("--gcs", type=gcs_address, default=None, metavar="HOST:PORT",
+                        help="every emulated vehicle also streams to a ground station there "
+                             "(QGroundControl, or mavproxy.py --master udpin:HOST:PORT), "
+                             "which may only watch")
+    parser.add_argument("--gcs-control", action="store_true",
+                        help="let that ground station command the vehicles (arm, modes, "
+                             "setpoints): it can then disturb the mission")
+
+
+def gcs_problem(gcs: tuple[str, int] | None, control: bool, *, signing: bool) -> str | None:
+    """Why ``--gcs``/``--gcs-control`` cannot be served as given (None: they can)."""
+    if control and gcs is None:
+        return "--gcs-control needs --gcs HOST:PORT"
+    if control and signing:
+        return ("--gcs-control: the vehicles sign their MAVLink and the ground-station link "
+                "holds no key; drop --gcs-control or the signing")
+    return None
 
 
 def run_id(text: str) -> str:

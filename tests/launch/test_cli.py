@@ -85,6 +85,9 @@ BAD_ARGUMENTS = {
     "seed_text": ["--seed", "abc"],
     "seed_too_large": ["--seed", str(2**63)],
     "unknown_option": ["--bogus"],
+    "gcs_port_zero": ["--gcs", "127.0.0.1:0"],
+    "gcs_no_port": ["--gcs", "localhost:"],
+    "gcs_unknown_host": ["--gcs", "no-such-host.invalid:14550"],
 }
 
 
@@ -128,6 +131,18 @@ def test_bad_argument_exits_2_without_traceback(
 def test_bad_argument_error_is_one_line(
         name: str, bad_argument_results: dict[str, subprocess.CompletedProcess[str]]) -> None:
     assert len(nonempty_lines(bad_argument_results[name].stderr)) == 1
+
+
+@pytest.mark.parametrize(("args", "said"), [
+    (["--gcs-control"], "--gcs-control needs --gcs HOST:PORT"),
+    (["--gcs", "14550", "--inprocess"], "with --inprocess there are none"),
+])
+def test_ground_station_options_that_cannot_be_served_exit_2_with_one_line(
+        args: list[str], said: str) -> None:
+    result = launch_swarm_in_process(CASE1, "--headless", *args)
+    assert_usage_error(result)
+    assert nonempty_lines(result.stderr) == [nonempty_lines(result.stderr)[0]]
+    assert said in result.stderr
 
 
 def test_missing_config_file_exits_2_with_one_line() -> None:
