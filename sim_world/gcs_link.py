@@ -164,7 +164,7 @@ class GcsLink:
         return replies
 
     def _refusal(self, msg: Any, kind: str, now_s: float) -> list[bytes]:
-        self._refuse(_name(msg), "the ground-station link is read-only")
+        self._refuse(_name(msg), "the ground-station link streams and answers reads only")
         if kind in _COMMANDS:
             answer = [self._tx.command_ack_encode(msg.command, _MSG.MAV_RESULT_DENIED, 0, 0,
                                                   msg.get_srcSystem(), msg.get_srcComponent())]
