@@ -36,7 +36,7 @@ def fill_gaps(values: Array) -> None:
         values[k][gap] = values[k + 1][gap]
 
 
-def _values(array: F64Array) -> Array:
+def wire_values(array: F64Array) -> Array:
     """A read-only view of a wire array's bytes (copied when stored into the record)."""
     return np.frombuffer(array.data, dtype="<f8").reshape(array.shape)
 
@@ -84,13 +84,13 @@ class TelemetryCollector:
                 return
             # Straight from the wire bytes (decoded messages are checked): no StepDiagnostics
             # and no array copies on Zenoh's callback thread.
-            self.velocities[k, i] = _values(tel.velocity)
-            self.estimates[k, i] = _values(tel.estimates)
-            self.lambda_bar[k, i] = _values(tel.lambda_bar)
-            self.psi0[k, i], self.psi1[k, i] = _values(tel.psi0), _values(tel.psi1)
-            self.weights[k, i] = _values(tel.weights)
-            self.slacks[k, i] = _values(tel.slacks)
-            self.weight_slacks[k, i] = _values(tel.weight_slacks)
+            self.velocities[k, i] = wire_values(tel.velocity)
+            self.estimates[k, i] = wire_values(tel.estimates)
+            self.lambda_bar[k, i] = wire_values(tel.lambda_bar)
+            self.psi0[k, i], self.psi1[k, i] = wire_values(tel.psi0), wire_values(tel.psi1)
+            self.weights[k, i] = wire_values(tel.weights)
+            self.slacks[k, i] = wire_values(tel.slacks)
+            self.weight_slacks[k, i] = wire_values(tel.weight_slacks)
             self.detected[k, i] = tel.detected
             self.fallback[k, i] = tel.qp_fallback
             self.step_us[k, i] = tel.step_us

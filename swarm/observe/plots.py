@@ -32,6 +32,7 @@ from matplotlib.lines import Line2D
 from mpl_toolkits.mplot3d.art3d import Line3DCollection
 from numpy.typing import NDArray
 
+from swarm.models.camera import fov_segments
 from swarm.runs.checks import SENSING_WEIGHT, last_present, nanmax, nanmin, start_index
 from swarm.runs.record import RunRecord
 
@@ -253,27 +254,6 @@ def plot_bearing_error(record: RunRecord) -> Figure:
 
 
 # -- 3D view -------------------------------------------------------------------------------
-
-
-def fov_segments(position: Array, half_fov_deg: float, range_max_m: float,
-                 ground_z: float) -> list[Array]:
-    """Edges of one camera's square FoV pyramid (SPEC §2), apex at the drone.
-
-    The optical axis is −z; the four edges run to the ground plane, or stop at the sensing
-    range D_M along the edge when the ground is farther. Returns 8 segments (4 edges, 4 sides
-    of the base), none when the drone is not above the ground.
-    """
-    depth = float(position[2] - ground_z)
-    if not depth > 0.0:
-        return []
-    half = math.tan(math.radians(half_fov_deg))
-    edge_per_depth = math.sqrt(2.0 * half * half + 1.0)  # edge length per metre of depth
-    depth = min(depth, range_max_m / edge_per_depth)
-    corners = [position + depth * np.array([sx * half, sy * half, -1.0])
-               for sx, sy in ((1, 1), (-1, 1), (-1, -1), (1, -1))]
-    edges = [np.array([position, c]) for c in corners]
-    base = [np.array([corners[k], corners[(k + 1) % 4]]) for k in range(4)]
-    return edges + base
 
 
 def _final_step(record: RunRecord) -> int | None:

@@ -46,6 +46,7 @@ from typing import IO, Any, Final
 
 import msgspec
 import numpy as np
+from foxglove.messages import SceneUpdate
 from mcap.exceptions import EndOfFile, InvalidMagic, McapError
 from mcap.records import Channel, DataEnd, Message, Metadata
 from mcap.stream_reader import StreamReader
@@ -64,6 +65,7 @@ from swarm.messages.wire import (
     WireError,
 )
 from swarm.observe.collector import TelemetryCollector
+from swarm.observe.scene import SCENE_TOPIC, SceneAssembler, SceneState, scene_update
 from swarm.runs.record import RunRecord
 from swarm.runs.reference import StepCallback, run_reference
 from swarm.scenario.config import ConfigError, ScenarioConfig, config_from_dict, config_to_data
@@ -518,6 +520,7 @@ class Recorder:
             raise RecordingError(f"cannot record to {self.path}: {err.strerror or err}"
                                  ) from None
         self._dt_ns = round(cfg.scenario.dt_s * 1e9)
+        self._scene = SceneAssembler(cfg, self._write_scene)
         self._channels: dict[str, int] = {}
         self._sequence: dict[int, int] = {}
         self._writer = Writer(self._file, chunk_size=CHUNK_BYTES,
@@ -558,6 +561,11 @@ class Recorder:
         for kind, name in channels:
             self._channels[name] = self._writer.register_channel(
                 topic=name, message_encoding="json", schema_id=ids[kind])
+        scene = SceneUpdate.get_schema()  # Foxglove's well-known schema, as its SDK has it
+        self._channels[SCENE_TOPIC] = self._writer.register_channel(
+            topic=SCENE_TOPIC, message_encoding=scene.encoding,
+            schema_id=self._writer.register_schema(name=scene.name, encoding="protobuf",
+                                                   data=scene.data))
 
     def put(self, message: Recordable, received_ns: int | None = None) -> None:
         """Queue a message for writing; ``received_ns``: wall time of receipt (default now)."""
@@ -583,6 +591,19 @@ class Recorder:
                                  data=data, publish_time=received_ns,
                                  sequence=sequence)
         self.written += 1
+        if isinstance(message, TelemetryWire):
+            self._scene.on_telemetry(message)
+        elif isinstance(message, TruthWire):
+            self._scene.on_truth(message)
+
+    def _write_scene(self, state: SceneState) -> None:
+        """The 3D scene of one instant, beside the messages it was built from."""
+        channel = self._channels[SCENE_TOPIC]
+        sequence = self._sequence.get(channel, 0)
+        self._sequence[channel] = sequence + 1
+        self._writer.add_message(channel_id=channel, log_time=state.step * self._dt_ns,
+                                 data=scene_update(self.metadata.config, state).encode(),
+                                 publish_time=time.time_ns(), sequence=sequence)
 
     def _run(self) -> None:
         """Writer thread: every ``DRAIN_PERIOD_S`` write what is queued, flush on schedule,

@@ -12,7 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from swarm.observe.plots import figures_for, fov_segments, write_plots
+from swarm.models.camera import fov_segments
+from swarm.observe.plots import figures_for, write_plots
 from swarm.runs.record import RunRecord
 from swarm.runs.reference import run_reference
 from swarm.scenario.config import load_config

@@ -60,6 +60,7 @@ from swarm.observe.recording import (
 from swarm.runs.record import RunRecord
 from swarm.runs.reference import run_reference
 from swarm.scenario.config import config_from_dict, config_to_data, load_config
+from tests.helpers.scene_tools import read_scenes
 
 ROOT = Path(__file__).resolve().parents[2]
 CONFIGS = ROOT / "configs"
@@ -314,6 +315,9 @@ def test_lockstep_recording_reads_back_as_the_launchers_record(tmp_path: Path) -
     assert not recording.truncated
     assert set(recording.message_counts.values()) == {config.n_steps}  # nothing lost
     assert recording.drone_counters == launcher.collector.drone_counters()
+    # The 3D scene of every tenth of a second (10 Hz), from the process swarm's messages.
+    scenes = read_scenes(tmp_path / "rec")
+    assert [t for t, *_ in scenes] == [k * 20_000_000 for k in range(0, config.n_steps, 5)]
 
 
 def test_the_cli_records_the_resolved_config_and_refuses_a_file_as_dir(tmp_path: Path) -> None:

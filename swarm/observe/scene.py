@@ -1,0 +1,222 @@
+"""The swarm as a 3D scene in Foxglove's well-known schemas (``foxglove.SceneUpdate``).
+
+One scene per instant, in the thesis' world frame (``world``: x east, y north, z up, as
+Foxglove's 3D panel draws it), built from what an observer already receives — the world's
+truth message and each drone's telemetry — so it costs the swarm nothing:
+
+* ``drones``: a sphere per drone, green while it senses some target (a weight above
+  ``SENSING_WEIGHT``), grey while idle, with its id;
+* ``collision``: a translucent sphere of radius Δ (``control.collision_distance_m``) around
+  each drone: no other drone's centre may enter it;
+* ``fov``: each camera's square FoV pyramid, to the ground or to D_M (``fov_segments``);
+* ``graph``: the communication graph's edges;
+* ``targets``: the targets' true positions, labelled T0, T1, …;
+* ``estimates``: every drone's estimate of every target's position.
+
+``SceneAssembler`` gathers one step's truth and N telemetry messages (from any thread's
+order) and hands over a ``SceneState`` every ``period_steps`` steps once it is complete; a
+step still incomplete when a later scene step completes is given up and counted
+(``incomplete``). ``scene_update(config, state)`` turns a state into the message, whose
+``encode()`` is the protobuf payload and ``SceneUpdate.get_schema()`` its schema.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+from foxglove.messages import (
+    Color,
+    LinePrimitive,
+    LinePrimitiveLineType,
+    Point3,
+    Pose,
+    Quaternion,
+    SceneEntity,
+    SceneUpdate,
+    SpherePrimitive,
+    TextPrimitive,
+    Timestamp,
+    Vector3,
+)
+from numpy.typing import NDArray
+
+from swarm.messages.wire import TelemetryWire, TruthWire
+from swarm.models.camera import fov_segments
+from swarm.observe.collector import wire_values
+from swarm.runs.checks import SENSING_WEIGHT
+from swarm.scenario.config import ScenarioConfig
+
+Array = NDArray[np.float64]
+
+FRAME = "world"
+SCENE_TOPIC = "scene"
+SCENE_PERIOD_S = 0.1  # a scene every this much sim time (10 Hz): smooth, and small on disk
+DRONE_DIAMETER_M = 0.3
+TARGET_DIAMETER_M = 0.3
+ESTIMATE_DIAMETER_M = 0.12
+SENSING_COLOUR = (0.13, 0.70, 0.30, 1.0)
+IDLE_COLOUR = (0.55, 0.55, 0.55, 1.0)
+COLLISION_COLOUR = (0.95, 0.55, 0.10, 0.12)
+FOV_COLOUR = (0.25, 0.45, 0.90, 0.6)
+GRAPH_COLOUR = (0.13, 0.60, 0.25, 0.8)
+TARGET_COLOUR = (0.85, 0.15, 0.15, 1.0)
+ESTIMATE_COLOUR = (0.10, 0.75, 0.20, 1.0)
+ENTITIES = ("drones", "collision", "fov", "graph", "targets", "estimates")
+
+
+@dataclass(frozen=True)
+class SceneState:
+    """One instant: true positions, and what each drone reports."""
+
+    step: int
+    time_s: float
+    drones_m: Array  # (N, 3) true positions
+    targets_m: Array  # (M, 3) true positions
+    weights: Array  # (N, M)
+    estimates_m: Array  # (N, M, 3) estimated target positions
+
+    @property
+    def sensing(self) -> NDArray[np.bool_]:
+        """(N,) whether each drone senses some target (a weight above SENSING_WEIGHT)."""
+        return np.nan_to_num(self.weights, nan=0.0).max(axis=1) > SENSING_WEIGHT
+
+
+def _colour(rgba: tuple[float, float, float, float]) -> Color:
+    return Color(r=rgba[0], g=rgba[1], b=rgba[2], a=rgba[3])
+
+
+def _pose(position: Array) -> Pose:
+    x, y, z = (float(c) for c in position)
+    return Pose(position=Vector3(x=x, y=y, z=z), orientation=Quaternion(x=0, y=0, z=0, w=1))
+
+
+def _sphere(position: Array, diameter_m: float,
+            rgba: tuple[float, float, float, float]) -> SpherePrimitive:
+    return SpherePrimitive(pose=_pose(position),
+                           size=Vector3(x=diameter_m, y=diameter_m, z=diameter_m),
+                           color=_colour(rgba))
+
+
+def _label(position: Array, text: str, rgba: tuple[float, float, float, float]) -> TextPrimitive:
+    return TextPrimitive(pose=_pose(position + np.array([0.0, 0.0, 0.35])), billboard=True,
+                         font_size=14.0, scale_invariant=True, color=_colour(rgba), text=text)
+
+
+def _lines(segments: list[Array], rgba: tuple[float, float, float, float],
+           thickness_px: float) -> LinePrimitive:
+    points = [Point3(x=float(p[0]), y=float(p[1]), z=float(p[2]))
+              for segment in segments for p in segment]
+    return LinePrimitive(type=LinePrimitiveLineType.LineList, pose=_pose(np.zeros(3)),
+                         thickness=thickness_px, scale_invariant=True, points=points,
+                         color=_colour(rgba))
+
+
+def _entity(name: str, stamp: Timestamp, **primitives: list) -> SceneEntity:
+    return SceneEntity(timestamp=stamp, frame_id=FRAME, id=name, frame_locked=False,
+                       **primitives)
+
+
+def scene_update(config: ScenarioConfig, state: SceneState) -> SceneUpdate:
+    """The scene of ``state`` (entities ``ENTITIES``, each replacing its previous self)."""
+    seconds, nanoseconds = divmod(round(state.time_s * 1e9), 1_000_000_000)
+    stamp = Timestamp(sec=seconds, nsec=nanoseconds)
+    present = np.isfinite(state.drones_m).all(axis=1)
+    drones = [i for i in range(state.drones_m.shape[0]) if present[i]]
+    sensing = state.sensing
+    targets = [r for r in range(state.targets_m.shape[0])
+               if np.isfinite(state.targets_m[r]).all()]
+    ground_z = (float(np.mean(state.targets_m[targets, 2])) if targets else 0.0)
+    camera = config.camera
+    fov = [segment for i in drones
+           for segment in fov_segments(state.drones_m[i], camera.half_fov_deg,
+                                       camera.range_max_m, ground_z)]
+    edges = [state.drones_m[[i, j]] for i, j in config.swarm.graph.edges
+             if present[i] and present[j]]
+    estimates = state.estimates_m.reshape(-1, 3)
+    estimates = estimates[np.isfinite(estimates).all(axis=1)]
+    delta = config.control.collision_distance_m
+    entities = [
+        _entity("drones", stamp,
+                spheres=[_sphere(state.drones_m[i], DRONE_DIAMETER_M,
+                                 SENSING_COLOUR if sensing[i] else IDLE_COLOUR)
+                         for i in drones],
+                texts=[_label(state.drones_m[i], str(i), (0.1, 0.1, 0.1, 1.0))
+                       for i in drones]),
+        _entity("collision", stamp,
+                spheres=[_sphere(state.drones_m[i], 2.0 * delta, COLLISION_COLOUR)
+                         for i in drones]),
+        _entity("fov", stamp, lines=[_lines(fov, FOV_COLOUR, 1.0)] if fov else []),
+        _entity("graph", stamp, lines=[_lines(edges, GRAPH_COLOUR, 2.0)] if edges else []),
+        _entity("targets", stamp,
+                spheres=[_sphere(state.targets_m[r], TARGET_DIAMETER_M, TARGET_COLOUR)
+                         for r in targets],
+                texts=[_label(state.targets_m[r], f"T{r}", TARGET_COLOUR) for r in targets]),
+        _entity("estimates", stamp,
+                spheres=[_sphere(p, ESTIMATE_DIAMETER_M, ESTIMATE_COLOUR) for p in estimates]),
+    ]
+    return SceneUpdate(entities=entities)
+
+
+class SceneAssembler:
+    """Gathers truth and telemetry per step; calls ``emit(state)`` for every complete scene
+    step (every ``period_steps`` steps). Not thread-safe: feed it from one thread."""
+
+    def __init__(self, config: ScenarioConfig, emit: Callable[[SceneState], None],
+                 period_steps: int | None = None) -> None:
+        self.config = config
+        self.n, self.m = config.swarm.n_drones, len(config.targets)
+        self.period_steps = period_steps or max(1, round(SCENE_PERIOD_S / config.scenario.dt_s))
+        self._emit = emit
+        self._pending: dict[int, _Pending] = {}
+        self.emitted = 0
+        self.incomplete = 0  # scene steps given up: a message never came
+
+    def on_truth(self, truth: TruthWire) -> None:
+        pending = self._slot(truth.step)
+        if pending is not None:
+            pending.truth = truth
+            self._check(truth.step)
+
+    def on_telemetry(self, tel: TelemetryWire) -> None:
+        pending = self._slot(tel.step)
+        if pending is not None and 0 <= tel.drone < self.n:
+            pending.telemetry[tel.drone] = tel
+            self._check(tel.step)
+
+    def _slot(self, step: int) -> _Pending | None:
+        if step % self.period_steps:
+            return None
+        return self._pending.setdefault(step, _Pending(self.n))
+
+    def _check(self, step: int) -> None:
+        pending = self._pending[step]
+        if pending.truth is None or any(t is None for t in pending.telemetry):
+            return
+        del self._pending[step]
+        for older in [k for k in self._pending if k < step]:
+            del self._pending[older]
+            self.incomplete += 1
+        self.emitted += 1
+        self._emit(pending.state(self.m))
+
+
+class _Pending:
+    def __init__(self, n: int) -> None:
+        self.truth: TruthWire | None = None
+        self.telemetry: list[TelemetryWire | None] = [None] * n
+
+    def state(self, m: int) -> SceneState:
+        truth = self.truth
+        assert truth is not None
+        telemetry = [t for t in self.telemetry if t is not None]
+        weights = np.array([wire_values(t.weights) for t in telemetry]).reshape(len(telemetry), m)
+        estimates = np.array([wire_values(t.estimates)[:, :3] for t in telemetry]).reshape(
+            len(telemetry), m, 3)
+        return SceneState(step=truth.step, time_s=truth.time_s,
+                          drones_m=wire_values(truth.drone_positions),
+                          targets_m=wire_values(truth.target_positions), weights=weights,
+                          estimates_m=estimates)
+
+

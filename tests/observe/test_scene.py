@@ -1,0 +1,149 @@
+"""swarm.observe.scene: the swarm as Foxglove SceneUpdates, in every recording (issue 17,
+point 2).
+
+A recording of Case 2 is read back with the MCAP reader and the protobuf decoder of the MCAP
+project, and every scene is checked against the run's truth and telemetry: the drones and the
+targets where the truth has them, drones coloured by what their weights say, every estimate,
+the FoV pyramids, the graph, the collision spheres, and the sim-time stamps.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import msgspec
+import numpy as np
+import pytest
+
+from swarm.messages.wire import TelemetryWire, TruthWire
+from swarm.models.camera import fov_segments
+from swarm.observe.recording import record_reference
+from swarm.observe.scene import (
+    ENTITIES,
+    IDLE_COLOUR,
+    SENSING_COLOUR,
+    SceneAssembler,
+    SceneState,
+    scene_update,
+)
+from swarm.runs.checks import SENSING_WEIGHT
+from swarm.runs.record import RunRecord
+from swarm.scenario.config import load_config
+from tests.helpers.scene_tools import decode_scene, read_scenes
+from tests.helpers.wire_samples import telemetry_message
+
+ROOT = Path(__file__).resolve().parents[2]
+CASE2 = ROOT / "configs" / "case2.toml"
+DURATION_S = 4.0
+SEED = 0
+
+
+def _xyz(p) -> list[float]:
+    return [p.x, p.y, p.z]
+
+
+def _rgba(c) -> tuple[float, float, float, float]:
+    return (c.r, c.g, c.b, c.a)
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory: pytest.TempPathFactory) -> tuple[RunRecord, list]:
+    config = load_config(CASE2).with_duration(DURATION_S)
+    directory = tmp_path_factory.mktemp("scene")
+    record = record_reference(config, SEED, directory)
+    return record, read_scenes(directory)
+
+
+def test_a_scene_every_tenth_of_a_second_in_foxglove_schema_and_sim_time(recorded) -> None:
+    record, scenes = recorded
+    dt_ns = round(record.config.scenario.dt_s * 1e9)
+    steps = [log_time // dt_ns for log_time, *_ in scenes]
+    assert steps == list(range(0, record.n_steps, 5))  # 10 Hz at ΔT = 20 ms
+    for log_time, schema, encoding, scene in scenes:
+        assert (schema, encoding) == ("foxglove.SceneUpdate", "protobuf")
+        assert [e.id for e in scene.entities] == list(ENTITIES)
+        for entity in scene.entities:
+            assert entity.frame_id == "world"
+            assert entity.timestamp.seconds * 10**9 + entity.timestamp.nanos == log_time
+
+
+def test_every_scene_holds_the_truth_and_what_the_drones_report(recorded) -> None:
+    record, scenes = recorded
+    cfg = record.config
+    dt_ns = round(cfg.scenario.dt_s * 1e9)
+    n, m = record.drone_positions_m.shape[1], record.target_positions_m.shape[1]
+    for log_time, _, _, scene in scenes:
+        k = log_time // dt_ns
+        entity = {e.id: e for e in scene.entities}
+        drones = record.drone_positions_m[k]
+        assert [_xyz(s.pose.position) for s in entity["drones"].spheres] == drones.tolist()
+        assert [t.text for t in entity["drones"].texts] == [str(i) for i in range(n)]
+        sensing = record.weights[k].max(axis=1) > SENSING_WEIGHT
+        colours = [_rgba(s.color) for s in entity["drones"].spheres]
+        np.testing.assert_allclose(colours, [SENSING_COLOUR if s else IDLE_COLOUR
+                                             for s in sensing])
+        assert [_xyz(s.pose.position) for s in entity["targets"].spheres] == \
+            record.target_positions_m[k].tolist()
+        assert [t.text for t in entity["targets"].texts] == [f"T{r}" for r in range(m)]
+        estimates = record.estimates[k, :, :, :3].reshape(-1, 3)
+        assert [_xyz(s.pose.position) for s in entity["estimates"].spheres] == \
+            estimates.tolist()
+        collision = entity["collision"].spheres
+        assert [_xyz(s.pose.position) for s in collision] == drones.tolist()
+        assert {s.size.x for s in collision} == {2 * cfg.control.collision_distance_m}
+        (graph,) = entity["graph"].lines
+        assert np.array([_xyz(p) for p in graph.points]).reshape(-1, 2, 3).tolist() == \
+            [drones[[i, j]].tolist() for i, j in cfg.swarm.graph.edges]
+        (fov,) = entity["fov"].lines
+        ground_z = float(np.mean(record.target_positions_m[k, :, 2]))
+        expected = [s for i in range(n)
+                    for s in fov_segments(drones[i], cfg.camera.half_fov_deg,
+                                          cfg.camera.range_max_m, ground_z)]
+        np.testing.assert_allclose(np.array([_xyz(p) for p in fov.points]).reshape(-1, 2, 3),
+                                   np.array(expected), atol=1e-12)
+
+
+def test_a_drone_whose_weights_are_all_low_is_drawn_idle() -> None:
+    config = load_config(CASE2)
+    n, m = config.swarm.n_drones, len(config.targets)
+    weights = np.zeros((n, m))
+    weights[0, 1] = SENSING_WEIGHT + 1e-9
+    weights[1, 0] = SENSING_WEIGHT  # not above the threshold: idle
+    state = SceneState(step=0, time_s=0.0, drones_m=np.arange(3 * n, dtype=float).reshape(n, 3),
+                       targets_m=np.zeros((m, 3)), weights=weights,
+                       estimates_m=np.zeros((n, m, 3)))
+    drones = decode_scene(scene_update(config, state)).entities[0]
+    assert drones.id == "drones"
+    np.testing.assert_allclose([_rgba(s.color) for s in drones.spheres],
+                               [SENSING_COLOUR] + [IDLE_COLOUR] * (n - 1))
+
+
+def _truth(step: int, n: int = 2, m: int = 1) -> TruthWire:
+    return TruthWire.build(step, 0.02 * step, np.zeros((n, 3)), np.ones((m, 3)),
+                           np.zeros((m, 3)))
+
+
+_SAMPLE = telemetry_message()  # a real agent step's telemetry (2 targets, as Case 2)
+
+
+def _telemetry(step: int, drone: int) -> TelemetryWire:
+    return msgspec.structs.replace(_SAMPLE, step=step, drone=drone)
+
+
+def test_the_assembler_waits_for_every_drone_and_gives_up_stale_steps() -> None:
+    config = load_config(CASE2)
+    n, m = config.swarm.n_drones, len(config.targets)
+    got: list[SceneState] = []
+    assembler = SceneAssembler(config, got.append, period_steps=5)
+    assembler.on_truth(_truth(3, n, m))  # not a scene step: ignored
+    for drone in range(n - 1):  # step 5: one drone's telemetry missing
+        assembler.on_telemetry(_telemetry(5, drone))
+    assembler.on_truth(_truth(5, n, m))
+    assert got == []
+    for drone in reversed(range(n)):  # step 10 in any order, truth last
+        assembler.on_telemetry(_telemetry(10, drone))
+    assembler.on_truth(_truth(10, n, m))
+    assert [s.step for s in got] == [10]
+    assert (assembler.emitted, assembler.incomplete) == (1, 1)  # step 5 given up
+    assembler.on_telemetry(_telemetry(5, n - 1))  # too late: a new, lone slot
+    assert [s.step for s in got] == [10]
