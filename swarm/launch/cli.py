@@ -40,6 +40,7 @@ from swarm.scenario.cli_common import (
     EXIT_FAILED,
     ConfigError,
     OneLineParser,
+    add_foxglove_argument,
     add_gcs_arguments,
     exit_code,
     fail,
@@ -80,6 +81,7 @@ def build_parser() -> OneLineParser:
                         help=f"vehicle i talks to agent i on UDP PORT+i (default: "
                              f"{DEFAULT_MAVLINK_BASE}, or the next free, quiet block)")
     add_gcs_arguments(parser)
+    add_foxglove_argument(parser)
     parser.add_argument("--run-id", type=run_id, default=None,
                         help="Zenoh key prefix vigil/<run-id>/ (default: random)")
     parser.add_argument("--log-dir", default=None, metavar="DIR",
@@ -237,6 +239,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         return fail(PROG, "--gcs gives the world's emulated vehicles a ground-station link; "
                           "with --inprocess there are none, and real autopilots have their own "
                           "(PX4 SITL sends to 14550)")
+    if args.foxglove is not None and args.inprocess:
+        return fail(PROG, "--foxglove serves a process swarm as it runs; --inprocess runs as "
+                          "fast as it can: record it (--record DIR) and open DIR/run.mcap in "
+                          "Foxglove")
     options = None
     if not args.inprocess:
         try:
@@ -247,7 +253,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                 agent_restarts=args.agent_restarts,
                 agent_restart_delay_s=args.agent_restart_delay, sitl=sitl,
                 sitl_params=tuple(args.sitl_params), kill_agents=tuple(args.kill_agents),
-                gcs=args.gcs, gcs_control=args.gcs_control)
+                gcs=args.gcs, gcs_control=args.gcs_control, foxglove=args.foxglove)
         except ValueError as err:
             return fail(PROG, str(err))
     terminate_on_sigterm()

@@ -63,6 +63,7 @@ from swarm.net.transport import (
     local_endpoint,
 )
 from swarm.observe.collector import TelemetryCollector
+from swarm.observe.live_view import LiveView, LiveViewError
 from swarm.observe.recording import AutopilotState, Recorder, RecordingError, RecordingMetadata
 from swarm.runs.record import RunRecord
 from swarm.scenario.cli_common import DEFAULT_MAVLINK_BASE
@@ -110,6 +111,8 @@ class LaunchOptions:
     # (sim_world.gcs_link); with gcs_control the ground station may command them.
     gcs: tuple[str, int] | None = None
     gcs_control: bool = False
+    # Serve the live 3D view for Foxglove at this (host, port) (swarm.observe.live_view).
+    foxglove: tuple[str, int] | None = None
     # Record telemetry, beacons, detections and truth to record_dir/run.mcap
     # (swarm.observe.recording).
     record_dir: Path | None = None
@@ -352,6 +355,7 @@ class SwarmLauncher:
         self.session: zenoh.Session | None = None
         self._subscribers: list = []
         self.recorder: Recorder | None = None
+        self.live_view: LiveView | None = None
         self.recording_problem: str | None = None  # the recording is incomplete, and why
         self.telemetry_listeners: tuple[TelemetryListener, ...] = ()
         self.agent_losses: list[AgentLoss] = []
@@ -657,12 +661,16 @@ class SwarmLauncher:
         """One decode, every consumer: the collector, then each listener."""
         self.collector.on_telemetry(key, tel)
         self._record(key, tel)
+        if self.live_view is not None:
+            self.live_view.put(tel)
         for listener in self.telemetry_listeners:
             listener(tel)
 
     def _on_truth(self, key: str, truth: TruthWire) -> None:
         self.collector.on_truth(key, truth)
         self._record(key, truth)
+        if self.live_view is not None:
+            self.live_view.put(truth)
 
     def _record(self, _key: str,
                 message: TelemetryWire | TruthWire | BeaconWire | CameraFrameWire) -> None:
@@ -700,6 +708,7 @@ class SwarmLauncher:
                 self.config_path = str(write_resolved_config(self.config,
                                                              self.log_dir / "config.json"))
             self._open_recorder()
+            self._open_live_view()
             if self.options.external_vehicles:
                 self.start_vehicles()
             # The agents start with the world, not after it: their imports overlap the
@@ -785,6 +794,16 @@ class SwarmLauncher:
             raise MissionError(str(err)) from None
         self.log(f"launch-swarm: recording to {self.recorder.path}")
 
+    def _open_live_view(self) -> None:
+        if self.options.foxglove is None:
+            return
+        try:
+            self.live_view = LiveView(self.config, *self.options.foxglove)
+        except LiveViewError as err:
+            raise MissionError(str(err)) from None
+        self.log(f"launch-swarm: live 3D view for Foxglove at {self.live_view.url} "
+                 f"(Open connection → Foxglove WebSocket)")
+
     def _close_recorder(self) -> None:
         recorder, self.recorder = self.recorder, None
         if recorder is None:
@@ -802,6 +821,9 @@ class SwarmLauncher:
         once."""
         self._leave_zenoh()
         self._close_recorder()
+        view, self.live_view = self.live_view, None
+        if view is not None:
+            view.close()
         self.stop_children()  # the agents' end actions go out before their autopilots stop
         if self.sitl_fleet is not None:
             self.sitl_fleet.stop()

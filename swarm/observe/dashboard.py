@@ -564,13 +564,15 @@ class InProcessFeed:
 def watch(connect_endpoint: str, run_id: str, config: ScenarioConfig, *,
           console: Console | None = None, headless: bool = False,
           settings: DashboardSettings | None = None,
-          stop: threading.Event | None = None, connect_timeout_s: float = 30.0) -> str:
+          stop: threading.Event | None = None, connect_timeout_s: float = 30.0,
+          foxglove: tuple[str, int] | None = None) -> str:
     """Show the dashboard of the swarm ``run_id`` behind the Zenoh router at
     ``connect_endpoint`` until its world says done or aborted (or ``stop`` is set).
 
     Returns the last mission state seen ("waiting", "running", "done", "aborted", or
     "unknown" if the world's clock never arrived). Raises ``TransportError`` when the router
     cannot be reached within ``connect_timeout_s`` (the world may still be starting).
+    ``foxglove``: also serve the live 3D view there (``swarm.observe.live_view``).
     """
     from swarm.messages.wire import ClockWire
     from swarm.net.observer import join_router, subscribe_observer
@@ -588,9 +590,24 @@ def watch(connect_endpoint: str, run_id: str, config: ScenarioConfig, *,
     session = join_router([connect_endpoint], 0.0, connect_timeout_s=connect_timeout_s,
                           tls=config.security.identity(OBSERVER_ROLE))  # one try
     state = "unknown"
+    view = None
     try:
+        on_telemetry, on_truth = dashboard.on_telemetry_sample, None
+        if foxglove is not None:
+            from swarm.observe.live_view import LiveView
+
+            view = LiveView(config, *foxglove)
+            console.print(f"swarm-dashboard: live 3D view for Foxglove at {view.url}")
+
+            def on_telemetry(key, tel, _view=view):
+                dashboard.on_telemetry_sample(key, tel)
+                _view.put(tel)
+
+            def on_truth(_key, truth, _view=view):
+                _view.put(truth)
+
         subscribers = subscribe_observer(  # held: a subscriber lives as long as its handle
-            session, keys, codec, rejections, on_telemetry=dashboard.on_telemetry_sample,
+            session, keys, codec, rejections, on_telemetry=on_telemetry, on_truth=on_truth,
             on_clock=lambda _k, c: clock.put(0, c))
         with dashboard:
             while not stop.wait(0.1):
@@ -606,6 +623,8 @@ def watch(connect_endpoint: str, run_id: str, config: ScenarioConfig, *,
             sub.undeclare()
     finally:
         session.close()
+        if view is not None:
+            view.close()
     return state
 
 
@@ -613,11 +632,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     """``python -m swarm.observe.dashboard CONFIG --connect ENDPOINT --run-id ID [--duration S]
     [--headless]``: exit 0 when the mission completed, 1 otherwise, 2 on a bad command line."""
     from swarm.net.transport import TransportError, check_tls_endpoints
+    from swarm.observe.live_view import LiveViewError
     from swarm.scenario.cli_common import (
         EXIT_FAILED,
         EXIT_OK,
         ConfigError,
         OneLineParser,
+        add_foxglove_argument,
         exit_code,
         fail,
         fail_on,
@@ -637,6 +658,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                         help="the swarm's simulated seconds (default: scenario.duration_s)")
     parser.add_argument("--headless", action="store_true",
                         help="no live display: a one-line log every few simulated seconds")
+    add_foxglove_argument(parser)
     args = parser.parse_args(argv)
     try:
         config = load_scenario(args.config, args.duration)
@@ -648,8 +670,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return fail(prog, str(err))
     terminate_on_sigterm()
     try:
-        state = watch(args.connect, args.run_id, config, headless=args.headless)
-    except TransportError as err:
+        state = watch(args.connect, args.run_id, config, headless=args.headless,
+                      foxglove=args.foxglove)
+    except (TransportError, LiveViewError) as err:
         return fail_on(prog, err)
     except KeyboardInterrupt as err:
         return exit_code(err)

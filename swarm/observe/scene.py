@@ -76,6 +76,9 @@ class SceneState:
     targets_m: Array  # (M, 3) true positions
     weights: Array  # (N, M)
     estimates_m: Array  # (N, M, 3) estimated target positions
+    psi0: Array | None = None  # (N, M) λ̄ − ε of each drone's copy
+    slacks: Array | None = None  # (N, M)
+    velocities_m_s: Array | None = None  # (N, 3) commanded
 
     @property
     def sensing(self) -> NDArray[np.bool_]:
@@ -211,12 +214,18 @@ class _Pending:
         truth = self.truth
         assert truth is not None
         telemetry = [t for t in self.telemetry if t is not None]
-        weights = np.array([wire_values(t.weights) for t in telemetry]).reshape(len(telemetry), m)
-        estimates = np.array([wire_values(t.estimates)[:, :3] for t in telemetry]).reshape(
-            len(telemetry), m, 3)
+        n = len(telemetry)
+
+        def stack(field: str, shape: tuple[int, ...]) -> Array:
+            return np.array([wire_values(getattr(t, field)) for t in telemetry]).reshape(shape)
+
         return SceneState(step=truth.step, time_s=truth.time_s,
                           drones_m=wire_values(truth.drone_positions),
-                          targets_m=wire_values(truth.target_positions), weights=weights,
-                          estimates_m=estimates)
+                          targets_m=wire_values(truth.target_positions),
+                          weights=stack("weights", (n, m)),
+                          estimates_m=np.array([wire_values(t.estimates)[:, :3]
+                                                for t in telemetry]).reshape(n, m, 3),
+                          psi0=stack("psi0", (n, m)), slacks=stack("slacks", (n, m)),
+                          velocities_m_s=stack("velocity", (n, 3)))
 
 

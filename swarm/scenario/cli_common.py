@@ -96,8 +96,8 @@ def port(text: str) -> int:
 
 
 def gcs_address(text: str) -> tuple[str, int]:
-    """``--gcs HOST:PORT``, or ``PORT`` alone for 127.0.0.1; the host must resolve to IPv4
-    (the vehicles' sockets are IPv4, as SITL's links)."""
+    """``HOST:PORT`` (``--gcs``, ``--foxglove``), or ``PORT`` alone for 127.0.0.1; the host
+    must resolve to IPv4 (the vehicles' sockets are IPv4, as SITL's links)."""
     host, sep, number = text.rpartition(":")
     host = host if sep else "127.0.0.1"
     try:
@@ -110,6 +110,17 @@ def gcs_address(text: str) -> tuple[str, int]:
             f"want HOST:PORT with an IPv4 host and a port in [1, 65535], e.g. "
             f"127.0.0.1:14550 (got {text!r}: {err})") from None
     return host, checked
+
+
+FOXGLOVE_DEFAULT: typing.Final = ("127.0.0.1", 8765)  # Foxglove's default WebSocket port
+
+
+def add_foxglove_argument(parser: argparse.ArgumentParser) -> None:
+    """``--foxglove [HOST:PORT]``: serve the live 3D view (``swarm.observe.live_view``)."""
+    parser.add_argument("--foxglove", type=gcs_address, nargs="?", const=FOXGLOVE_DEFAULT,
+                        default=None, metavar="HOST:PORT",
+                        help="serve a live 3D view to Foxglove/Lichtblick (Open connection → "
+                             "Foxglove WebSocket, ws://HOST:PORT; default 127.0.0.1:8765)")
 
 
 def add_gcs_arguments(parser: argparse.ArgumentParser) -> None:

@@ -24,11 +24,16 @@ def read_scenes(recording: Path) -> list[tuple[int, str, str, Any]]:
                 in reader.iter_decoded_messages(topics=[SCENE_TOPIC])]
 
 
-def decode_scene(update: SceneUpdate) -> Any:
-    """One SceneUpdate as a reader of its protobuf bytes sees it."""
+def decode_scene_bytes(data: bytes) -> Any:
+    """A SceneUpdate's protobuf bytes, decoded with the schema Foxglove's SDK gives."""
     schema = SceneUpdate.get_schema()
     decoder = DecoderFactory().decoder_for(
         schema.encoding, Schema(id=1, name=schema.name, encoding=schema.encoding,
                                 data=schema.data))
     assert decoder is not None
-    return decoder(update.encode())
+    return decoder(data)
+
+
+def decode_scene(update: SceneUpdate) -> Any:
+    """One SceneUpdate as a reader of its protobuf bytes sees it."""
+    return decode_scene_bytes(update.encode())

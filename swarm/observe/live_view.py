@@ -1,0 +1,141 @@
+"""The running swarm, live in Foxglove: a WebSocket server of Foxglove's own SDK.
+
+``LiveView(config, host, port)`` serves, on Foxglove's WebSocket protocol (open
+``ws://HOST:PORT`` in Foxglove or Lichtblick):
+
+* ``scene``: the 3D scene (``swarm.observe.scene``: ``foxglove.SceneUpdate``, 10 Hz of sim
+  time), the same one every recording holds;
+* ``drone/<i>/plot`` (JSON): per drone, at the scene's rate, what a Plot panel shows —
+  ``lambda_margin`` (λ̄ − ε per target), ``weights``, ``slacks`` and ``speed_m_s`` (‖u‖);
+
+stamped in sim time (ns since the mission started), which the server also broadcasts as its
+clock. It is fed like any observer, by ``put`` with the telemetry and truth messages the
+launcher (or the standalone watcher) already receives, so the swarm publishes nothing more
+for it. ``put`` only enqueues; a thread of its own builds and sends, so a slow viewer never
+holds up a Zenoh callback (the SDK drops the oldest messages for a client that falls
+behind). ``close`` stops the thread and the server.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+from typing import Any, Final
+
+import foxglove
+import numpy as np
+from foxglove import Capability
+from foxglove.channels import SceneUpdateChannel
+
+from swarm.errors import VigilError
+from swarm.messages.wire import TelemetryWire, TruthWire
+from swarm.observe.scene import SCENE_TOPIC, SceneAssembler, SceneState, scene_update
+from swarm.scenario.config import ScenarioConfig
+
+DEFAULT_HOST: Final = "127.0.0.1"
+DEFAULT_PORT: Final = 8765  # Foxglove's default for its WebSocket connection
+SERVER_NAME: Final = "vigil"
+_STOP: Final = object()
+
+
+class LiveViewError(VigilError, RuntimeError):
+    """The live view cannot be served (e.g. its port is taken)."""
+
+
+def plot_topic(drone: int) -> str:
+    return f"drone/{drone}/plot"
+
+
+def plot_schema(n_targets: int) -> dict[str, Any]:
+    per_target = {"type": "array", "items": {"type": "number"}, "minItems": n_targets,
+                  "maxItems": n_targets}
+    return {"title": "vigil.DronePlot", "type": "object", "properties": {
+        "time_s": {"type": "number", "description": "sim time [s]"},
+        "lambda_margin": per_target | {"description": "λ̄ − ε of this drone's copy, per target"},
+        "weights": per_target | {"description": "sensing weight per target"},
+        "slacks": per_target | {"description": "HOCBF slack per target"},
+        "speed_m_s": {"type": "number", "description": "‖u‖, the commanded speed [m/s]"},
+    }}
+
+
+def plot_values(state: SceneState, drone: int) -> dict[str, Any]:
+    """What ``drone/<drone>/plot`` carries for one scene."""
+    def listed(values: np.ndarray | None) -> list[float]:
+        return [] if values is None else [float(v) for v in values[drone]]
+
+    speed = (float(np.linalg.norm(state.velocities_m_s[drone]))
+             if state.velocities_m_s is not None else float("nan"))
+    return {"time_s": state.time_s, "lambda_margin": listed(state.psi0),
+            "weights": listed(state.weights), "slacks": listed(state.slacks),
+            "speed_m_s": speed}
+
+
+class LiveView:
+    """A Foxglove WebSocket server of the running swarm (see the module docstring)."""
+
+    def __init__(self, config: ScenarioConfig, host: str = DEFAULT_HOST,
+                 port: int = DEFAULT_PORT) -> None:
+        self.config, self.host = config, host
+        self._dt_ns = round(config.scenario.dt_s * 1e9)
+        self._context = foxglove.Context()
+        try:
+            self._server = foxglove.start_server(
+                name=SERVER_NAME, host=host, port=port, context=self._context,
+                capabilities=[Capability.Time])
+        except Exception as err:  # the SDK raises its own error types for a taken port
+            raise LiveViewError(f"cannot serve the Foxglove live view on {host}:{port}: "
+                                f"{err}") from None
+        self._scene = SceneUpdateChannel(SCENE_TOPIC, context=self._context)
+        schema = plot_schema(len(config.targets))
+        self._plots = [foxglove.Channel(plot_topic(i), schema=schema, context=self._context)
+                       for i in range(config.swarm.n_drones)]
+        self._assembler = SceneAssembler(config, self._send)
+        self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
+        self._thread = threading.Thread(target=self._run, name="vigil-live-view", daemon=True)
+        self._closed = False
+        self.sent = 0
+        self._thread.start()
+
+    @property
+    def port(self) -> int:
+        return int(self._server.port)
+
+    @property
+    def url(self) -> str:
+        """Where Foxglove connects (Open connection → Foxglove WebSocket)."""
+        return f"ws://{self.host}:{self.port}"
+
+    def put(self, message: TelemetryWire | TruthWire) -> None:
+        """Hand over a telemetry or truth message (any thread; returns at once)."""
+        if not self._closed:
+            self._queue.put(message)
+
+    def _run(self) -> None:
+        while (message := self._queue.get()) is not _STOP:
+            if isinstance(message, TelemetryWire):
+                self._assembler.on_telemetry(message)
+            elif isinstance(message, TruthWire):
+                self._assembler.on_truth(message)
+
+    def _send(self, state: SceneState) -> None:
+        stamp = state.step * self._dt_ns
+        self._server.broadcast_time(stamp)
+        self._scene.log(scene_update(self.config, state), log_time=stamp)
+        for i, channel in enumerate(self._plots):
+            channel.log(plot_values(state, i), log_time=stamp)
+        self.sent += 1
+
+    def close(self) -> None:
+        """Stop building and serving; safe to call more than once."""
+        if self._closed:
+            return
+        self._closed = True
+        self._queue.put(_STOP)
+        self._thread.join(timeout=5.0)
+        self._server.stop()
+
+    def __enter__(self) -> LiveView:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
