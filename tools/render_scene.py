@@ -1,0 +1,114 @@
+"""Draw a recording's 3D scene with matplotlib, primitive by primitive, as a 3D panel would.
+
+    python tools/render_scene.py runs/case2 docs/case2_scene.png [--time S]
+
+It reads the ``scene`` channel of ``DIR/run.mcap`` (``foxglove.SceneUpdate``, protobuf) with
+the MCAP reader and the MCAP project's protobuf decoder, takes the scene at ``--time`` (default:
+the last one) and draws exactly its primitives: spheres as discs of their colour (the
+translucent collision spheres as rings of radius Δ in the horizontal plane), LINE_LIST lines as
+segments, texts at their positions. The README's picture of the live view comes from here: no
+Foxglove or Lichtblick app runs headless on this project's machines (Lichtblick is on npm only
+as a library to embed), so this draws what they would be sent.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory
+from mpl_toolkits.mplot3d.art3d import Line3DCollection
+
+from swarm.observe.recording import locate
+from swarm.observe.scene import SCENE_TOPIC
+
+RING_POINTS = 48
+
+
+def read_scenes(recording: Path) -> list[tuple[int, str, str, Any]]:
+    """(log_time ns, schema name, channel encoding, decoded SceneUpdate) of every scene."""
+    with locate(recording).open("rb") as handle:
+        reader = make_reader(handle, decoder_factories=[DecoderFactory()])
+        return [(message.log_time, schema.name, channel.message_encoding, decoded)
+                for schema, channel, message, decoded
+                in reader.iter_decoded_messages(topics=[SCENE_TOPIC])]
+
+
+def _xyz(p: Any) -> list[float]:
+    return [p.x, p.y, p.z]
+
+
+def _rgba(c: Any) -> tuple[float, float, float, float]:
+    return (c.r, c.g, c.b, c.a)
+
+
+def draw_scene(scene: Any, title: str = "") -> Figure:
+    """One decoded SceneUpdate, drawn (equal scale on x and y)."""
+    figure = Figure(figsize=(9.0, 6.6), dpi=110, layout="constrained")
+    FigureCanvasAgg(figure)
+    ax = figure.add_subplot(projection="3d")
+    ax.computed_zorder = False
+    points: list[list[float]] = []
+    for entity in scene.entities:
+        for line in entity.lines:
+            ends = np.array([_xyz(p) for p in line.points]).reshape(-1, 2, 3)
+            ax.add_collection3d(Line3DCollection(ends, colors=[_rgba(line.color)],
+                                                 linewidths=line.thickness * 0.8))
+            points += ends.reshape(-1, 3).tolist()
+        for sphere in entity.spheres:
+            centre, colour = _xyz(sphere.pose.position), _rgba(sphere.color)
+            if colour[3] < 0.5:  # translucent: a ring of its radius around the centre
+                angle = np.linspace(0.0, 2 * np.pi, RING_POINTS)
+                radius = sphere.size.x / 2
+                ax.plot(centre[0] + radius * np.cos(angle), centre[1] + radius * np.sin(angle),
+                        np.full(RING_POINTS, centre[2]), color=colour[:3], alpha=0.6, lw=0.8)
+            else:
+                ax.scatter(*centre, color=[colour], s=900 * sphere.size.x ** 2,
+                           depthshade=False, edgecolors="k", linewidths=0.4)
+            points.append(centre)
+        for text in entity.texts:
+            ax.text(*_xyz(text.pose.position), text.text, color=_rgba(text.color), fontsize=8)
+    cloud = np.array(points) if points else np.zeros((1, 3))
+    low, high = cloud.min(axis=0), cloud.max(axis=0)
+    centre, span = (low + high) / 2, np.maximum(high - low, 1.0) * 1.05
+    for setter, c, s in zip((ax.set_xlim, ax.set_ylim, ax.set_zlim), centre, span, strict=True):
+        setter(c - s / 2, c + s / 2)
+    ax.set_box_aspect(tuple(span), zoom=1.2)
+    ax.set_xlabel("x east [m]")
+    ax.set_ylabel("y north [m]")
+    ax.set_zlabel("z up [m]")
+    ax.view_init(elev=24, azim=-62)
+    ax.set_title(title)
+    return figure
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("recording", type=Path, help="a --record directory or its run.mcap")
+    parser.add_argument("out", type=Path, help="the PNG to write")
+    parser.add_argument("--time", type=float, default=None, metavar="S",
+                        help="sim time of the scene (default: the last one)")
+    args = parser.parse_args(argv)
+    scenes = read_scenes(args.recording)
+    if not scenes:
+        print(f"render_scene: {args.recording}: no scene channel", file=sys.stderr)
+        return 1
+    if args.time is None:
+        log_time, _, _, scene = scenes[-1]
+    else:
+        log_time, _, _, scene = min(scenes, key=lambda s: abs(s[0] - args.time * 1e9))
+    figure = draw_scene(scene, f"recorded scene at t = {log_time / 1e9:.1f} s "
+                               f"(foxglove.SceneUpdate, drawn primitive by primitive)")
+    figure.savefig(args.out)
+    print(f"render_scene: wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
