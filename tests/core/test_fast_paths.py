@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from hypothesis import assume, given, settings
+from hypothesis import assume, example, given, settings
 from hypothesis import strategies as st
 
 from swarm.core import icf
@@ -74,12 +74,20 @@ def _pair(target, distance, cosine, azimuth):
 
 @EXAMPLES
 @given(st.tuples(COORDS, COORDS, COORDS), DISTANCES, COSINES, ANGLES)
+# At the angular threshold the smooth step is flat: the readable gradient is exactly 0 and the
+# fast one 2e-15 (found by a CI run).
+@example(target=(0.0, 0.0, 0.0), distance=3.0, cosine=PARAMS.cos_alpha_th,
+         azimuth=1.3455147415689412)
 def test_perception_scalars_equal_perception_terms(target, distance, cosine, azimuth) -> None:
     drone, target = _pair(target, distance, cosine, azimuth)
     readable = perception_terms(drone, target, PARAMS)
     weight, grad, unit, dist, proj = perception_scalars(tuple(drone), tuple(target), CONSTANTS)
     _close(weight, readable.weight, 1.0)
-    _close(grad, readable.weight_grad_drone)
+    # ∂w/∂p is a sum of products of factors in [0, 1] and derivatives of order 1/d, so its
+    # round-off scales with 1/d even where the gradient itself vanishes.
+    grad_scale = max(float(np.max(np.abs(readable.weight_grad_drone))),
+                     1.0 / readable.distance_m)
+    _close(grad, readable.weight_grad_drone, grad_scale)
     _close(unit, readable.unit_bearing, 1.0)
     _close(dist, readable.distance_m)
     _close(np.reshape(proj, (3, 3)), readable.projector, 1.0)
@@ -110,6 +118,7 @@ EXPONENTS = st.sampled_from([-10.0, -5.0, -2.0])
 
 @EXAMPLES
 @given(EIGENVALUES, ROTATIONS, EXPONENTS)
+@example(eigenvalues=[4.0, 4.0, 0.75], angles=(0.0, 0.0, 0.0), p=-10.0)  # found by a run
 def test_smooth_min_scalars_equal_smooth_min_eigenvalue(eigenvalues, angles, p) -> None:
     gramian = _gramian(eigenvalues, angles)
     readable = smooth_min_eigenvalue(gramian, p)
@@ -117,11 +126,16 @@ def test_smooth_min_scalars_equal_smooth_min_eigenvalue(eigenvalues, angles, p) 
     value, lam, g, hess, theta = smooth_min_scalars(tuple(float(x) for x in raw), p)
     _close(value, readable.value)
     _close(lam, readable.eigenvalues)
-    _close(g, readable.eigen_gradient)
+    _close(g, readable.eigen_gradient, 1.0)  # weights in [0, 1] summing to 1
+    # Second derivatives are sums of terms of order f/λ_min² that may cancel (with p = −10
+    # and λ = 4, 4, 0.75, h_00 is 1.6e-6 from terms near 1.3; the fast form's round-off was
+    # 1.8e-15): judged against that natural size, not against what is left after the sum.
+    natural = abs(float(readable.value)) / float(np.min(readable.eigenvalues)) ** 2  # floored
     h = readable.eigen_hessian
-    _close(hess, [h[0, 0], h[1, 1], h[2, 2], h[0, 1], h[0, 2], h[1, 2]], float(np.abs(h).max()))
+    _close(hess, [h[0, 0], h[1, 1], h[2, 2], h[0, 1], h[0, 2], h[1, 2]],
+           max(float(np.abs(h).max()), natural))
     t = readable.divided_differences
-    _close(theta, [t[0, 1], t[0, 2], t[1, 2]], float(np.abs(t).max()))
+    _close(theta, [t[0, 1], t[0, 2], t[1, 2]], max(float(np.abs(t).max()), natural))
 
 
 @EXAMPLES
