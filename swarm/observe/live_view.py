@@ -23,13 +23,20 @@ import threading
 from typing import Any, Final
 
 import foxglove
-import numpy as np
 from foxglove import Capability
 from foxglove.channels import SceneUpdateChannel
 
 from swarm.errors import VigilError
 from swarm.messages.wire import TelemetryWire, TruthWire
-from swarm.observe.scene import SCENE_TOPIC, SceneAssembler, SceneState, scene_update
+from swarm.observe.scene import (
+    SCENE_TOPIC,
+    SceneAssembler,
+    SceneState,
+    plot_schema,
+    plot_topic,
+    plot_values,
+    scene_update,
+)
 from swarm.scenario.config import ScenarioConfig
 
 DEFAULT_HOST: Final = "127.0.0.1"
@@ -40,34 +47,6 @@ _STOP: Final = object()
 
 class LiveViewError(VigilError, RuntimeError):
     """The live view cannot be served (e.g. its port is taken)."""
-
-
-def plot_topic(drone: int) -> str:
-    return f"drone/{drone}/plot"
-
-
-def plot_schema(n_targets: int) -> dict[str, Any]:
-    per_target = {"type": "array", "items": {"type": "number"}, "minItems": n_targets,
-                  "maxItems": n_targets}
-    return {"title": "vigil.DronePlot", "type": "object", "properties": {
-        "time_s": {"type": "number", "description": "sim time [s]"},
-        "lambda_margin": per_target | {"description": "λ̄ − ε of this drone's copy, per target"},
-        "weights": per_target | {"description": "sensing weight per target"},
-        "slacks": per_target | {"description": "HOCBF slack per target"},
-        "speed_m_s": {"type": "number", "description": "‖u‖, the commanded speed [m/s]"},
-    }}
-
-
-def plot_values(state: SceneState, drone: int) -> dict[str, Any]:
-    """What ``drone/<drone>/plot`` carries for one scene."""
-    def listed(values: np.ndarray | None) -> list[float]:
-        return [] if values is None else [float(v) for v in values[drone]]
-
-    speed = (float(np.linalg.norm(state.velocities_m_s[drone]))
-             if state.velocities_m_s is not None else float("nan"))
-    return {"time_s": state.time_s, "lambda_margin": listed(state.psi0),
-            "weights": listed(state.weights), "slacks": listed(state.slacks),
-            "speed_m_s": speed}
 
 
 class LiveView:

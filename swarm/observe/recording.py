@@ -65,7 +65,15 @@ from swarm.messages.wire import (
     WireError,
 )
 from swarm.observe.collector import TelemetryCollector
-from swarm.observe.scene import SCENE_TOPIC, SceneAssembler, SceneState, scene_update
+from swarm.observe.scene import (
+    SCENE_TOPIC,
+    SceneAssembler,
+    SceneState,
+    plot_schema,
+    plot_topic,
+    plot_values,
+    scene_update,
+)
 from swarm.runs.record import RunRecord
 from swarm.runs.reference import StepCallback, run_reference
 from swarm.scenario.config import ConfigError, ScenarioConfig, config_from_dict, config_to_data
@@ -566,6 +574,12 @@ class Recorder:
             topic=SCENE_TOPIC, message_encoding=scene.encoding,
             schema_id=self._writer.register_schema(name=scene.name, encoding="protobuf",
                                                    data=scene.data))
+        plot = plot_schema(len(cfg.targets))
+        plot_id = self._writer.register_schema(name=plot["title"], encoding="jsonschema",
+                                               data=json.dumps(plot).encode())
+        for i in range(cfg.swarm.n_drones):
+            self._channels[plot_topic(i)] = self._writer.register_channel(
+                topic=plot_topic(i), message_encoding="json", schema_id=plot_id)
 
     def put(self, message: Recordable, received_ns: int | None = None) -> None:
         """Queue a message for writing; ``received_ns``: wall time of receipt (default now)."""
@@ -597,13 +611,18 @@ class Recorder:
             self._scene.on_truth(message)
 
     def _write_scene(self, state: SceneState) -> None:
-        """The 3D scene of one instant, beside the messages it was built from."""
-        channel = self._channels[SCENE_TOPIC]
-        sequence = self._sequence.get(channel, 0)
-        self._sequence[channel] = sequence + 1
-        self._writer.add_message(channel_id=channel, log_time=state.step * self._dt_ns,
-                                 data=scene_update(self.metadata.config, state).encode(),
-                                 publish_time=time.time_ns(), sequence=sequence)
+        """The 3D scene of one instant and each drone's plot values, beside the messages
+        they were built from."""
+        log_time, now = state.step * self._dt_ns, time.time_ns()
+        items = [(SCENE_TOPIC, scene_update(self.metadata.config, state).encode())]
+        items += [(plot_topic(i), _JSON_ENCODER.encode(plot_values(state, i)))
+                  for i in range(state.weights.shape[0])]
+        for name, data in items:
+            channel = self._channels[name]
+            sequence = self._sequence.get(channel, 0)
+            self._sequence[channel] = sequence + 1
+            self._writer.add_message(channel_id=channel, log_time=log_time, data=data,
+                                     publish_time=now, sequence=sequence)
 
     def _run(self) -> None:
         """Writer thread: every ``DRAIN_PERIOD_S`` write what is queued, flush on schedule,

@@ -18,12 +18,16 @@ order) and hands over a ``SceneState`` every ``period_steps`` steps once it is c
 step still incomplete when a later scene step completes is given up and counted
 (``incomplete``). ``scene_update(config, state)`` turns a state into the message, whose
 ``encode()`` is the protobuf payload and ``SceneUpdate.get_schema()`` its schema.
+``plot_values(state, i)`` is what ``drone/<i>/plot`` carries at the same instant (JSON,
+``plot_schema``): λ̄ − ε per target (``lambda_margin``), weights, slacks and ‖u‖, for a Plot
+panel, live and in recordings alike.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from foxglove.messages import (
@@ -160,6 +164,34 @@ def scene_update(config: ScenarioConfig, state: SceneState) -> SceneUpdate:
                 spheres=[_sphere(p, ESTIMATE_DIAMETER_M, ESTIMATE_COLOUR) for p in estimates]),
     ]
     return SceneUpdate(entities=entities)
+
+
+def plot_topic(drone: int) -> str:
+    return f"drone/{drone}/plot"
+
+
+def plot_schema(n_targets: int) -> dict[str, Any]:
+    per_target = {"type": "array", "items": {"type": "number"}, "minItems": n_targets,
+                  "maxItems": n_targets}
+    return {"title": "vigil.DronePlot", "type": "object", "properties": {
+        "time_s": {"type": "number", "description": "sim time [s]"},
+        "lambda_margin": per_target | {"description": "λ̄ − ε of this drone's copy, per target"},
+        "weights": per_target | {"description": "sensing weight per target"},
+        "slacks": per_target | {"description": "HOCBF slack per target"},
+        "speed_m_s": {"type": "number", "description": "‖u‖, the commanded speed [m/s]"},
+    }}
+
+
+def plot_values(state: SceneState, drone: int) -> dict[str, Any]:
+    """What ``drone/<drone>/plot`` carries for one scene."""
+    def listed(values: np.ndarray | None) -> list[float]:
+        return [] if values is None else [float(v) for v in values[drone]]
+
+    speed = (float(np.linalg.norm(state.velocities_m_s[drone]))
+             if state.velocities_m_s is not None else float("nan"))
+    return {"time_s": state.time_s, "lambda_margin": listed(state.psi0),
+            "weights": listed(state.weights), "slacks": listed(state.slacks),
+            "speed_m_s": speed}
 
 
 class SceneAssembler:

@@ -9,11 +9,13 @@ the FoV pyramids, the graph, the collision spheres, and the sim-time stamps.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import msgspec
 import numpy as np
 import pytest
+from mcap.reader import make_reader
 
 from swarm.messages.wire import TelemetryWire, TruthWire
 from swarm.models.camera import fov_segments
@@ -24,6 +26,7 @@ from swarm.observe.scene import (
     SENSING_COLOUR,
     SceneAssembler,
     SceneState,
+    plot_topic,
     scene_update,
 )
 from swarm.runs.checks import SENSING_WEIGHT
@@ -47,15 +50,15 @@ def _rgba(c) -> tuple[float, float, float, float]:
 
 
 @pytest.fixture(scope="module")
-def recorded(tmp_path_factory: pytest.TempPathFactory) -> tuple[RunRecord, list]:
+def recorded(tmp_path_factory: pytest.TempPathFactory) -> tuple[RunRecord, list, Path]:
     config = load_config(CASE2).with_duration(DURATION_S)
     directory = tmp_path_factory.mktemp("scene")
     record = record_reference(config, SEED, directory)
-    return record, read_scenes(directory)
+    return record, read_scenes(directory), directory
 
 
 def test_a_scene_every_tenth_of_a_second_in_foxglove_schema_and_sim_time(recorded) -> None:
-    record, scenes = recorded
+    record, scenes, _ = recorded
     dt_ns = round(record.config.scenario.dt_s * 1e9)
     steps = [log_time // dt_ns for log_time, *_ in scenes]
     assert steps == list(range(0, record.n_steps, 5))  # 10 Hz at ΔT = 20 ms
@@ -68,7 +71,7 @@ def test_a_scene_every_tenth_of_a_second_in_foxglove_schema_and_sim_time(recorde
 
 
 def test_every_scene_holds_the_truth_and_what_the_drones_report(recorded) -> None:
-    record, scenes = recorded
+    record, scenes, _ = recorded
     cfg = record.config
     dt_ns = round(cfg.scenario.dt_s * 1e9)
     n, m = record.drone_positions_m.shape[1], record.target_positions_m.shape[1]
@@ -101,6 +104,26 @@ def test_every_scene_holds_the_truth_and_what_the_drones_report(recorded) -> Non
                                           cfg.camera.range_max_m, ground_z)]
         np.testing.assert_allclose(np.array([_xyz(p) for p in fov.points]).reshape(-1, 2, 3),
                                    np.array(expected), atol=1e-12)
+
+
+def test_each_drones_plot_channel_holds_its_margins_weights_slacks_and_speed(
+        recorded) -> None:
+    record, scenes, directory = recorded
+    config = record.config
+    dt_ns = round(config.scenario.dt_s * 1e9)
+    with (directory / "run.mcap").open("rb") as handle:
+        plots = [(channel.topic, message.log_time, json.loads(message.data))
+                 for _, channel, message in make_reader(handle).iter_messages(
+                     topics=[plot_topic(i) for i in range(config.swarm.n_drones)])]
+    assert len(plots) == len(scenes) * config.swarm.n_drones
+    for topic, log_time, values in plots:
+        k, i = log_time // dt_ns, int(topic.split("/")[1])
+        assert values["time_s"] == pytest.approx(k * config.scenario.dt_s)
+        assert values["lambda_margin"] == record.psi0[k, i].tolist()
+        assert values["weights"] == record.weights[k, i].tolist()
+        assert values["slacks"] == record.slacks[k, i].tolist()
+        assert values["speed_m_s"] == pytest.approx(
+            float(np.linalg.norm(record.velocities_m_s[k, i])), rel=1e-12)
 
 
 def test_a_drone_whose_weights_are_all_low_is_drawn_idle() -> None:
