@@ -38,23 +38,9 @@ from rich.text import Text
 
 from swarm.core.agent import StepDiagnostics
 from swarm.messages.wire import TelemetryCounters, TelemetryWire, telemetry_from_diagnostics
+from swarm.observe.events import URGENT_LABELS, WARNED_COUNTERS, increased_counters
 from swarm.scenario.config import ScenarioConfig
 
-# Counters that raise a warning line when they go up, with how the line names them.
-WARNED_COUNTERS: tuple[tuple[str, str], ...] = (
-    ("late_steps", "late steps"),
-    ("stale_neighbour_messages", "stale neighbour messages"),
-    ("qp_fallbacks", "QP fallbacks"),
-    ("rejected_messages", "rejected messages"),
-    ("vehicle_events", "vehicle events (not asked for)"),
-    ("rate_limit_releases", "rate-box releases"),
-    ("reference_resets", "reference resets"),
-    ("lambda_breaches", "targets its λ̄ copy let fall below ε − tol"),
-)
-# Of those, the ones whose every increase is printed at once (not held back by
-# ``warning_period_s``): a drone saying it cannot hold a target, its vehicle not as asked.
-URGENT_COUNTERS: frozenset[str] = frozenset({"lambda_breaches", "vehicle_events"})
-_URGENT_LABELS = frozenset(label for name, label in WARNED_COUNTERS if name in URGENT_COUNTERS)
 # Short labels of the same counters in the drone table's "events" column.
 _EVENT_LABELS = {"late_steps": "late", "stale_neighbour_messages": "stale",
                  "qp_fallbacks": "fb", "rejected_messages": "rej", "vehicle_events": "veh",
@@ -168,18 +154,6 @@ def target_rows(latest: Sequence[TelemetryWire], epsilon: float,
     return rows
 
 
-def increased_counters(reported: TelemetryCounters | None,
-                       now: TelemetryCounters) -> list[tuple[str, int, int]]:
-    """(label, increase, total) of every warned counter that went up since ``reported``."""
-    out = []
-    for name, label in WARNED_COUNTERS:
-        total = getattr(now, name)
-        before = 0 if reported is None else getattr(reported, name)
-        if total > before:
-            out.append((label, total - before, total))
-    return out
-
-
 class Dashboard:
     """Live tables on a terminal, one-line logs otherwise; a context manager.
 
@@ -273,7 +247,7 @@ class Dashboard:
                 if not increases:
                     continue
                 last = self._last_warning.get(drone)
-                urgent = any(label in _URGENT_LABELS for label, _, _ in increases)
+                urgent = any(label in URGENT_LABELS for label, _, _ in increases)
                 if not (force or urgent) and last is not None and (
                         now - last < self.settings.warning_period_s):
                     continue

@@ -3,8 +3,9 @@
 ``foxglove_layout(config)`` builds it with Foxglove's own SDK (``foxglove.layouts``): the 3D
 panel on the ``scene`` topic, following the ``world`` frame, and three Plot panels over every
 drone's ``drone/<i>/plot`` channel — λ̄ − ε per target (the localization margin: the barrier
-keeps it at or above 0), the sensing weights, and ‖u‖. The same topics are served live
-(``--foxglove``) and written in every recording, so one layout fits both.
+keeps it at or above 0), the sensing weights and ‖u‖ — above the Log panel of ``log``. The
+same topics are served live (``--foxglove``) and written in every recording, so one layout
+fits both.
 
     python -m swarm.observe.layout configs/case2.toml docs/foxglove_layout.json
 
@@ -22,6 +23,8 @@ from pathlib import Path
 from foxglove.layouts import (
     BaseRendererSceneUpdateTopicSettings,
     Layout,
+    LogConfig,
+    LogPanel,
     PlotConfig,
     PlotPanel,
     PlotSeries,
@@ -31,7 +34,7 @@ from foxglove.layouts import (
     ThreeDeePanel,
 )
 
-from swarm.observe.scene import FRAME, SCENE_TOPIC, plot_topic
+from swarm.observe.scene import FRAME, LOG_TOPIC, SCENE_TOPIC, plot_topic
 from swarm.scenario.config import ConfigError, ScenarioConfig, load_config
 
 
@@ -57,8 +60,10 @@ def foxglove_layout(config: ScenarioConfig) -> Layout:
     weights = _plot("sensing weights", [(plot_path(i, f"weights[{r}]"), f"drone {i} T{r}")
                                         for i in range(n) for r in range(m)])
     speeds = _plot("‖u‖ [m/s]", [(plot_path(i, "speed_m_s"), f"drone {i}") for i in range(n)])
+    log = LogPanel(title="drones' warnings", config=LogConfig(topic_to_render=LOG_TOPIC))
     plots = SplitContainer(direction="column", items=[
-        SplitItem(content=margins), SplitItem(content=weights), SplitItem(content=speeds)])
+        SplitItem(content=margins), SplitItem(content=weights), SplitItem(content=speeds),
+        SplitItem(content=log)])
     return Layout(content=SplitContainer(direction="row", items=[
         SplitItem(proportion=3, content=scene), SplitItem(proportion=2, content=plots)]))
 

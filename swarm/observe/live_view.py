@@ -5,6 +5,7 @@
 
 * ``scene``: the 3D scene (``swarm.observe.scene``: ``foxglove.SceneUpdate``, 10 Hz of sim
   time), the same one every recording holds;
+* ``log``: ``foxglove.Log`` lines when a drone's warned counters rise (``LogBook``);
 * ``drone/<i>/plot`` (JSON): per drone, at the scene's rate, what a Plot panel shows —
   ``lambda_margin`` (λ̄ − ε per target), ``weights``, ``slacks`` and ``speed_m_s`` (‖u‖);
 
@@ -24,12 +25,14 @@ from typing import Any, Final
 
 import foxglove
 from foxglove import Capability
-from foxglove.channels import SceneUpdateChannel
+from foxglove.channels import LogChannel, SceneUpdateChannel
 
 from swarm.errors import VigilError
 from swarm.messages.wire import TelemetryWire, TruthWire
 from swarm.observe.scene import (
+    LOG_TOPIC,
     SCENE_TOPIC,
+    LogBook,
     SceneAssembler,
     SceneState,
     plot_schema,
@@ -65,6 +68,8 @@ class LiveView:
             raise LiveViewError(f"cannot serve the Foxglove live view on {host}:{port}: "
                                 f"{err}") from None
         self._scene = SceneUpdateChannel(SCENE_TOPIC, context=self._context)
+        self._log = LogChannel(LOG_TOPIC, context=self._context)
+        self._log_book = LogBook()
         schema = plot_schema(len(config.targets))
         self._plots = [foxglove.Channel(plot_topic(i), schema=schema, context=self._context)
                        for i in range(config.swarm.n_drones)]
@@ -102,6 +107,8 @@ class LiveView:
         self._scene.log(scene_update(self.config, state), log_time=stamp)
         for i, channel in enumerate(self._plots):
             channel.log(plot_values(state, i), log_time=stamp)
+        for line in self._log_book.lines(state):
+            self._log.log(line, log_time=stamp)
         self.sent += 1
 
     def close(self) -> None:

@@ -46,7 +46,7 @@ from typing import IO, Any, Final
 
 import msgspec
 import numpy as np
-from foxglove.messages import SceneUpdate
+from foxglove.messages import Log, SceneUpdate
 from mcap.exceptions import EndOfFile, InvalidMagic, McapError
 from mcap.records import Channel, DataEnd, Message, Metadata
 from mcap.stream_reader import StreamReader
@@ -66,7 +66,9 @@ from swarm.messages.wire import (
 )
 from swarm.observe.collector import TelemetryCollector
 from swarm.observe.scene import (
+    LOG_TOPIC,
     SCENE_TOPIC,
+    LogBook,
     SceneAssembler,
     SceneState,
     plot_schema,
@@ -529,6 +531,7 @@ class Recorder:
                                  ) from None
         self._dt_ns = round(cfg.scenario.dt_s * 1e9)
         self._scene = SceneAssembler(cfg, self._write_scene)
+        self._log_book = LogBook()
         self._channels: dict[str, int] = {}
         self._sequence: dict[int, int] = {}
         self._writer = Writer(self._file, chunk_size=CHUNK_BYTES,
@@ -574,6 +577,11 @@ class Recorder:
             topic=SCENE_TOPIC, message_encoding=scene.encoding,
             schema_id=self._writer.register_schema(name=scene.name, encoding="protobuf",
                                                    data=scene.data))
+        log = Log.get_schema()
+        self._channels[LOG_TOPIC] = self._writer.register_channel(
+            topic=LOG_TOPIC, message_encoding=log.encoding,
+            schema_id=self._writer.register_schema(name=log.name, encoding="protobuf",
+                                                   data=log.data))
         plot = plot_schema(len(cfg.targets))
         plot_id = self._writer.register_schema(name=plot["title"], encoding="jsonschema",
                                                data=json.dumps(plot).encode())
@@ -617,6 +625,7 @@ class Recorder:
         items = [(SCENE_TOPIC, scene_update(self.metadata.config, state).encode())]
         items += [(plot_topic(i), _JSON_ENCODER.encode(plot_values(state, i)))
                   for i in range(state.weights.shape[0])]
+        items += [(LOG_TOPIC, line.encode()) for line in self._log_book.lines(state)]
         for name, data in items:
             channel = self._channels[name]
             sequence = self._sequence.get(channel, 0)

@@ -18,6 +18,7 @@ order) and hands over a ``SceneState`` every ``period_steps`` steps once it is c
 step still incomplete when a later scene step completes is given up and counted
 (``incomplete``). ``scene_update(config, state)`` turns a state into the message, whose
 ``encode()`` is the protobuf payload and ``SceneUpdate.get_schema()`` its schema.
+``LogBook().lines(state)`` is what the ``log`` topic (``foxglove.Log``) says at that instant.
 ``plot_values(state, i)`` is what ``drone/<i>/plot`` carries at the same instant (JSON,
 ``plot_schema``): λ̄ − ε per target (``lambda_margin``), weights, slacks and ‖u‖, for a Plot
 panel, live and in recordings alike.
@@ -34,6 +35,8 @@ from foxglove.messages import (
     Color,
     LinePrimitive,
     LinePrimitiveLineType,
+    Log,
+    LogLevel,
     Point3,
     Pose,
     Quaternion,
@@ -46,9 +49,10 @@ from foxglove.messages import (
 )
 from numpy.typing import NDArray
 
-from swarm.messages.wire import TelemetryWire, TruthWire
+from swarm.messages.wire import TelemetryCounters, TelemetryWire, TruthWire
 from swarm.models.camera import fov_segments
 from swarm.observe.collector import wire_values
+from swarm.observe.events import URGENT_LABELS, increased_counters
 from swarm.runs.checks import SENSING_WEIGHT
 from swarm.scenario.config import ScenarioConfig
 
@@ -56,6 +60,7 @@ Array = NDArray[np.float64]
 
 FRAME = "world"
 SCENE_TOPIC = "scene"
+LOG_TOPIC = "log"
 SCENE_PERIOD_S = 0.1  # a scene every this much sim time (10 Hz): smooth, and small on disk
 DRONE_DIAMETER_M = 0.3
 TARGET_DIAMETER_M = 0.3
@@ -83,6 +88,7 @@ class SceneState:
     psi0: Array | None = None  # (N, M) λ̄ − ε of each drone's copy
     slacks: Array | None = None  # (N, M)
     velocities_m_s: Array | None = None  # (N, 3) commanded
+    counters: tuple[TelemetryCounters, ...] = ()  # each drone's running totals
 
     @property
     def sensing(self) -> NDArray[np.bool_]:
@@ -127,8 +133,7 @@ def _entity(name: str, stamp: Timestamp, **primitives: list) -> SceneEntity:
 
 def scene_update(config: ScenarioConfig, state: SceneState) -> SceneUpdate:
     """The scene of ``state`` (entities ``ENTITIES``, each replacing its previous self)."""
-    seconds, nanoseconds = divmod(round(state.time_s * 1e9), 1_000_000_000)
-    stamp = Timestamp(sec=seconds, nsec=nanoseconds)
+    stamp = _stamp(state.time_s)
     present = np.isfinite(state.drones_m).all(axis=1)
     drones = [i for i in range(state.drones_m.shape[0]) if present[i]]
     sensing = state.sensing
@@ -192,6 +197,38 @@ def plot_values(state: SceneState, drone: int) -> dict[str, Any]:
     return {"time_s": state.time_s, "lambda_margin": listed(state.psi0),
             "weights": listed(state.weights), "slacks": listed(state.slacks),
             "speed_m_s": speed}
+
+
+def _stamp(time_s: float) -> Timestamp:
+    seconds, nanoseconds = divmod(round(time_s * 1e9), 1_000_000_000)
+    return Timestamp(sec=seconds, nsec=nanoseconds)
+
+
+class LogBook:
+    """The ``log`` topic: a ``foxglove.Log`` line for each drone whose warned counters
+    (``swarm.observe.events``) rose since the previous scene — Warning, or Error for an
+    urgent one (a λ̄ breach, a vehicle event) — with what the drone says is wrong now. The
+    totals are running counts, so a scene every 0.1 s misses no increase."""
+
+    def __init__(self) -> None:
+        self._reported: dict[int, TelemetryCounters] = {}
+
+    def lines(self, state: SceneState) -> list[Log]:
+        out = []
+        for drone, counters in enumerate(state.counters):
+            increases = increased_counters(self._reported.get(drone), counters)
+            self._reported[drone] = counters
+            if not increases:
+                continue
+            urgent = any(label in URGENT_LABELS for label, _, _ in increases)
+            what = ", ".join(f"+{inc} {label} ({total} total)"
+                             for label, inc, total in increases)
+            status = counters.vehicle_status or counters.localization_status
+            out.append(Log(timestamp=_stamp(state.time_s),
+                           level=LogLevel.Error if urgent else LogLevel.Warning,
+                           message=what + (f"; now: {status}" if status else ""),
+                           name=f"drone {drone}"))
+        return out
 
 
 class SceneAssembler:
@@ -258,6 +295,7 @@ class _Pending:
                           estimates_m=np.array([wire_values(t.estimates)[:, :3]
                                                 for t in telemetry]).reshape(n, m, 3),
                           psi0=stack("psi0", (n, m)), slacks=stack("slacks", (n, m)),
-                          velocities_m_s=stack("velocity", (n, 3)))
+                          velocities_m_s=stack("velocity", (n, 3)),
+                          counters=tuple(t.counters for t in telemetry))
 
 

@@ -11,7 +11,7 @@ from mcap.reader import make_reader
 
 from swarm.observe.layout import layout_json, main
 from swarm.observe.recording import record_reference
-from swarm.observe.scene import SCENE_TOPIC
+from swarm.observe.scene import LOG_TOPIC, SCENE_TOPIC
 from swarm.scenario.config import load_config
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -48,6 +48,8 @@ def test_every_plotted_path_and_the_3d_topic_are_in_a_recording(tmp_path: Path) 
                 first[channel.topic] = json.loads(message.data)
         topics = {c.topic for c in reader.get_summary().channels.values()}
     assert SCENE_TOPIC in topics
+    (log,) = [p for p in panels if p["panelType"] == "Log"]
+    assert log["config"]["topicToRender"] == LOG_TOPIC and LOG_TOPIC in topics
     paths = [s["value"] for p in panels if p["panelType"] == "Plot"
              for s in p["config"]["paths"]]
     assert len(paths) == 2 * 6 * 2 + 6  # margins and weights per drone and target, speeds

@@ -19,7 +19,7 @@ import pytest
 
 from swarm.launch.launcher import LaunchOptions, SwarmLauncher
 from swarm.observe.live_view import LiveView, LiveViewError, plot_topic
-from swarm.observe.scene import SCENE_TOPIC
+from swarm.observe.scene import LOG_TOPIC, SCENE_TOPIC
 from swarm.scenario.config import load_config
 from tests.helpers.foxglove_client import FoxgloveClient
 from tests.helpers.process_tools import free_tcp_port
@@ -59,6 +59,7 @@ def test_a_websocket_client_watches_the_swarm_in_3d_and_plots(tmp_path: Path) ->
     assert topics[SCENE_TOPIC]["schemaName"] == "foxglove.SceneUpdate"
     assert topics[SCENE_TOPIC]["encoding"] == "protobuf"
     assert {plot_topic(i) for i in range(n)} <= set(topics)
+    assert topics[LOG_TOPIC]["schemaName"] == "foxglove.Log"  # quiet run: no line in it
 
     dt_ns = round(config.scenario.dt_s * 1e9)
     scenes = client.messages[SCENE_TOPIC]

@@ -15,15 +15,17 @@ from pathlib import Path
 import msgspec
 import numpy as np
 import pytest
+from foxglove.messages import LogLevel
 from mcap.reader import make_reader
 
-from swarm.messages.wire import TelemetryWire, TruthWire
+from swarm.messages.wire import TelemetryCounters, TelemetryWire, TruthWire
 from swarm.models.camera import fov_segments
 from swarm.observe.recording import record_reference
 from swarm.observe.scene import (
     ENTITIES,
     IDLE_COLOUR,
     SENSING_COLOUR,
+    LogBook,
     SceneAssembler,
     SceneState,
     plot_topic,
@@ -32,7 +34,7 @@ from swarm.observe.scene import (
 from swarm.runs.checks import SENSING_WEIGHT
 from swarm.runs.record import RunRecord
 from swarm.scenario.config import load_config
-from tests.helpers.scene_tools import decode_scene, read_scenes
+from tests.helpers.scene_tools import decode_log, decode_scene, read_scenes
 from tests.helpers.wire_samples import telemetry_message
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -170,3 +172,28 @@ def test_the_assembler_waits_for_every_drone_and_gives_up_stale_steps() -> None:
     assert (assembler.emitted, assembler.incomplete) == (1, 1)  # step 5 given up
     assembler.on_telemetry(_telemetry(5, n - 1))  # too late: a new, lone slot
     assert [s.step for s in got] == [10]
+
+
+def test_the_log_book_says_which_counters_rose_and_how_badly() -> None:
+    config = load_config(CASE2)
+    n, m = config.swarm.n_drones, len(config.targets)
+    quiet = TelemetryCounters()
+
+    def state(step: int, counters: tuple[TelemetryCounters, ...]) -> SceneState:
+        return SceneState(step=step, time_s=0.02 * step, drones_m=np.zeros((n, 3)),
+                          targets_m=np.zeros((m, 3)), weights=np.zeros((n, m)),
+                          estimates_m=np.zeros((n, m, 3)), counters=counters)
+
+    book = LogBook()
+    assert book.lines(state(0, (quiet,) * n)) == []
+    late = msgspec.structs.replace(quiet, late_steps=3)
+    breach = msgspec.structs.replace(quiet, lambda_breaches=1,
+                                     localization_status="T1 below the floor")
+    lines = [decode_log(line) for line in
+             book.lines(state(5, (late, quiet, breach) + (quiet,) * (n - 3)))]
+    assert [(line.name, line.level, line.message) for line in lines] == [
+        ("drone 0", LogLevel.Warning.value, "+3 late steps (3 total)"),
+        ("drone 2", LogLevel.Error.value,
+         "+1 targets its λ̄ copy let fall below ε − tol (1 total); now: T1 below the floor")]
+    assert lines[0].timestamp.seconds * 10**9 + lines[0].timestamp.nanos == 100_000_000
+    assert book.lines(state(10, (late, quiet, breach) + (quiet,) * (n - 3))) == []
