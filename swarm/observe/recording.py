@@ -141,7 +141,8 @@ def git_commit(source_dir: Path | None = None) -> str:
     Only when the package directory sits at the top of a git checkout (an editable install
     or a run from the repository); never fails, e.g. when git is not installed.
     """
-    package_dir = (source_dir or Path(__file__).resolve().parent).resolve()
+    # The ``swarm`` package (this module is swarm/observe/recording.py).
+    package_dir = (source_dir or Path(__file__).resolve().parents[1]).resolve()
     try:
         result = subprocess.run(
             ["git", "-C", str(package_dir), "rev-parse", "--show-toplevel", "HEAD"],
