@@ -190,10 +190,13 @@ class Sampler(threading.Thread):
 
     def run(self) -> None:
         next_sample = 0.0
+        was_running = False
         while not self.halt.is_set():
             t = now_s()
             children = list(self.launcher.children)
             running = self.mission_running()
+            if running != was_running:  # the mission's window opens or closes: sample now
+                was_running, next_sample = running, t
             for child in children:  # every loop: a line's time is when it was first seen
                 self._read_log(child, self._trace(child), t)
             if t >= next_sample:
@@ -243,22 +246,36 @@ class Sampler(threading.Thread):
         trace.log_lines += [(t, line) for line in lines if line.strip()]
 
 
+def _window_samples(samples: list, start: float, end: float) -> tuple | None:
+    """The first and last sample inside [start, end]; for a window shorter than the sampling
+    period (a short run on a fast machine), the samples just around it instead; None
+    without two distinct samples."""
+    inside = [sample for sample in samples if start <= sample[0] <= end]
+    if len(inside) >= 2 and inside[-1][0] > inside[0][0]:
+        return inside[0], inside[-1]
+    before = [sample for sample in samples if sample[0] <= start]
+    after = [sample for sample in samples if sample[0] >= end]
+    if before and after and after[0][0] > before[-1][0]:
+        return before[-1], after[0]
+    return None
+
+
 def _cpu_share(trace: ChildTrace, start: float, end: float) -> float | None:
     """The process's CPU time over [start, end] / (end − start), from the samples nearest
-    inside the window; None without two samples in it."""
-    inside = [(t, c) for t, c in trace.cpu if start <= t <= end]
-    if len(inside) < 2 or inside[-1][0] - inside[0][0] <= 0:
+    inside the window (``_window_samples``); None without two samples."""
+    pair = _window_samples(trace.cpu, start, end)
+    if pair is None:
         return None
-    (t0, c0), (t1, c1) = inside[0], inside[-1]
+    (t0, c0), (t1, c1) = pair
     return (c1 - c0) / (t1 - t0)
 
 
 def _thread_shares(trace: ChildTrace, start: float, end: float) -> dict[str, float] | None:
-    """``_cpu_share`` by thread group (cores), None without two samples in the window."""
-    inside = [(t, c) for t, c in trace.thread_cpu if start <= t <= end]
-    if len(inside) < 2 or inside[-1][0] - inside[0][0] <= 0:
+    """``_cpu_share`` by thread group (cores), None without two samples."""
+    pair = _window_samples(trace.thread_cpu, start, end)
+    if pair is None:
         return None
-    (t0, c0), (t1, c1) = inside[0], inside[-1]
+    (t0, c0), (t1, c1) = pair
     return {group: (b - a) / (t1 - t0)
             for group, a, b in zip(THREAD_GROUPS, c0, c1, strict=True)}
 
