@@ -42,7 +42,12 @@ from typing import Any
 
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
-from sim_world.vehicle import AUTOPILOT_COMPONENT_ID, SYS_STATUS_SENSORS, EmulatedVehicle
+from sim_world.vehicle import (
+    AUTOPILOT_COMPONENT_ID,
+    SYS_STATUS_SENSORS,
+    EmulatedVehicle,
+    PacketCollector,
+)
 from swarm.mavlink.parse import parse_bytes
 from swarm.mavlink.sitl import GeoPoint
 from swarm.models import frames
@@ -63,14 +68,6 @@ _MISSION_UPLOADS = frozenset({"MISSION_COUNT", "MISSION_ITEM", "MISSION_ITEM_INT
 _UNKNOWN_HEADING = 0xFFFF
 
 
-class _Sink:
-    def __init__(self) -> None:
-        self.packets: list[bytes] = []
-
-    def write(self, buf: bytes | bytearray) -> None:
-        self.packets.append(bytes(buf))
-
-
 def _int_clamped(value: float, bound: int) -> int:
     return max(-bound, min(bound, round(value)))
 
@@ -85,7 +82,7 @@ class GcsLink:
                              "(the GCS link holds no key): drop the GCS control or the signing")
         self.vehicle, self.geo_origin, self.control = vehicle, geo_origin, control
         self._log = log or (lambda line: None)
-        self._out = _Sink()
+        self._out = PacketCollector()
         self._tx = mavlink2.MAVLink(self._out, srcSystem=vehicle.system_id,
                                     srcComponent=AUTOPILOT_COMPONENT_ID)
         self._rx = mavlink2.MAVLink(None, srcSystem=vehicle.system_id,

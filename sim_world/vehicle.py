@@ -238,6 +238,7 @@ __all__ = [
     "EmulatedVehicle",
     "Flavour",
     "FlightModel",
+    "PacketCollector",
     "Start",
     "VehicleEndpoint",
 ]
@@ -477,7 +478,7 @@ class _Return:
     since_s: float  # start of the phase
 
 
-class _Collector:
+class PacketCollector:
     """File-like sink for pymavlink's MAVLink.send(): keeps the packed packets."""
 
     def __init__(self) -> None:
@@ -594,7 +595,7 @@ class EmulatedVehicle:
         self._rx = mavlink2.MAVLink(None, srcSystem=self._sysid,
                                     srcComponent=AUTOPILOT_COMPONENT_ID)
         self._rx.robust_parsing = True
-        self._out = _Collector()
+        self._out = PacketCollector()
         self._tx = mavlink2.MAVLink(self._out, srcSystem=self._sysid,
                                     srcComponent=AUTOPILOT_COMPONENT_ID)
         self._signing_clock = signing_clock

@@ -10,12 +10,11 @@ lockstep Case 1 must then:
   station costs the mission nothing (MAVProxy's own 1 Hz HEARTBEAT reaches every vehicle);
 * show MAVProxy every vehicle (its "Detected vehicle" line per system id), with
   GLOBAL_POSITION_INT that places each drone where the run's record has it at the end (distance
-  from the world's geodetic origin by a haversine written here).
+  from the world's geodetic origin by the tests' haversine, tests/helpers/geo_tools.py).
 """
 
 from __future__ import annotations
 
-import math
 import time
 from pathlib import Path
 
@@ -26,21 +25,14 @@ from swarm.launch.launcher import LaunchOptions, SwarmLauncher
 from swarm.runs.checks import check_invariants
 from swarm.runs.reference import run_reference
 from swarm.scenario.config import load_config
+from tests.helpers.geo_tools import haversine_m
 from tests.helpers.process_tools import free_udp_block, start_mavproxy
 
 ROOT = Path(__file__).resolve().parents[2]
 CASE1 = ROOT / "configs" / "case1.toml"
 DURATION_S = 3.0
 SEED = 0
-EARTH_RADIUS_M = 6_371_008.8
 COMPARED = ("drone_positions_m", "velocities_m_s", "estimates", "lambda_bar", "weights")
-
-
-def _haversine_m(a_lat: float, a_lon: float, b_lat: float, b_lon: float) -> float:
-    p1, p2 = math.radians(a_lat), math.radians(b_lat)
-    dp, dl = p2 - p1, math.radians(b_lon - a_lon)
-    h = math.sin(dp / 2) ** 2 + math.cos(p1) * math.cos(p2) * math.sin(dl / 2) ** 2
-    return 2 * EARTH_RADIUS_M * math.asin(math.sqrt(h))
 
 
 def _last_global_positions(tlog: Path) -> dict[int, object]:
@@ -88,7 +80,7 @@ def test_mavproxy_as_ground_station_sees_the_whole_fleet_and_the_mission_is_unch
     final = record.drone_positions_m[-1]
     for i in range(n):
         gpi = last[i + 1]
-        horizontal = _haversine_m(lat0, lon0, gpi.lat * 1e-7, gpi.lon * 1e-7)
+        horizontal = haversine_m(lat0, lon0, gpi.lat * 1e-7, gpi.lon * 1e-7)
         # The last stream may be a step or two before the record's last row (≤ 6 cm a step).
         assert abs(horizontal - float(np.hypot(final[i, 0], final[i, 1]))) < 0.2, i
         assert abs(gpi.alt / 1000.0 - (alt0 + final[i, 2])) < 0.2, i

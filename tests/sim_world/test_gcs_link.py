@@ -1,14 +1,13 @@
 """sim_world.gcs_link: a ground station's link to an emulated vehicle (issue 17, point 4).
 
 In process: the streams and their rates, where GLOBAL_POSITION_INT puts the vehicle on Earth
-(checked with a haversine written here, not with the code under test), and the rule that a
+(checked with tests/helpers/geo_tools.haversine_m, not the code under test), and the rule that a
 ground station watches but cannot fly the vehicle unless it is allowed to. On real UDP: a
 fleet's ground-station links all reach one GCS socket, one system id per vehicle.
 """
 
 from __future__ import annotations
 
-import math
 import select
 import socket
 import threading
@@ -24,9 +23,9 @@ from sim_world.fleet import VehicleFleet, serve_forever
 from sim_world.gcs_link import GCS_STREAM_PERIODS_S, GcsLink
 from sim_world.vehicle import EmulatedVehicle, Flavour
 from swarm.mavlink.sitl import GeoPoint
+from tests.helpers.geo_tools import haversine_m
 
 ORIGIN = GeoPoint(-35.363261, 149.165230, 584.0)
-EARTH_RADIUS_M = 6_371_008.8  # mean radius (IUGG)
 GCS_SYSTEM = 255
 
 
@@ -43,13 +42,6 @@ class Gcs:
 
     def decode(self, packets: list[bytes]) -> list:
         return [m for p in packets for m in (self.parser.parse_buffer(p) or [])]
-
-
-def _haversine_m(a_lat: float, a_lon: float, b_lat: float, b_lon: float) -> float:
-    p1, p2 = math.radians(a_lat), math.radians(b_lat)
-    dp, dl = p2 - p1, math.radians(b_lon - a_lon)
-    h = math.sin(dp / 2) ** 2 + math.cos(p1) * math.cos(p2) * math.sin(dl / 2) ** 2
-    return 2 * EARTH_RADIUS_M * math.asin(math.sqrt(h))
 
 
 def _vehicle(flavour: Flavour = "px4", start: str = "air", **kwargs) -> EmulatedVehicle:
@@ -74,8 +66,8 @@ def test_streams_at_their_rates_and_puts_the_vehicle_where_it_is_on_earth() -> N
     gpi = last["GLOBAL_POSITION_INT"]
     # 30 m east, 40 m south, 5 m up of the world origin (= this vehicle's home).
     lat, lon = gpi.lat * 1e-7, gpi.lon * 1e-7
-    assert _haversine_m(ORIGIN.lat_deg, ORIGIN.lon_deg, lat, lon) == pytest.approx(50.0, abs=0.02)
-    assert _haversine_m(ORIGIN.lat_deg, ORIGIN.lon_deg, ORIGIN.lat_deg, lon) == pytest.approx(
+    assert haversine_m(ORIGIN.lat_deg, ORIGIN.lon_deg, lat, lon) == pytest.approx(50.0, abs=0.02)
+    assert haversine_m(ORIGIN.lat_deg, ORIGIN.lon_deg, ORIGIN.lat_deg, lon) == pytest.approx(
         30.0, abs=0.02)
     assert lat < ORIGIN.lat_deg and lon > ORIGIN.lon_deg  # south-east
     assert gpi.relative_alt == 5000 and gpi.alt == round((ORIGIN.alt_m + 5.0) * 1000)
@@ -211,7 +203,7 @@ def test_one_ground_station_socket_sees_every_vehicle_and_cannot_arm_any(served_
         assert 1 <= counts[(system, "HEARTBEAT")] <= 3
     # Vehicle 2 (system 2) stands 4 m east of vehicle 1 (and of the origin), 3 m up.
     east = positions[2]
-    assert _haversine_m(ORIGIN.lat_deg, ORIGIN.lon_deg, east.lat * 1e-7, east.lon * 1e-7) == \
+    assert haversine_m(ORIGIN.lat_deg, ORIGIN.lon_deg, east.lat * 1e-7, east.lon * 1e-7) == \
         pytest.approx(4.0, abs=0.02)
     assert east.relative_alt == 3000
     # Commands to each vehicle, at the address it sends from: denied, nothing changes.
