@@ -89,3 +89,24 @@ def test_every_section_runs_and_writes_its_fields(tmp_path: Path) -> None:
     assert startup["summary"]["launch_to_streaming_s"]["median"] > 0
     assert startup["summary"]["agent_hwm_mib_max"]["median"] > 0
     assert startup["imports"]["by_package_self_ms"]
+
+
+@pytest.mark.slow
+def test_the_live_view_cost_benchmark_feeds_a_real_viewer_and_prints_the_difference() -> None:
+    """benchmarks/live_view_cost.py at its smallest: two realtime Case 2 seconds each way;
+    the viewer process got every scene (10 Hz) and every drone's plot; the figure is printed
+    (never asserted: timings belong to the benchmark)."""
+    import re
+    import subprocess
+
+    done = subprocess.run(
+        [sys.executable, str(ROOT / "benchmarks" / "live_view_cost.py"), "--duration", "2",
+         "--repeat", "1", "--port", "8797"],
+        cwd=ROOT, capture_output=True, text=True, timeout=180)
+    assert done.returncode == 0, done.stderr[-2000:]
+    (got,) = re.findall(r"viewer got scene (\d+), plots (\d+)", done.stdout)
+    scenes, plots = int(got[0]), int(got[1])
+    # 20 scenes (t = 0.0 … 1.9 s) and a plot per drone each; realtime may give up a scene whose
+    # telemetry came too late (completeness is tested in lockstep: tests/observe/test_live_view)
+    assert 15 <= scenes <= 20 and plots == 6 * scenes
+    assert re.search(r"the live view costs [+-]\d+\.\d % of one core", done.stdout)

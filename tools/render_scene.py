@@ -4,9 +4,10 @@
 
 It reads the ``scene`` channel of ``DIR/run.mcap`` (``foxglove.SceneUpdate``, protobuf) with
 the MCAP reader and the MCAP project's protobuf decoder, takes the scene at ``--time`` (default:
-the last one) and draws exactly its primitives: spheres as discs of their colour (the
-translucent collision spheres as rings of radius Δ in the horizontal plane), LINE_LIST lines as
-segments, texts at their positions. The README's picture of the live view comes from here: no
+the last one) and draws exactly its primitives: spheres as discs of their colour (translucent
+ones — the collision spheres of radius Δ, the uncertainty ellipsoids — as their equator: the
+ellipse of their first two axes, posed as the primitive says), LINE_LIST lines as segments,
+texts at their positions. The README's picture of the live view comes from here: no
 Foxglove or Lichtblick app runs headless on this project's machines (Lichtblick is on npm only
 as a library to embed), so this draws what they would be sent.
 """
@@ -24,6 +25,7 @@ from matplotlib.figure import Figure
 from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 from mpl_toolkits.mplot3d.art3d import Line3DCollection
+from scipy.spatial.transform import Rotation
 
 from swarm.observe.recording import locate
 from swarm.observe.scene import SCENE_TOPIC
@@ -48,6 +50,18 @@ def _rgba(c: Any) -> tuple[float, float, float, float]:
     return (c.r, c.g, c.b, c.a)
 
 
+def _equator(sphere: Any) -> np.ndarray:
+    """(RING_POINTS, 3) points of a sphere primitive's equator: the ellipse of its size's x
+    and y axes, turned by its pose's orientation and placed at its position."""
+    angle = np.linspace(0.0, 2 * np.pi, RING_POINTS)
+    local = np.stack([sphere.size.x / 2 * np.cos(angle), sphere.size.y / 2 * np.sin(angle),
+                      np.zeros(RING_POINTS)], axis=1)
+    q = sphere.pose.orientation
+    rotation = Rotation.from_quat([q.x, q.y, q.z, q.w]) if (q.x, q.y, q.z, q.w) != (0, 0, 0, 0) \
+        else Rotation.identity()  # an unset quaternion means no rotation, as in Foxglove
+    return rotation.apply(local) + np.array(_xyz(sphere.pose.position))
+
+
 def draw_scene(scene: Any, title: str = "") -> Figure:
     """One decoded SceneUpdate, drawn (equal scale on x and y)."""
     figure = Figure(figsize=(9.0, 6.6), dpi=110, layout="constrained")
@@ -63,11 +77,8 @@ def draw_scene(scene: Any, title: str = "") -> Figure:
             points += ends.reshape(-1, 3).tolist()
         for sphere in entity.spheres:
             centre, colour = _xyz(sphere.pose.position), _rgba(sphere.color)
-            if colour[3] < 0.5:  # translucent: a ring of its radius around the centre
-                angle = np.linspace(0.0, 2 * np.pi, RING_POINTS)
-                radius = sphere.size.x / 2
-                ax.plot(centre[0] + radius * np.cos(angle), centre[1] + radius * np.sin(angle),
-                        np.full(RING_POINTS, centre[2]), color=colour[:3], alpha=0.6, lw=0.8)
+            if colour[3] < 0.5:  # translucent: its equator
+                ax.plot(*_equator(sphere).T, color=colour[:3], alpha=0.6, lw=0.8)
             else:
                 ax.scatter(*centre, color=[colour], s=900 * sphere.size.x ** 2,
                            depthshade=False, edgecolors="k", linewidths=0.4)

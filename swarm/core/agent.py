@@ -117,6 +117,7 @@ class StepDiagnostics:
     velocity: Array  # commanded u_i [m/s]
     nominal_velocity: Array  # u_d [m/s]
     estimates: Array  # x̂⁺ per target, (M, n)
+    estimate_covariance: Array  # position block of P⁺ = pinv(W⁺) per target, (M, 3, 3) [m²]
     lambda_bar: Array  # λ̄ of the G copies, (M,)
     psi0: Array
     psi1: Array
@@ -213,6 +214,7 @@ class DroneAgent:
         self._prior_state[:, :3] = guesses
         self._prior_information = np.broadcast_to(np.eye(n), (m, n, n)).copy()
         self._posterior_state = self._prior_state.copy()
+        self._position_covariance = np.broadcast_to(np.eye(3), (m, 3, 3)).copy()  # pinv(I)
         # ICF pair (V, v) packed as one vector: V (M·n·n) then v (M·n).
         self._n_info = m * n * n
         self._icf = np.zeros(self._n_info + m * n)
@@ -489,6 +491,7 @@ class DroneAgent:
             velocity=velocity,
             nominal_velocity=np.array(nominal) if nominal is not _ZERO3 else np.zeros(3),
             estimates=self._posterior_state.copy(),
+            estimate_covariance=np.ascontiguousarray(self._position_covariance),
             lambda_bar=series[0:m], psi0=series[m:2 * m], psi1=series[2 * m:3 * m],
             weights=series[3 * m:4 * m], weight_sum_estimate=series[4 * m:],
             slacks=slacks, weight_slacks=weight_slacks, detected=self._detected,
@@ -507,10 +510,11 @@ class DroneAgent:
         (estimated, communicated or zero), as lists of floats."""
         m, n = self.setup.n_targets, self._n_state
         packed = self._icf
-        posterior_state, self._prior_state, self._prior_information = self._filter(
+        posterior_state, self._prior_state, self._prior_information, covariance = self._filter(
             packed[:self._n_info].reshape(m, n, n), packed[self._n_info:].reshape(m, n),
             self._communicated_velocity if self._single_integrator else None)
         self._posterior_state = posterior_state
+        self._position_covariance = covariance[:, :3, :3]
         estimates = posterior_state.tolist()
         if not self._single_integrator:
             return estimates, [e[3:6] for e in estimates]

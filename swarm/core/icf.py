@@ -88,6 +88,12 @@ def posterior(information: Array, vector: Array, n_agents: int) -> tuple[Array, 
     return pseudo_inverse_psd(information) @ vector, n_agents * information
 
 
+def posterior_covariance(posterior_information: Array) -> Array:
+    """P⁺ = pinv(W⁺): the covariance the drone believes x̂⁺ has (the inverse of 2.9); its
+    position block is the uncertainty ellipsoid a viewer draws."""
+    return pseudo_inverse_psd(posterior_information)
+
+
 def predict(
     posterior_state: Array,
     posterior_information: Array,
@@ -113,9 +119,9 @@ def predict(
 
 class StackedFilter:
     """``posterior`` then ``predict`` for a stack of M targets, with the constants of one drone
-    (N, A_d, Q, ΔT) prepared once (SPEC §5).
+    (N, A_d, Q, ΔT) prepared once (SPEC §5); also ``posterior_covariance``.
 
-    One inverse of V per target serves both steps: pinv(W⁺) = pinv(N V) = pinv(V)/N, and
+    One inverse of V per target serves all three: pinv(W⁺) = pinv(N V) = pinv(V)/N, and
     A pinv(W⁺) Aᵀ is one product with the precomputed (A ⊗ A)ᵀ/N on the row-major flattened
     matrices, so the results equal the per-target calls up to round-off. The stack goes
     through each LAPACK routine once; a Cholesky factorization first tests that every V is
@@ -136,9 +142,9 @@ class StackedFilter:
 
     def __call__(
         self, information: Array, vector: Array, communicated_velocity: Array | None = None
-    ) -> tuple[Array, Array, Array]:
-        """(x̂⁺, x̂⁻, W⁻) of the stack (M, n, n), (M, n); ``communicated_velocity`` (M, 3) is
-        the single-integrator input."""
+    ) -> tuple[Array, Array, Array, Array]:
+        """(x̂⁺, x̂⁻, W⁻, P⁺) of the stack (M, n, n), (M, n); ``communicated_velocity`` (M, 3)
+        is the single-integrator input."""
         if not _lapack.positive_definite(information):
             return _posterior_and_predict_each(
                 information, vector, self.n_agents, self.transition, self.process_noise,
@@ -146,6 +152,7 @@ class StackedFilter:
         m, n = information.shape[0], self._n
         inverse = _lapack.inv_positive_definite(information)
         posterior_state = np.matmul(inverse, vector[..., None])[..., 0]
+        posterior_cov = inverse / self.n_agents
         covariance = np.matmul(inverse.reshape(m, n * n), self._kron_t)
         covariance += self._noise
         prior_information = _lapack.inv_positive_definite(covariance.reshape(m, n, n))
@@ -153,7 +160,7 @@ class StackedFilter:
         prior_state = np.matmul(posterior_state, self._transition_t)
         if communicated_velocity is not None:
             prior_state = prior_state + self.dt_s * communicated_velocity
-        return posterior_state, prior_state, prior_information
+        return posterior_state, prior_state, prior_information, posterior_cov
 
 
 def _posterior_and_predict_each(
@@ -164,15 +171,17 @@ def _posterior_and_predict_each(
     process_noise: float,
     communicated_velocity: Array | None,
     dt_s: float,
-) -> tuple[Array, Array, Array]:
+) -> tuple[Array, Array, Array, Array]:
     posterior_state = np.empty_like(vector)
     prior_state = np.empty_like(vector)
     prior_information = np.empty_like(information)
+    posterior_cov = np.empty_like(information)
     for r in range(information.shape[0]):
         posterior_state[r], info = posterior(information[r], vector[r], n_agents)
+        posterior_cov[r] = posterior_covariance(info)
         prior_state[r], prior_information[r] = predict(
             posterior_state[r], info, transition, process_noise,
             communicated_velocity=(None if communicated_velocity is None
                                    else communicated_velocity[r]),
             dt_s=dt_s)
-    return posterior_state, prior_state, prior_information
+    return posterior_state, prior_state, prior_information, posterior_cov

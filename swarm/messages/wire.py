@@ -63,7 +63,8 @@ Array = NDArray[np.float64]
 _W = TypeVar("_W")
 
 # 3: a consensus message carries one packed float64 block (ConsensusWire.data) and its sizes.
-WIRE_VERSION: Final = 3
+# 4: telemetry carries the position covariance of each estimate (estimate_covariance).
+WIRE_VERSION: Final = 4
 
 MAX_DRONES: Final = 1024  # codec limits: a swarm larger than this is a configuration error
 MAX_TARGETS: Final = 1024
@@ -375,6 +376,7 @@ class TelemetryWire(_Wire, tag="telemetry", kw_only=True):
     velocity: _shaped(3)
     nominal_velocity: _shaped(3)
     estimates: _shaped("targets", "state")
+    estimate_covariance: _shaped("targets", 3, 3)  # position block of P⁺ = pinv(W⁺) [m²]
     lambda_bar: _shaped("targets")
     psi0: _shaped("targets")
     psi1: _shaped("targets")
@@ -412,7 +414,8 @@ class TelemetryWire(_Wire, tag="telemetry", kw_only=True):
         return StepDiagnostics(
             drone_id=self.drone, step=self.step, time_s=self.time_s,
             velocity=a["velocity"], nominal_velocity=a["nominal_velocity"],
-            estimates=a["estimates"], lambda_bar=a["lambda_bar"], psi0=a["psi0"],
+            estimates=a["estimates"], estimate_covariance=a["estimate_covariance"],
+            lambda_bar=a["lambda_bar"], psi0=a["psi0"],
             psi1=a["psi1"], weights=a["weights"], weight_sum_estimate=a["weight_sum_estimate"],
             slacks=a["slacks"], weight_slacks=a["weight_slacks"],
             detected=np.array(self.detected, dtype=bool), control_active=self.control_active,

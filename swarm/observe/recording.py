@@ -236,8 +236,9 @@ def _vector3(values: Any) -> tuple[float, float, float]:
     return (x, y, z)
 
 
-_TELEMETRY_ARRAYS: Final = ("velocity", "nominal_velocity", "estimates", "lambda_bar", "psi0",
-                            "psi1", "weights", "weight_sum_estimate", "slacks", "weight_slacks")
+_TELEMETRY_ARRAYS: Final = ("velocity", "nominal_velocity", "estimates", "estimate_covariance",
+                            "lambda_bar", "psi0", "psi1", "weights", "weight_sum_estimate",
+                            "slacks", "weight_slacks")
 _TELEMETRY_PLAIN: Final = ("drone", "step", "time_s", "control_active", "qp_status",
                            "qp_iterations", "qp_fallback", "qp_solve_us", "step_us",
                            "bearing_error", "missing_neighbour_messages", "rejected_inputs",
@@ -272,7 +273,9 @@ def telemetry_from_json(data: dict[str, Any]) -> TelemetryWire:
         **{name: data[name] if name in data or name not in _ADDED_LATER else _ADDED_LATER[name]
            for name in _TELEMETRY_PLAIN},
         position_m=_vector3(data["position_m"]),
-        **{name: _array(data[name]) for name in _TELEMETRY_ARRAYS},
+        **{name: _array(data[name]) for name in _TELEMETRY_ARRAYS if name in data},
+        **({} if "estimate_covariance" in data else  # absent before wire version 4: unknown
+           {"estimate_covariance": _array(np.full((len(data["lambda_bar"]), 3, 3), np.nan))}),
         detected=tuple(bool(v) for v in data["detected"]), counters=counters)
 
 
@@ -417,6 +420,7 @@ def schemas(n_targets: int, n_state: int) -> dict[str, dict[str, Any]]:
         "missing_neighbour_messages": _COUNT, "rejected_inputs": _COUNT,
         "position_m": vec3, "velocity": vec3, "nominal_velocity": vec3,
         "estimates": _list(_list(_NUMBER, n_state), n_targets),
+        "estimate_covariance": _list(_list(_list(_NUMBER, 3), 3), n_targets),
         **{name: per_target for name in ("lambda_bar", "psi0", "psi1", "weights",
                                          "weight_sum_estimate", "slacks", "weight_slacks")},
         "detected": _list(_BOOL, n_targets),
@@ -437,7 +441,8 @@ def schemas(n_targets: int, n_state: int) -> dict[str, dict[str, Any]]:
     return {
         "telemetry": _object(telemetry, "vigil.Telemetry",
                              "One agent step: filter estimates per target ([x y z vx vy vz] "
-                             "or [x y z]), barrier terms, perception weights, QP result; "
+                             "or [x y z]) and the covariance of their position [m²], "
+                             "barrier terms, perception weights, QP result; "
                              "positions in the world frame (x east, y north, z up) [m]."),
         "beacon": _object({"sender": _COUNT, "step": _COUNT, "time_s": _NUMBER,
                            "position_m": vec3, "velocity_m_s": vec3, "sample_age_s": _NUMBER,

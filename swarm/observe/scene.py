@@ -11,7 +11,11 @@ truth message and each drone's telemetry — so it costs the swarm nothing:
 * ``fov``: each camera's square FoV pyramid, to the ground or to D_M (``fov_segments``);
 * ``graph``: the communication graph's edges;
 * ``targets``: the targets' true positions, labelled T0, T1, …;
-* ``estimates``: every drone's estimate of every target's position.
+* ``estimates``: every drone's estimate of every target's position;
+* ``uncertainty``: around each estimate, the ellipsoid holding the target with probability
+  ``ELLIPSOID_PROBABILITY`` if the drone's filter covariance P⁺ = pinv(W⁺) (its position
+  block, sent in telemetry) were exact: semi-axes ``ELLIPSOID_SIGMAS``·√(eigenvalue) along
+  P⁺'s eigenvectors (``ellipsoid_axes``).
 
 ``SceneAssembler`` gathers one step's truth and N telemetry messages (from any thread's
 order) and hands over a ``SceneState`` every ``period_steps`` steps once it is complete; a
@@ -48,6 +52,7 @@ from foxglove.messages import (
     Vector3,
 )
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 from swarm.messages.wire import TelemetryCounters, TelemetryWire, TruthWire
 from swarm.models.camera import fov_segments
@@ -72,7 +77,10 @@ FOV_COLOUR = (0.25, 0.45, 0.90, 0.6)
 GRAPH_COLOUR = (0.13, 0.60, 0.25, 0.8)
 TARGET_COLOUR = (0.85, 0.15, 0.15, 1.0)
 ESTIMATE_COLOUR = (0.10, 0.75, 0.20, 1.0)
-ENTITIES = ("drones", "collision", "fov", "graph", "targets", "estimates")
+UNCERTAINTY_COLOUR = (0.10, 0.75, 0.20, 0.25)
+ELLIPSOID_PROBABILITY = 0.95
+ELLIPSOID_SIGMAS = 2.7954834829151074  # √(χ²₃ quantile at 0.95): a 3-D Gaussian's 95 % region
+ENTITIES = ("drones", "collision", "fov", "graph", "targets", "estimates", "uncertainty")
 
 
 @dataclass(frozen=True)
@@ -85,6 +93,7 @@ class SceneState:
     targets_m: Array  # (M, 3) true positions
     weights: Array  # (N, M)
     estimates_m: Array  # (N, M, 3) estimated target positions
+    estimate_covariance_m2: Array | None = None  # (N, M, 3, 3) their covariance P⁺ [m²]
     psi0: Array | None = None  # (N, M) λ̄ − ε of each drone's copy
     slacks: Array | None = None  # (N, M)
     velocities_m_s: Array | None = None  # (N, 3) commanded
@@ -110,6 +119,32 @@ def _sphere(position: Array, diameter_m: float,
     return SpherePrimitive(pose=_pose(position),
                            size=Vector3(x=diameter_m, y=diameter_m, z=diameter_m),
                            color=_colour(rgba))
+
+
+def ellipsoid_axes(covariance_m2: Array) -> tuple[Array, Array]:
+    """The ``ELLIPSOID_PROBABILITY`` ellipsoids of a stack of 3×3 position covariances
+    (..., 3, 3): their full axis lengths [m] (2·``ELLIPSOID_SIGMAS``·√eigenvalue, a negative
+    round-off eigenvalue taken as 0) and the rotations whose columns are the axes
+    (P = R diag(λ) Rᵀ, det R = +1)."""
+    eigenvalues, rotation = np.linalg.eigh(0.5 * (covariance_m2
+                                                  + np.swapaxes(covariance_m2, -1, -2)))
+    rotation[..., :, 2] *= np.sign(np.linalg.det(rotation))[..., None]
+    return 2.0 * ELLIPSOID_SIGMAS * np.sqrt(np.maximum(eigenvalues, 0.0)), rotation
+
+
+def _ellipsoids(positions: Array, covariances_m2: Array) -> list[SpherePrimitive]:
+    """One translucent sphere primitive per (position, covariance), sized and turned as its
+    ellipsoid (all of them through eigh and the quaternion conversion at once)."""
+    if len(positions) == 0:
+        return []
+    lengths, rotations = ellipsoid_axes(covariances_m2)
+    quaternions = Rotation.from_matrix(rotations).as_quat()  # (x, y, z, w) each
+    colour = _colour(UNCERTAINTY_COLOUR)
+    return [SpherePrimitive(pose=Pose(position=Vector3(x=p[0], y=p[1], z=p[2]),
+                                      orientation=Quaternion(x=q[0], y=q[1], z=q[2], w=q[3])),
+                            size=Vector3(x=d[0], y=d[1], z=d[2]), color=colour)
+            for p, q, d in zip(positions.tolist(), quaternions.tolist(), lengths.tolist(),
+                               strict=True)]
 
 
 def _label(position: Array, text: str, rgba: tuple[float, float, float, float]) -> TextPrimitive:
@@ -147,7 +182,13 @@ def scene_update(config: ScenarioConfig, state: SceneState) -> SceneUpdate:
     edges = [state.drones_m[[i, j]] for i, j in config.swarm.graph.edges
              if present[i] and present[j]]
     estimates = state.estimates_m.reshape(-1, 3)
-    estimates = estimates[np.isfinite(estimates).all(axis=1)]
+    known = np.isfinite(estimates).all(axis=1)
+    ellipsoids = []
+    if state.estimate_covariance_m2 is not None:
+        covariances = state.estimate_covariance_m2.reshape(-1, 3, 3)
+        drawn = known & np.isfinite(covariances).all(axis=(1, 2))
+        ellipsoids = _ellipsoids(estimates[drawn], covariances[drawn])
+    estimates = estimates[known]
     delta = config.control.collision_distance_m
     entities = [
         _entity("drones", stamp,
@@ -167,6 +208,7 @@ def scene_update(config: ScenarioConfig, state: SceneState) -> SceneUpdate:
                 texts=[_label(state.targets_m[r], f"T{r}", TARGET_COLOUR) for r in targets]),
         _entity("estimates", stamp,
                 spheres=[_sphere(p, ESTIMATE_DIAMETER_M, ESTIMATE_COLOUR) for p in estimates]),
+        _entity("uncertainty", stamp, spheres=ellipsoids),
     ]
     return SceneUpdate(entities=entities)
 
@@ -245,6 +287,10 @@ class SceneAssembler:
         self.emitted = 0
         self.incomplete = 0  # scene steps given up: a message never came
 
+    def wants(self, step: int) -> bool:
+        """Whether a message of this step can be part of a scene (a scene step)."""
+        return step % self.period_steps == 0
+
     def on_truth(self, truth: TruthWire) -> None:
         pending = self._slot(truth.step)
         if pending is not None:
@@ -258,7 +304,7 @@ class SceneAssembler:
             self._check(tel.step)
 
     def _slot(self, step: int) -> _Pending | None:
-        if step % self.period_steps:
+        if not self.wants(step):
             return None
         return self._pending.setdefault(step, _Pending(self.n))
 
@@ -294,6 +340,7 @@ class _Pending:
                           weights=stack("weights", (n, m)),
                           estimates_m=np.array([wire_values(t.estimates)[:, :3]
                                                 for t in telemetry]).reshape(n, m, 3),
+                          estimate_covariance_m2=stack("estimate_covariance", (n, m, 3, 3)),
                           psi0=stack("psi0", (n, m)), slacks=stack("slacks", (n, m)),
                           velocities_m_s=stack("velocity", (n, 3)),
                           counters=tuple(t.counters for t in telemetry))

@@ -219,8 +219,9 @@ def _spd_stack(rng: np.random.Generator, m: int, n: int, condition: float) -> np
 def test_stacked_filter_equals_posterior_then_predict_per_target(
         seed, m, model, n_agents, dt, noise, condition) -> None:
     """``icf.StackedFilter`` (one LAPACK call for the stack, pinv(W⁺) from pinv(V)/N, the
-    Kronecker product for A pinv(W⁺) Aᵀ) against ``posterior`` then ``predict`` (2.8-2.11,
-    2.21-2.22) target by target, with and without the communicated velocity."""
+    Kronecker product for A pinv(W⁺) Aᵀ) against ``posterior``, ``posterior_covariance``
+    and ``predict`` (2.8-2.11, 2.21-2.22) target by target, with and without the
+    communicated velocity."""
     rng = np.random.default_rng(seed)
     n = icf.state_dimension(model)
     information = _spd_stack(rng, m, n, condition)
@@ -237,6 +238,8 @@ def test_stacked_filter_equals_posterior_then_predict_per_target(
         _close(fast[0][r], state, scale)
         _close(fast[1][r], prior_state, scale)
         _close(fast[2][r], prior_info, condition * float(np.max(np.abs(prior_info))))
+        covariance = icf.posterior_covariance(info)
+        _close(fast[3][r], covariance, condition * float(np.max(np.abs(covariance))))
 
 
 def test_stacked_filter_takes_the_readable_path_for_a_singular_information() -> None:
@@ -253,6 +256,7 @@ def test_stacked_filter_takes_the_readable_path_for_a_singular_information() -> 
         prior_state, prior_info = icf.predict(state, info, transition, 0.01)
         assert np.array_equal(fast[0][r], state) and np.array_equal(fast[1][r], prior_state)
         assert np.array_equal(fast[2][r], prior_info)
+        assert np.array_equal(fast[3][r], icf.posterior_covariance(info))
 
 
 @settings(max_examples=150, deadline=None)

@@ -237,3 +237,25 @@ def test_consensus_iteration_skips_missing_neighbours() -> None:
     updated = icf.consensus_iteration(own, [(0.25, np.array([3.0, 2.0])),
                                             (0.5, np.array([1.0, 0.0]))])
     np.testing.assert_allclose(updated, [1.5, 1.0])
+
+
+@settings(max_examples=50, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), rank=st.integers(1, 6))
+def test_posterior_covariance_is_the_pseudo_inverse_of_the_posterior_information(
+        seed: int, rank: int) -> None:
+    """P⁺ = pinv(W⁺): the four Penrose conditions, and symmetric positive semi-definite, for
+    a full W⁺ and for one with states never observed (exact zero rows and columns, as a
+    velocity nothing has measured)."""
+    rng = np.random.default_rng(seed)
+    factor = rng.normal(size=(rank, rank))
+    information = np.zeros((6, 6))
+    information[:rank, :rank] = factor @ factor.T + 1e-2 * np.eye(rank)
+    covariance = icf.posterior_covariance(information)
+    scale = np.linalg.norm(information) * np.linalg.norm(covariance)
+    for left, right in ((information @ covariance @ information, information),
+                        (covariance @ information @ covariance, covariance)):
+        np.testing.assert_allclose(left, right, atol=1e-9 * scale * np.linalg.norm(right))
+    for product in (information @ covariance, covariance @ information):
+        np.testing.assert_allclose(product, product.T, atol=1e-9 * scale)
+    np.testing.assert_allclose(covariance, covariance.T, atol=1e-12 * np.linalg.norm(covariance))
+    assert np.linalg.eigvalsh(covariance).min() >= -1e-9 * np.linalg.norm(covariance)

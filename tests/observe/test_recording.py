@@ -135,6 +135,7 @@ def sample_messages() -> list[Any]:
         drone=1, step=42, time_s=0.84, position_m=(AWKWARD[0], 1.0, 3.5),
         velocity=arr(AWKWARD[:3]), nominal_velocity=arr([0.0, 0.0, 0.0]),
         estimates=arr(np.arange(m * n, dtype=float).reshape(m, n) / 3.0),
+        estimate_covariance=arr(np.array([np.eye(3) * AWKWARD[2], np.diag(AWKWARD[1:4])])),
         lambda_bar=arr([0.06, AWKWARD[2]]), psi0=arr([1.0, 2.0]), psi1=arr([3.0, 4.0]),
         weights=arr([0.5, AWKWARD[1]]), weight_sum_estimate=arr([1.0, 1.5]),
         slacks=arr([0.0, 0.0]), weight_slacks=arr([0.0, -0.0]), detected=(True, False),
@@ -206,6 +207,19 @@ def test_each_kind_converts_to_schema_json_and_back_exactly(message: Any) -> Non
     conforms(json.loads(text), schemas(n_targets=2, n_state=6)[kind])
     back = from_json(json.loads(text))
     assert back == message  # msgspec compares every field; F64Array compares the bytes
+
+
+def test_telemetry_recorded_before_the_covariance_was_sent_reads_back_as_unknown() -> None:
+    """Recordings of wire version 3 have no ``estimate_covariance``: it reads back as NaN of
+    the right shape (unknown, not zero: no viewer draws an ellipsoid of it); the rest as it
+    was."""
+    telemetry = sample_messages()[0]
+    older = telemetry_to_json(telemetry)
+    del older["estimate_covariance"]
+    back = telemetry_from_json(json.loads(json.dumps(older)))
+    covariance = back.estimate_covariance.to_array()
+    assert covariance.shape == (2, 3, 3) and np.isnan(covariance).all()
+    assert back == with_fields(telemetry, estimate_covariance=back.estimate_covariance)
 
 
 # -- the recorder on its own ----------------------------------------------------------------

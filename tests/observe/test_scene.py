@@ -17,11 +17,15 @@ import numpy as np
 import pytest
 from foxglove.messages import LogLevel
 from mcap.reader import make_reader
+from scipy.spatial.transform import Rotation
+from scipy.stats import chi2
 
 from swarm.messages.wire import TelemetryCounters, TelemetryWire, TruthWire
 from swarm.models.camera import fov_segments
-from swarm.observe.recording import record_reference
+from swarm.observe.recording import iter_messages, record_reference
 from swarm.observe.scene import (
+    ELLIPSOID_PROBABILITY,
+    ELLIPSOID_SIGMAS,
     ENTITIES,
     IDLE_COLOUR,
     SENSING_COLOUR,
@@ -106,6 +110,54 @@ def test_every_scene_holds_the_truth_and_what_the_drones_report(recorded) -> Non
                                           cfg.camera.range_max_m, ground_z)]
         np.testing.assert_allclose(np.array([_xyz(p) for p in fov.points]).reshape(-1, 2, 3),
                                    np.array(expected), atol=1e-12)
+
+
+def test_each_estimate_carries_the_ellipsoid_of_the_covariance_its_drone_reported(
+        recorded) -> None:
+    """The ``uncertainty`` spheres, read back as axes (the size) and a rotation (the pose's
+    quaternion), give back the position covariance each drone sent in its telemetry:
+    R diag((size / 2k)²) Rᵀ = P⁺ with k = √(χ²₃ quantile), one ellipsoid per estimate."""
+    record, scenes, directory = recorded
+    quantile = float(np.sqrt(chi2.ppf(ELLIPSOID_PROBABILITY, 3)))
+    assert abs(ELLIPSOID_SIGMAS - quantile) <= 1e-12 * quantile
+    n, m = record.drone_positions_m.shape[1], record.target_positions_m.shape[1]
+    covariance = {(rec.message.step, rec.drone): rec.message.estimate_covariance.to_array()
+                  for rec in iter_messages(directory / "run.mcap", ("telemetry",))}
+    dt_ns = round(record.config.scenario.dt_s * 1e9)
+    largest_m = 0.0
+    for log_time, _, _, scene in scenes:
+        k = log_time // dt_ns
+        (entity,) = [e for e in scene.entities if e.id == "uncertainty"]
+        assert len(entity.spheres) == n * m
+        for index, sphere in enumerate(entity.spheres):
+            i, r = divmod(index, m)
+            assert _xyz(sphere.pose.position) == record.estimates[k, i, r, :3].tolist()
+            q = sphere.pose.orientation
+            rotation = Rotation.from_quat([q.x, q.y, q.z, q.w]).as_matrix()
+            variances = (np.array(_xyz(sphere.size)) / (2.0 * ELLIPSOID_SIGMAS)) ** 2
+            expected = covariance[k, i][r]
+            np.testing.assert_allclose(rotation @ np.diag(variances) @ rotation.T, expected,
+                                       atol=1e-9 * np.abs(expected).max())
+            largest_m = max(largest_m, float(np.max(_xyz(sphere.size))))
+    assert largest_m > 0.0  # not all points: the filter's uncertainty shows
+
+
+def test_an_estimate_without_a_covariance_has_no_ellipsoid() -> None:
+    """An older recording (wire version 3) had no covariance: read back as NaN, drawn as no
+    ellipsoid, the estimate itself still drawn."""
+    config = load_config(CASE2)
+    n, m = config.swarm.n_drones, len(config.targets)
+    covariance = np.broadcast_to(np.diag([4.0, 1.0, 0.25]), (n, m, 3, 3)).copy()
+    covariance[0, 1] = np.nan
+    state = SceneState(step=0, time_s=0.0, drones_m=np.zeros((n, 3)),
+                       targets_m=np.zeros((m, 3)), weights=np.zeros((n, m)),
+                       estimates_m=np.ones((n, m, 3)), estimate_covariance_m2=covariance)
+    entity = {e.id: e for e in decode_scene(scene_update(config, state)).entities}
+    assert len(entity["estimates"].spheres) == n * m
+    spheres = entity["uncertainty"].spheres
+    assert len(spheres) == n * m - 1
+    lengths = sorted(_xyz(spheres[0].size))  # the axes of diag(4, 1, 0.25): σ = 2, 1, 0.5
+    np.testing.assert_allclose(lengths, 2 * ELLIPSOID_SIGMAS * np.array([0.5, 1.0, 2.0]))
 
 
 def test_each_drones_plot_channel_holds_its_margins_weights_slacks_and_speed(

@@ -24,6 +24,7 @@ def test_it_draws_every_primitive_of_the_last_scene_and_writes_the_png(tmp_path:
     assert len(solid) == n + m + n * m  # drones, targets, estimates (rings are lines)
     assert len([c for c in ax.collections if isinstance(c, Line3DCollection)]) == 2  # fov, graph
     assert len(ax.texts) == n + m
+    assert len(ax.lines) == n + n * m  # equators: collision spheres, uncertainty ellipsoids
     out = tmp_path / "scene.png"
     assert main([str(tmp_path / "rec"), str(out), "--time", "0.5"]) == 0
     assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
