@@ -9,7 +9,11 @@ fits both.
 
     python -m swarm.observe.layout configs/case2.toml docs/foxglove_layout.json
 
-writes it (Foxglove: *Layouts → Import from file*).
+writes it (Foxglove: *Layouts → Import from file*). Lichtblick, the open-source fork of
+Foxglove Studio, imports the older layout data instead (``configById``, ``globalVariables``,
+``playbackConfig`` and a ``layout`` tree of splits, with its own panel type names): with
+``--lichtblick`` the same layout is written in that form (``lichtblick_layout``), as
+``docs/lichtblick_layout.json`` is.
 """
 
 from __future__ import annotations
@@ -19,6 +23,7 @@ import json
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any, Final
 
 from foxglove.layouts import (
     BaseRendererSceneUpdateTopicSettings,
@@ -68,10 +73,54 @@ def foxglove_layout(config: ScenarioConfig) -> Layout:
         SplitItem(proportion=3, content=scene), SplitItem(proportion=2, content=plots)]))
 
 
-def layout_json(config: ScenarioConfig) -> str:
-    """The layout as a file holds it (indented, for people and diffs)."""
-    return json.dumps(json.loads(foxglove_layout(config).to_json()), indent=2,
-                      ensure_ascii=False) + "\n"
+# Lichtblick's name of each panel type of the SDK (its panel registry), and what its panels
+# expect in their config beside the SDK's fields.
+LICHTBLICK_PANEL_TYPES: Final = {"ThreeDee": "3D", "Plot": "Plot", "Log": "RosOut"}
+LICHTBLICK_TITLE_KEY: Final = "lichtblickPanelTitle"
+_LICHTBLICK_DEFAULTS: Final[dict[str, dict[str, Any]]] = {
+    "RosOut": {"searchTerms": [], "minLogLevel": 1}}
+
+
+def lichtblick_layout(config: ScenarioConfig) -> dict[str, Any]:
+    """``foxglove_layout(config)`` as Lichtblick's layout data: each panel under an id
+    ``<Lichtblick type>!<n>`` in ``configById`` (its title under ``lichtblickPanelTitle``, each
+    plotted series stamped by receive time, which is sim time here), and every split container
+    as nested binary splits (``first``, ``second``, ``splitPercentage``)."""
+    configs: dict[str, dict[str, Any]] = {}
+
+    def convert(node: dict[str, Any]) -> Any:
+        if node["type"] == "panel":
+            kind = LICHTBLICK_PANEL_TYPES[node["panelType"]]
+            panel_id = f"{kind}!{len(configs) + 1}"
+            panel = {**_LICHTBLICK_DEFAULTS.get(kind, {}), **node.get("config", {})}
+            if kind == "Plot":
+                panel["paths"] = [{**path, "timestampMethod": "receiveTime"}
+                                  for path in panel["paths"]]
+            if "title" in node:
+                panel[LICHTBLICK_TITLE_KEY] = node["title"]
+            configs[panel_id] = panel
+            return panel_id
+        return split(node["direction"], node["items"])
+
+    def split(direction: str, items: list[dict[str, Any]]) -> Any:
+        if len(items) == 1:
+            return convert(items[0]["content"])
+        weights = [float(item.get("proportion", 1.0)) for item in items]
+        return {"direction": direction, "first": convert(items[0]["content"]),
+                "second": split(direction, items[1:]),
+                "splitPercentage": round(100.0 * weights[0] / sum(weights), 3)}
+
+    tree = convert(json.loads(foxglove_layout(config).to_json())["content"])
+    return {"configById": configs, "globalVariables": {}, "userNodes": {},
+            "playbackConfig": {"speed": 1.0}, "layout": tree}
+
+
+def layout_json(config: ScenarioConfig, lichtblick: bool = False) -> str:
+    """The layout as a file holds it (indented, for people and diffs); ``lichtblick``: in
+    Lichtblick's form."""
+    data = (lichtblick_layout(config) if lichtblick
+            else json.loads(foxglove_layout(config).to_json()))
+    return json.dumps(data, indent=2, ensure_ascii=False) + "\n"
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -79,13 +128,15 @@ def main(argv: Sequence[str] | None = None) -> int:
                                      description=__doc__.splitlines()[0])
     parser.add_argument("config", help="scenario file (its drones and targets)")
     parser.add_argument("out", type=Path, help="the layout JSON to write")
+    parser.add_argument("--lichtblick", action="store_true",
+                        help="write it as Lichtblick imports layouts (the older layout data)")
     args = parser.parse_args(argv)
     try:
         config = load_config(args.config)
     except ConfigError as err:
         print(f"layout: config error: {err}", file=sys.stderr)
         return 2
-    args.out.write_text(layout_json(config))
+    args.out.write_text(layout_json(config, lichtblick=args.lichtblick))
     print(f"layout: wrote {args.out}")
     return 0
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from mcap.reader import make_reader
 
-from swarm.observe.layout import layout_json, main
+from swarm.observe.layout import layout_json, lichtblick_layout, main
 from swarm.observe.recording import record_reference
 from swarm.observe.scene import LOG_TOPIC, SCENE_TOPIC
 from swarm.scenario.config import load_config
@@ -61,3 +61,60 @@ def test_every_plotted_path_and_the_3d_topic_are_in_a_recording(tmp_path: Path) 
             assert int(parsed["index"]) < len(values), path
         else:
             assert isinstance(values, float), path
+
+
+# Lichtblick's panel registry (packages/suite-base/src/panels/index.ts, 2026-11): the types
+# a layout's panel ids may name.
+LICHTBLICK_TYPES = {"3D", "DiagnosticStatusPanel", "DiagnosticSummary", "Image", "Indicator",
+                    "Gauge", "Teleop", "map", "Parameters", "Plot", "PieChart", "Publish",
+                    "CallService", "RawMessages", "RosOut", "StateTransitions", "Table",
+                    "TopicGraph", "SourceInfo", "GlobalVariableSliderPanel", "NodePlayground",
+                    "Tab"}
+
+
+def _leaves(node) -> list[str]:
+    return [node] if isinstance(node, str) else _leaves(node["first"]) + _leaves(node["second"])
+
+
+def test_the_lichtblick_layout_passes_lichtblicks_import_rules_and_holds_the_same_panels(
+        tmp_path: Path) -> None:
+    """docs/lichtblick_layout.json is the generator's, and is what Lichtblick's layout import
+    (``validateLayoutData``) accepts: objects ``configById`` and ``globalVariables``, a numeric
+    ``playbackConfig.speed``, an object ``userNodes``, a ``layout`` tree whose leaves are
+    exactly the configured panels, each id ``<registered type>!<n>``; and it holds the SDK
+    layout's panels, topics, series and titles, split as the SDK layout splits."""
+    config = load_config(CASE2)
+    assert (ROOT / "docs" / "lichtblick_layout.json").read_text() == \
+        layout_json(config, lichtblick=True)
+    out = tmp_path / "lichtblick.json"
+    assert main([str(CASE2), str(out), "--lichtblick"]) == 0
+    data = json.loads(out.read_text())
+    assert isinstance(data["configById"], dict) and isinstance(data["globalVariables"], dict)
+    assert isinstance(data["playbackConfig"]["speed"], float)
+    assert isinstance(data["userNodes"], dict)
+    leaves = _leaves(data["layout"])
+    assert sorted(leaves) == sorted(data["configById"])
+    assert all(leaf.split("!")[0] in LICHTBLICK_TYPES for leaf in leaves)
+
+    sdk = _panels(json.loads(layout_json(config))["content"])
+    assert [leaf.split("!")[0] for leaf in leaves] == ["3D", "Plot", "Plot", "Plot", "RosOut"]
+    assert [p["panelType"] for p in sdk] == ["ThreeDee", "Plot", "Plot", "Plot", "Log"]
+    for leaf, panel in zip(leaves, sdk, strict=True):
+        converted = data["configById"][leaf]
+        assert converted["lichtblickPanelTitle"] == panel["title"]
+        for key, value in panel["config"].items():
+            if key != "paths":
+                assert converted[key] == value, (leaf, key)
+        if "paths" in panel["config"]:
+            assert [{k: v for k, v in path.items() if k != "timestampMethod"}
+                    for path in converted["paths"]] == panel["config"]["paths"]
+            assert {path["timestampMethod"] for path in converted["paths"]} == {"receiveTime"}
+    assert data["configById"][leaves[-1]]["topicToRender"] == LOG_TOPIC
+    assert data["configById"][leaves[0]]["topics"] == {SCENE_TOPIC: {"visible": True}}
+    # 3 : 2 between the 3D panel and the column of four equal panels
+    layout = data["layout"]
+    assert (layout["direction"], layout["splitPercentage"]) == ("row", 60.0)
+    column = layout["second"]
+    assert [column["splitPercentage"], column["second"]["splitPercentage"],
+            column["second"]["second"]["splitPercentage"]] == [25.0, 33.333, 50.0]
+    assert lichtblick_layout(config) == data
