@@ -315,6 +315,7 @@ class AgentProcess:
             neighbour_age_ms=exchange.neighbour_age_ms, swarm_size=agent.swarm_size,
             mavlink_state=f"{'armed' if self.link.armed else 'disarmed'} {self.link.mode}",
             rate_limit_releases=agent.rate_limit_releases,
+            safety_conflicts=agent.safety_conflicts,
             reference_resets=self.reference.resets if self.reference is not None else 0,
             tracking_error_m=self.tracking_error_m,
             velocity_error_m_s=self.velocity_error_m_s,

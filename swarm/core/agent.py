@@ -48,6 +48,7 @@ from swarm.core.qp import (
     rate_limited_box,
 )
 from swarm.core.records import record
+from swarm.core.safety import SafetyParams, safety_conflict, safety_rows
 from swarm.errors import VigilError
 
 Array = NDArray[np.float64]
@@ -101,6 +102,7 @@ class AgentSetup:
     gramian: GramianParams
     control: ControlParams
     desired_bearings: Mapping[int, Array] = field(default_factory=dict)  # g*_ij per neighbour
+    safety: SafetyParams = field(default_factory=SafetyParams)  # the envelope's hard rows
 
     @property
     def neighbours(self) -> tuple[int, ...]:
@@ -131,6 +133,7 @@ class StepDiagnostics:
     qp_iterations: int
     qp_fallback: bool  # the QP failed (or hard was infeasible) and a fallback was used
     rate_limit_released: bool  # no solution within the rate box: solved without it
+    safety_conflict: bool  # localization slack used while an envelope row held u back
     qp_solve_us: float
     step_us: float  # compute time of this drone's step, without waiting for neighbours
     bearing_error: float | None
@@ -249,6 +252,7 @@ class DroneAgent:
             u_max=ctrl.u_max_m_s) if ctrl.qp == "hard" else None)
         # |u_k − u_(k−1)| ≤ a_max·ΔT per component (0: no limit), from the last command.
         self._max_change = ctrl.command_accel_limit_m_s2 * setup.dt_s
+        self._n_safety_rows = setup.safety.n_rows  # the last rows of every QP
         self._last_command = _ZERO3
         # Per-step working state.
         self._phase = "idle"
@@ -264,6 +268,7 @@ class DroneAgent:
         # Running totals.
         self.qp_fallbacks = 0
         self.rate_limit_releases = 0
+        self.safety_conflicts = 0
         # The QPs of the last step that got no acceptable solution (``FailedQp``), in the
         # order they were tried; emptied when a step begins.
         self.qp_failures: list[FailedQp] = []
@@ -462,6 +467,9 @@ class DroneAgent:
             found_slacks = solution.found and solution.z.shape[0] > 3
             slacks = solution.z[3:3 + m].copy() if found_slacks else np.zeros(m)
             weight_slacks = solution.z[3 + m:].copy() if found_slacks else np.zeros(m)
+            conflict = found_slacks and self._n_safety_rows > 0 and safety_conflict(
+                u_rows, lower, self._n_safety_rows, solution.z[:3].tolist(),
+                solution.z[3:].tolist())
             qp_status, qp_iterations = solution.status, solution.iterations
             qp_us = solution.solve_time_s * 1e6
         else:
@@ -471,6 +479,7 @@ class DroneAgent:
                                        else ([-u_max] * 3, [u_max] * 3)))
             slacks, weight_slacks = np.zeros(m), np.zeros(m)
             qp_status, qp_iterations, qp_us, fallback, released = "inactive", 0, 0.0, False, False
+            conflict = False
         self._last_command = tuple(velocity.tolist())
         clock.lap(OTHER)
 
@@ -481,6 +490,7 @@ class DroneAgent:
 
         self.qp_fallbacks += int(fallback)
         self.rate_limit_releases += int(released)
+        self.safety_conflicts += int(conflict)
         self.missing_neighbour_messages += self._missing
         self.rejected_inputs += self._rejected
         self._phase = "idle"
@@ -496,7 +506,8 @@ class DroneAgent:
             weights=series[3 * m:4 * m], weight_sum_estimate=series[4 * m:],
             slacks=slacks, weight_slacks=weight_slacks, detected=self._detected,
             control_active=control_active, qp_status=qp_status, qp_iterations=qp_iterations,
-            qp_fallback=fallback, rate_limit_released=released, qp_solve_us=qp_us,
+            qp_fallback=fallback, rate_limit_released=released, safety_conflict=conflict,
+            qp_solve_us=qp_us,
             step_us=clock.running_s() * 1e6,
             bearing_error=formation_error, missing_neighbour_messages=self._missing,
             rejected_inputs=self._rejected,
@@ -703,9 +714,11 @@ class DroneAgent:
 
     def _qp_rows(self, barriers, terms, target_velocities, weight_sums, position, beacons):
         """Velocity parts (column-major: x, y, z coefficients of every row) and lower bounds
-        of the QP rows: localization (3.32), weight-sum (3.34-3.36), and one collision row
-        (4.1-4.2) per drone within R_ca, each bound tightened by ē‖a‖ for the vehicle's
-        tracking error (``robust_lower_bound``; ē = ``control.tracking_error_bound_m_s``)."""
+        of the QP rows: localization (3.32), weight-sum (3.34-3.36), one collision row
+        (4.1-4.2) per drone within R_ca, and the safety envelope's rows last
+        (``swarm.core.safety``), each bound tightened by ē‖a‖ for the vehicle's tracking
+        error (``robust_lower_bound``; ē = ``control.tracking_error_bound_m_s``). Collision
+        and envelope rows carry no slack: hard in either QP."""
         ctrl, n = self.setup.control, self._swarm_size
         rows = [b.lie_g for b in barriers] + [t.weight_grad_drone for t in terms]
         lower = [b.lower_bound for b in barriers]
@@ -723,6 +736,10 @@ class DroneAgent:
             if math.sqrt(square) <= radius:
                 rows.append((2.0 * ox, 2.0 * oy, 2.0 * oz))
                 lower.append(-0.5 * gain * (square - delta * delta))
+        if self._n_safety_rows:
+            envelope_rows, envelope_lower = safety_rows(position, self.setup.safety)
+            rows += envelope_rows
+            lower += envelope_lower
         bound = ctrl.tracking_error_bound_m_s
         if bound > 0.0:
             lower = [robust_lower_bound(b, a, bound) for a, b in zip(rows, lower, strict=True)]

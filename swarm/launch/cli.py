@@ -311,7 +311,8 @@ def print_process_counters(collector: TelemetryCollector, console: Console) -> N
         f"{counts['rejected_messages']}, QP fallbacks {counts['qp_fallbacks']}, vehicle "
         f"events {counts['vehicle_events']}, rate-box releases "
         f"{counts['rate_limit_releases']}, reference resets {counts['reference_resets']}, "
-        f"λ̄ breaches said by the agents {counts['lambda_breaches']}",
+        f"λ̄ breaches said by the agents {counts['lambda_breaches']}, steps the safety "
+        f"envelope overruled localization {counts['safety_conflicts']}",
         highlight=False)
 
 

@@ -354,6 +354,9 @@ class TelemetryCounters(msgspec.Struct, frozen=True, array_like=True,
     lambda_breaches: NonNegativeInt = 0
     first_lambda_breach_s: NonNegativeFinite | None = None
     localization_status: Label = ""
+    # Steps whose QP used localization slack while a safety-envelope row held u back (safety
+    # won; swarm.core.safety.safety_conflict).
+    safety_conflicts: NonNegativeInt = 0
 
 
 
@@ -397,6 +400,7 @@ class TelemetryWire(_Wire, tag="telemetry", kw_only=True):
     rejected_inputs: NonNegativeInt = 0  # this step
     counters: TelemetryCounters = TelemetryCounters()
     rate_limit_released: bool = False  # this step's QP was solved without the rate box
+    safety_conflict: bool = False  # localization slack used while an envelope row was active
 
     @classmethod
     def from_diagnostics(cls, diag: StepDiagnostics, position: ArrayLike,
@@ -425,6 +429,7 @@ class TelemetryWire(_Wire, tag="telemetry", kw_only=True):
             missing_neighbour_messages=self.missing_neighbour_messages,
             rejected_inputs=self.rejected_inputs,
             rate_limit_released=self.rate_limit_released,
+            safety_conflict=self.safety_conflict,
         )
 
 
@@ -620,7 +625,7 @@ def _telemetry_fields(diag: StepDiagnostics, position: ArrayLike,
             int(diag.qp_iterations), bool(diag.qp_fallback), float(diag.qp_solve_us),
             float(diag.step_us), None if bearing is None else float(bearing),
             int(diag.missing_neighbour_messages), int(diag.rejected_inputs), counters,
-            bool(diag.rate_limit_released))
+            bool(diag.rate_limit_released), bool(diag.safety_conflict))
 
 
 def _telemetry(diag: StepDiagnostics, position: ArrayLike,
@@ -639,7 +644,8 @@ _telemetry_arrays: Final = operator.attrgetter(*TELEMETRY_ARRAYS)
 assert TelemetryWire.__struct_fields__[1:] == (
     "drone", "step", "time_s", "position_m", *TELEMETRY_ARRAYS, "detected", "control_active",
     "qp_status", "qp_iterations", "qp_fallback", "qp_solve_us", "step_us", "bearing_error",
-    "missing_neighbour_messages", "rejected_inputs", "counters", "rate_limit_released")
+    "missing_neighbour_messages", "rejected_inputs", "counters", "rate_limit_released",
+    "safety_conflict")
 
 
 def _consensus_block(sizes: Mapping[str, int | None]) -> Check:

@@ -69,6 +69,7 @@ class TelemetryCollector:
         self.detected = np.zeros((k, n, m), dtype=bool)
         self.bearing = np.full((k, n), np.nan)
         self.fallback = np.zeros((k, n), dtype=bool)
+        self.safety_conflict = np.zeros((k, n), dtype=bool)
         self.step_us = np.full((k, n), np.nan)
         self.latest: dict[int, TelemetryWire] = {}
         self.telemetry_received = np.zeros(n, dtype=int)
@@ -93,6 +94,7 @@ class TelemetryCollector:
             self.weight_slacks[k, i] = wire_values(tel.weight_slacks)
             self.detected[k, i] = tel.detected
             self.fallback[k, i] = tel.qp_fallback
+            self.safety_conflict[k, i] = tel.safety_conflict
             self.step_us[k, i] = tel.step_us
             if tel.bearing_error is not None:
                 self.bearing[k, i] = tel.bearing_error
@@ -121,6 +123,7 @@ class TelemetryCollector:
         with self.lock:
             arrays = {name: getattr(self, name).copy() for name in _FLOAT_ARRAYS}
             detected, fallback = self.detected.copy(), self.fallback.copy()
+            conflict = self.safety_conflict.copy()
             steps = max(self.last_truth_step + 1, 0)
         arrays = {name: values[:steps] for name, values in arrays.items()}
         self.missing_samples = (_missing_steps(arrays["positions"])
@@ -139,7 +142,8 @@ class TelemetryCollector:
             slacks=arrays["slacks"], weight_slacks=arrays["weight_slacks"],
             detected=detected[:steps], true_lambda_min=true_min,
             measured_lambda_min=measured_min, bearing_errors=arrays["bearing"],
-            qp_fallback=fallback[:steps], step_us=arrays["step_us"], wall_time_s=wall_time_s)
+            qp_fallback=fallback[:steps], step_us=arrays["step_us"], wall_time_s=wall_time_s,
+            safety_conflict=conflict[:steps])
 
     def _reference_lambdas(self, positions: Array, targets: Array,
                            detected: NDArray[np.bool_]) -> tuple[Array, Array]:
@@ -175,4 +179,5 @@ class TelemetryCollector:
             "rate_limit_releases": sum(c.rate_limit_releases for c in latest),
             "reference_resets": sum(c.reference_resets for c in latest),
             "lambda_breaches": sum(c.lambda_breaches for c in latest),
+            "safety_conflicts": sum(c.safety_conflicts for c in latest),
         }

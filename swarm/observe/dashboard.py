@@ -45,7 +45,7 @@ from swarm.scenario.config import ScenarioConfig
 _EVENT_LABELS = {"late_steps": "late", "stale_neighbour_messages": "stale",
                  "qp_fallbacks": "fb", "rejected_messages": "rej", "vehicle_events": "veh",
                  "rate_limit_releases": "rel", "reference_resets": "rst",
-                 "lambda_breaches": "λ̄"}
+                 "lambda_breaches": "λ̄", "safety_conflicts": "env"}
 
 TARGET_COLUMNS = ("target", "min λ̄ (drone)", "λ̄−ε", "min ψ0", "sensing", "spread [m]")
 DRONE_COLUMNS = ("drone", "λ̄", "ψ0", "w", "‖u‖ [m/s]", "slack", "step [µs]", "nbr age [ms]",

@@ -18,6 +18,7 @@ WARNED_COUNTERS: tuple[tuple[str, str], ...] = (
     ("rate_limit_releases", "rate-box releases"),
     ("reference_resets", "reference resets"),
     ("lambda_breaches", "targets its λ̄ copy let fall below ε − tol"),
+    ("safety_conflicts", "steps the safety envelope overruled localization"),
 )
 # Of those, the ones whose every increase is printed at once (not held back by
 # ``warning_period_s``): a drone saying it cannot hold a target, its vehicle not as asked.

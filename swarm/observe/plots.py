@@ -33,7 +33,14 @@ from mpl_toolkits.mplot3d.art3d import Line3DCollection
 from numpy.typing import NDArray
 
 from swarm.models.camera import fov_segments
-from swarm.runs.checks import SENSING_WEIGHT, last_present, nanmax, nanmin, start_index
+from swarm.runs.checks import (
+    SENSING_WEIGHT,
+    envelope_margin_series,
+    last_present,
+    nanmax,
+    nanmin,
+    start_index,
+)
 from swarm.runs.record import RunRecord
 
 Array = NDArray[np.float64]
@@ -253,6 +260,37 @@ def plot_bearing_error(record: RunRecord) -> Figure:
     return figure
 
 
+def plot_envelope(record: RunRecord) -> Figure:
+    """The [safety] envelope: each drone's distance to each kind of boundary (negative:
+    outside; the dashed line is −tolerance), and the steps where the envelope overruled
+    localization (dots at the bottom of the panel of the boundary nearest that drone)."""
+    margins = envelope_margin_series(record)
+    figure = _figure(len(margins))
+    tolerance = record.config.checks.envelope_tolerance_m
+    conflict = record.safety_conflict
+    nearest = np.argmin(np.stack([np.nan_to_num(v, nan=np.inf) for v in margins.values()]),
+                        axis=0) if margins else None
+    handles = [Line2D([], [], ls="--", color="k", lw=0.8, label="− tolerance")]
+    for index, (ax, (kind, values)) in enumerate(zip(_time_panels(figure, record, len(margins)),
+                                                     margins.items(), strict=True)):
+        _per_drone_lines(ax, record.times_s, values)
+        ax.axhline(-tolerance, ls="--", color="k", lw=0.8)
+        _qp_start(ax, record)
+        ax.set_ylabel(f"{kind}\ndistance [m]")
+        ax.set_yscale("symlog", linthresh=0.01)
+        if conflict is not None and nearest is not None:
+            steps, drones = np.nonzero(conflict & (nearest == index))
+            colours = drone_colours(values.shape[1])
+            ax.scatter(record.times_s[steps], np.full(steps.shape, -tolerance), s=4,
+                       c=[colours[i] for i in drones], zorder=3)
+    if conflict is not None:
+        handles.append(Line2D([], [], ls="", marker=".", color="k",
+                              label="envelope overruled localization"))
+    _title(figure, record, "distance to the safety envelope per drone")
+    _drone_legend(figure, record, [*handles, _qp_start_handle(record)])
+    return figure
+
+
 # -- 3D view -------------------------------------------------------------------------------
 
 
@@ -366,7 +404,8 @@ FigureMaker = Callable[[RunRecord], Figure]
 
 
 def figures_for(record: RunRecord) -> dict[str, FigureMaker]:
-    """File name → figure maker; the bearing error only when a formation task ran."""
+    """File name → figure maker; the bearing error only when a formation task ran, the
+    envelope's margins only when the run had one."""
     makers: dict[str, FigureMaker] = {
         "position_error.png": plot_position_error,
         "psi.png": plot_psi,
@@ -375,6 +414,8 @@ def figures_for(record: RunRecord) -> dict[str, FigureMaker]:
     }
     if record.config.control.task == "bearing_formation":
         makers["bearing_error.png"] = plot_bearing_error
+    if not record.config.safety.params.empty:
+        makers["envelope.png"] = plot_envelope
     makers["view3d.png"] = plot_view3d
     return makers
 

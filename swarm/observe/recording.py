@@ -242,17 +242,17 @@ _TELEMETRY_ARRAYS: Final = ("velocity", "nominal_velocity", "estimates", "estima
 _TELEMETRY_PLAIN: Final = ("drone", "step", "time_s", "control_active", "qp_status",
                            "qp_iterations", "qp_fallback", "qp_solve_us", "step_us",
                            "bearing_error", "missing_neighbour_messages", "rejected_inputs",
-                           "rate_limit_released")
+                           "rate_limit_released", "safety_conflict")
 _COUNTER_FIELDS: Final = TelemetryCounters.__struct_fields__
 # Fields added after recordings were first written (issue 14): absent in older files, read
 # as their defaults.
-_ADDED_LATER: Final = {"rate_limit_released": False,
+_ADDED_LATER: Final = {"rate_limit_released": False, "safety_conflict": False,
                        **{name: getattr(TelemetryCounters(), name)
                           for name in ("rate_limit_releases", "reference_resets",
                                        "vehicle_events", "tracking_error_m",
                                        "velocity_error_m_s", "vehicle_status",
                                        "lambda_breaches", "first_lambda_breach_s",
-                                       "localization_status")}}
+                                       "localization_status", "safety_conflicts")}}
 
 
 def telemetry_to_json(tel: TelemetryWire) -> dict[str, Any]:
@@ -414,7 +414,7 @@ def schemas(n_targets: int, n_state: int) -> dict[str, dict[str, Any]]:
     telemetry = {
         "drone": _COUNT, "step": _COUNT, "time_s": _NUMBER, "control_active": _BOOL,
         "qp_status": {"type": "string"}, "qp_iterations": _COUNT, "qp_fallback": _BOOL,
-        "rate_limit_released": _BOOL,
+        "rate_limit_released": _BOOL, "safety_conflict": _BOOL,
         "qp_solve_us": _NUMBER, "step_us": _NUMBER,
         "bearing_error": {"type": ["number", "null"]},
         "missing_neighbour_messages": _COUNT, "rejected_inputs": _COUNT,
@@ -436,7 +436,7 @@ def schemas(n_targets: int, n_state: int) -> dict[str, dict[str, Any]]:
                                                                "velocity_error_m_s")},
             "vehicle_status": {"type": "string"}, "lambda_breaches": _COUNT,
             "first_lambda_breach_s": {"type": ["number", "null"]},
-            "localization_status": {"type": "string"}}),
+            "localization_status": {"type": "string"}, "safety_conflicts": _COUNT}),
     }
     return {
         "telemetry": _object(telemetry, "vigil.Telemetry",

@@ -31,6 +31,7 @@ from swarm.runs.checks import (
     check_invariants,
     coverage,
     max_abs_velocity,
+    min_envelope_margins,
     min_pairwise_distance,
     summarize_drones,
     summarize_targets,
@@ -131,6 +132,12 @@ class RunReport:
     coverage: Coverage
     warnings: tuple[str, ...]
     provenance: Provenance = field(default_factory=Provenance)
+    # The [safety] envelope: the smallest distance of any drone to each kind of boundary [m]
+    # (negative: outside; None: no position), {} without an envelope; the tolerance; and the
+    # steps whose QP gave up localization to it (None: not recorded).
+    envelope_margins_m: dict[str, float | None] = field(default_factory=dict)
+    envelope_tolerance_m: float = 0.0
+    safety_conflicts: int | None = None
 
     @property
     def ok(self) -> bool:
@@ -270,6 +277,11 @@ def build_report(record: RunRecord, mode: str = "inprocess",
         coverage=cov,
         warnings=_warnings(record, mode, cov, drones, provenance),
         provenance=provenance,
+        envelope_margins_m={kind: finite_or_none(margin)
+                            for kind, margin in min_envelope_margins(record).items()},
+        envelope_tolerance_m=cfg.checks.envelope_tolerance_m,
+        safety_conflicts=(None if record.safety_conflict is None
+                          else int(record.safety_conflict.sum())),
     )
 
 
@@ -347,6 +359,9 @@ def report_to_json(report: RunReport) -> dict[str, Any]:
                             "drone_steps": cov.drone_steps},
         "targets": [_target_json(t) for t in report.targets],
         "drones": [_drone_json(d) for d in report.drones],
+        "envelope_margins_m": report.envelope_margins_m,
+        "envelope_tolerance_m": report.envelope_tolerance_m,
+        "safety_conflicts": report.safety_conflicts,
         "violations": [{"invariant": v.invariant, "detail": v.detail}
                        for v in report.violations],
         "warnings": list(report.warnings),
@@ -434,6 +449,16 @@ def _breaches(d: DroneReport) -> str:
     return f"{d.lambda_breaches} (from {_fmt(d.first_lambda_breach_s, '.2f')} s)"
 
 
+def _envelope_figures(report: RunReport) -> list[str]:
+    """The [safety] envelope's margins and conflicts, when the run had one."""
+    if not report.envelope_margins_m:
+        return []
+    closest = ", ".join(f"{kind} {_fmt(margin, '.4f')} m"
+                        for kind, margin in report.envelope_margins_m.items())
+    return [f"envelope: closest to the {closest} (tolerance {report.envelope_tolerance_m} m)",
+            f"steps the envelope overruled localization {_count(report.safety_conflicts)}"]
+
+
 def run_lines(report: RunReport) -> tuple[str, str]:
     """Two lines: the swarm-wide figures, then where the run came from."""
     figures = "; ".join([
@@ -444,6 +469,7 @@ def run_lines(report: RunReport) -> tuple[str, str]:
         f"QP fallbacks {report.qp_fallbacks}",
         f"late steps {_count(report.late_steps)}",
         f"rejected messages {_count(report.rejected_messages)}",
+        *_envelope_figures(report),
     ])
     origin = (f"mode {report.mode}; seed {report.seed}; {report.steps} steps "
               f"({report.duration_s:g} s simulated")

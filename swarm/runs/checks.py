@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from swarm.core.safety import envelope_margins
 from swarm.runs.record import RunRecord
 
 SENSING_WEIGHT = 0.1  # a drone "senses" a target when w > this (issue 4's definition)
@@ -266,6 +267,42 @@ def _check_collision(record: RunRecord) -> list[Violation]:
     return []
 
 
+def envelope_margin_series(record: RunRecord) -> dict[str, FloatArray]:
+    """Each drone's distance to each kind of boundary of the [safety] envelope at every step
+    (``swarm.core.safety.envelope_margins``; negative: outside), (K, N) per kind, NaN where
+    a position is missing; {} without an envelope."""
+    envelope = record.config.safety.params
+    if envelope.empty:
+        return {}
+    positions = record.drone_positions_m
+    k, n = positions.shape[:2]
+    kinds = envelope_margins((0.0, 0.0, 0.0), envelope)
+    series = {kind: np.full((k, n), np.nan) for kind in kinds}
+    for step, drone in zip(*np.nonzero(np.isfinite(positions).all(axis=2)), strict=True):
+        for kind, margin in envelope_margins(tuple(positions[step, drone].tolist()),
+                                             envelope).items():
+            series[kind][step, drone] = margin
+    return series
+
+
+def min_envelope_margins(record: RunRecord) -> dict[str, float]:
+    """The smallest distance of any drone to each kind of boundary over the run [m]."""
+    return {kind: nanmin(values) for kind, values in envelope_margin_series(record).items()}
+
+
+def _check_envelope(record: RunRecord) -> list[Violation]:
+    margins = min_envelope_margins(record)
+    tolerance = record.config.checks.envelope_tolerance_m
+    out = []
+    for kind, margin in margins.items():
+        if np.isnan(margin):
+            out.append(Violation("envelope", f"{kind}: not checked: no drone position"))
+        elif margin < -tolerance:
+            out.append(Violation("envelope", f"a drone went {-margin:.4f} m beyond the "
+                                             f"{kind} (tolerance {tolerance} m)"))
+    return out
+
+
 def _check_velocity_bound(record: RunRecord) -> list[Violation]:
     u_max = record.config.control.u_max_m_s
     peak = max_abs_velocity(record)
@@ -283,4 +320,4 @@ def check_invariants(record: RunRecord) -> list[Violation]:
     Checked on the samples present; an invariant with nothing to check is a violation.
     """
     return [*_check_finite(record), *_check_lambda_bar(record), *_check_collision(record),
-            *_check_velocity_bound(record)]
+            *_check_envelope(record), *_check_velocity_bound(record)]

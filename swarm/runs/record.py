@@ -39,6 +39,9 @@ class RunRecord:
     qp_fallback: Array  # (K, N) bool
     step_us: Array  # (K, N)
     wall_time_s: float
+    # (K, N) bool: the step's QP used localization slack while a safety-envelope row held
+    # u back (swarm.core.safety.safety_conflict); None: not recorded (older recordings).
+    safety_conflict: Array | None = None
 
     @property
     def n_steps(self) -> int:

@@ -78,7 +78,8 @@ def _record_step(recorder: MessageSink, agents: list[DroneAgent], step: int, tim
         counters = TelemetryCounters(
             qp_fallbacks=agent.qp_fallbacks, rejected_messages=agent.rejected_inputs,
             missing_neighbour_messages=agent.missing_neighbour_messages, steps=step + 1,
-            mavlink_state="in-process")
+            mavlink_state="in-process", rate_limit_releases=agent.rate_limit_releases,
+            safety_conflicts=agent.safety_conflicts)
         recorder.put(telemetry_from_diagnostics(diags[i], seen[i], counters))
     recorder.put(TruthWire.build(step=step, time_s=time_s, drone_positions=positions,
                                  target_positions=targets, target_velocities=target_vel))
@@ -111,7 +112,7 @@ def _run(config: ScenarioConfig, seed: int, on_step: StepCallback | None,
         "wslack": np.zeros((steps, n, m)), "det": np.zeros((steps, n, m), dtype=bool),
         "true": np.zeros((steps, m)), "meas": np.zeros((steps, m)),
         "berr": np.full((steps, n), np.nan), "fb": np.zeros((steps, n), dtype=bool),
-        "us": np.zeros((steps, n)),
+        "us": np.zeros((steps, n)), "conflict": np.zeros((steps, n), dtype=bool),
     }
     for k in range(steps):
         view = scene.at(k, positions)
@@ -141,6 +142,7 @@ def _run(config: ScenarioConfig, seed: int, on_step: StepCallback | None,
                 d.weights, d.slacks, d.weight_slacks)
             rec["det"][k, i], rec["fb"][k, i], rec["us"][k, i] = (
                 d.detected, d.qp_fallback, d.step_us)
+            rec["conflict"][k, i] = d.safety_conflict
             if d.bearing_error is not None:
                 rec["berr"][k, i] = d.bearing_error
         rec["true"][k], rec["meas"][k] = truth.lambda_min()
@@ -162,5 +164,5 @@ def _run(config: ScenarioConfig, seed: int, on_step: StepCallback | None,
         weights=rec["w"], slacks=rec["slack"], weight_slacks=rec["wslack"],
         detected=rec["det"], true_lambda_min=rec["true"], measured_lambda_min=rec["meas"],
         bearing_errors=rec["berr"], qp_fallback=rec["fb"], step_us=rec["us"],
-        wall_time_s=time.perf_counter() - started,
+        wall_time_s=time.perf_counter() - started, safety_conflict=rec["conflict"],
     )

@@ -30,6 +30,7 @@ from swarm.core.params import (
     require_finite,
     require_finite_positive,
 )
+from swarm.core.safety import KeepOutCylinder, SafetyParams, envelope_margins
 from swarm.errors import UsageError
 from swarm.mavlink.signing import SigningKeyError, read_signing_key
 from swarm.messages.wire import WireCodec
@@ -146,6 +147,10 @@ class ChecksSection:
 
     lambda_tolerance: float = 0.005  # λ̄ copies may dip to ε − this after control.start_s [s]
     collision_tolerance_m: float = 1e-3  # pairwise distance may dip to Δ − this [m]
+    # every drone's distance to the [safety] envelope's boundaries may dip to −this [m]: a
+    # first-order barrier holds exactly on a flat boundary for ideal vehicles; a keep-out
+    # cylinder's curvature lets one step cut in by ~ΔT²‖u‖²/(2r) (1 mm at 3 m/s, r = 1.5 m)
+    envelope_tolerance_m: float = 5e-3
 
     def __post_init__(self) -> None:
         require(math.isfinite(self.lambda_tolerance) and self.lambda_tolerance >= 0,
@@ -153,6 +158,62 @@ class ChecksSection:
         require(math.isfinite(self.collision_tolerance_m) and self.collision_tolerance_m >= 0,
                 "collision_tolerance_m", "must be a finite number >= 0",
                 self.collision_tolerance_m)
+        require(math.isfinite(self.envelope_tolerance_m) and self.envelope_tolerance_m >= 0,
+                "envelope_tolerance_m", "must be a finite number >= 0",
+                self.envelope_tolerance_m)
+
+
+@dataclass(frozen=True)
+class KeepOutSection:
+    """One keep-out cylinder of [safety]: a static obstacle no drone's centre may enter."""
+
+    center_m: tuple[float, float]  # [x, y] in the world frame [m]
+    radius_m: float
+
+
+@dataclass(frozen=True)
+class SafetySection:
+    """The safety envelope (``swarm.core.safety``): an altitude band, a convex keep-in
+    polygon (``keep_in``: vertices [x, y], either way round; or ``keep_in_box_m``:
+    [x_min, y_min, x_max, y_max]) and keep-out cylinders, each kind with its barrier gain
+    [1/s]; hard rows of every drone's QP. Empty (the default): no envelope."""
+
+    floor_m: float | None = None  # lowest z allowed, world frame (z up) [m]
+    ceiling_m: float | None = None  # highest z allowed [m]
+    keep_in: tuple[tuple[float, float], ...] = ()
+    keep_in_box_m: tuple[float, float, float, float] | None = None
+    keep_out: tuple[KeepOutSection, ...] = ()
+    altitude_gain: float = 1.0  # α of the floor and ceiling rows [1/s]
+    fence_gain: float = 1.0  # α of the keep-in rows [1/s]
+    obstacle_gain: float = 1.0  # α of the keep-out rows [1/s]
+
+    @property
+    def params(self) -> SafetyParams:
+        """The envelope as the core takes it (built and checked once, at load)."""
+        return self.__dict__["_params"]
+
+    def __post_init__(self) -> None:
+        keep_in = self.keep_in
+        if self.keep_in_box_m is not None:
+            require(not keep_in, "keep_in_box_m", "and keep_in are two ways of giving the "
+                    "keep-in area: give one", list(self.keep_in_box_m))
+            x_min, y_min, x_max, y_max = self.keep_in_box_m
+            require(all(math.isfinite(v) for v in self.keep_in_box_m), "keep_in_box_m",
+                    "must be 4 finite numbers", list(self.keep_in_box_m))
+            require(x_min < x_max and y_min < y_max, "keep_in_box_m",
+                    "must be [x_min, y_min, x_max, y_max] with min < max",
+                    list(self.keep_in_box_m))
+            keep_in = ((x_min, y_min), (x_max, y_min), (x_max, y_max), (x_min, y_max))
+        obstacles = []
+        for k, obstacle in enumerate(self.keep_out):
+            try:
+                obstacles.append(KeepOutCylinder(tuple(obstacle.center_m), obstacle.radius_m))
+            except ValueError as err:
+                raise ValueError(f"keep_out[{k}].{str(err).removeprefix('keep_out.')}") from None
+        object.__setattr__(self, "_params", SafetyParams(
+            floor_m=self.floor_m, ceiling_m=self.ceiling_m, keep_in=keep_in,
+            keep_out=tuple(obstacles), altitude_gain=self.altitude_gain,
+            fence_gain=self.fence_gain, obstacle_gain=self.obstacle_gain))
 
 
 Flavour = Literal["px4", "ardupilot"]
@@ -345,6 +406,7 @@ class ScenarioConfig:
     gramian: GramianParams = field(default_factory=GramianParams)
     control: ControlParams = field(default_factory=ControlParams)
     checks: ChecksSection = field(default_factory=ChecksSection)
+    safety: SafetySection = field(default_factory=SafetySection)
     vehicles: VehiclesSection = field(default_factory=VehiclesSection)
     runtime: RuntimeSection = field(default_factory=RuntimeSection)
     security: SecuritySection = field(default_factory=SecuritySection)
@@ -470,6 +532,7 @@ def _cross_check(config: ScenarioConfig) -> None:
         raise ConfigError(
             f"swarm.initial_box_size_m {box_list} is too small for {config.swarm.n_drones} "
             f"drones {config.swarm.initial_min_separation_m} m apart")
+    _check_start_inside_envelope(config)
     try:  # the volume bound above is necessary, not sufficient: try the config's own seed
         sample_initial_positions(
             config.swarm.n_drones, np.asarray(config.swarm.initial_box_center_m), box,
@@ -480,6 +543,34 @@ def _cross_check(config: ScenarioConfig) -> None:
 
 
 # -- loading -------------------------------------------------------------------------------
+
+
+def _check_start_inside_envelope(config: ScenarioConfig) -> None:
+    """Every drone starts inside the [safety] envelope: the start box (whose corners bound
+    the convex keep-in area's and the band's worst case) lies inside the band and the
+    keep-in polygon, and no keep-out cylinder reaches into it."""
+    envelope = config.safety.params
+    if envelope.empty:
+        return
+    center = np.asarray(config.swarm.initial_box_center_m, dtype=float)
+    half = np.asarray(config.swarm.initial_box_size_m, dtype=float) / 2.0
+    corners = [center + half * np.array(signs) for signs in
+               ((sx, sy, sz) for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1))]
+    for kind in ("floor", "ceiling", "fence"):
+        worst = min((envelope_margins(tuple(c), envelope).get(kind, math.inf), tuple(c))
+                    for c in corners)
+        if worst[0] < 0.0:
+            raise ConfigError(
+                f"swarm.initial_box_size_m: drones may start outside the safety envelope "
+                f"({kind}: the start box corner {[round(float(v), 3) for v in worst[1]]} is "
+                f"{-worst[0]:.3g} m beyond it)")
+    for k, obstacle in enumerate(envelope.keep_out):
+        nearest = np.clip(obstacle.center_m, center[:2] - half[:2], center[:2] + half[:2])
+        if math.dist(nearest, obstacle.center_m) <= obstacle.radius_m:
+            raise ConfigError(
+                f"safety.keep_out[{k}]: the cylinder reaches into the drones' start box "
+                f"(centre {center.tolist()}, size {(2 * half).tolist()}): a drone may start "
+                f"inside it")
 
 
 def _check_unknown_keys(data: object, schema: object, path: str) -> None:

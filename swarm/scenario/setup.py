@@ -67,6 +67,7 @@ def agent_setup(config: ScenarioConfig, drone_id: int) -> AgentSetup:
         gramian=config.gramian,
         control=config.control,
         desired_bearings=desired,
+        safety=config.safety.params,
     )
 
 

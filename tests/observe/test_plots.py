@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from swarm.models.camera import fov_segments
-from swarm.observe.plots import figures_for, write_plots
+from swarm.observe.plots import figures_for, plot_envelope, write_plots
 from swarm.runs.record import RunRecord
 from swarm.runs.reference import run_reference
 from swarm.scenario.config import load_config
@@ -100,3 +100,23 @@ def test_fov_pyramid_reaches_the_ground_or_stops_at_range() -> None:
     lengths = [np.linalg.norm(s[1] - s[0]) for s in far[:4]]
     assert np.allclose(lengths, 8.0)
     assert fov_segments(np.array([0.0, 0.0, -1.0]), 50.0, 8.0, ground_z=0.0) == []
+
+
+def test_the_envelope_figure_only_with_an_envelope_and_one_panel_per_kind(
+        tmp_path: Path) -> None:
+    """configs/case2_envelope.toml for 30 s (the ceiling reached from 24 s): envelope.png is
+    written, with a panel per kind of boundary (floor, ceiling, fence, obstacle), each drone's
+    distance drawn, and the conflict steps marked."""
+    record = short_record("case2_envelope", 30.0)
+    written = write_plots(record, tmp_path / "out")
+    assert {p.name for p in written} == COMMON | {"envelope.png"}
+    assert_sensible_pngs(written)
+    figure = plot_envelope(record)
+    axes = figure.axes
+    assert [ax.get_ylabel().split("\n")[0] for ax in axes] == ["floor", "ceiling", "fence",
+                                                               "obstacle"]
+    n = record.config.swarm.n_drones
+    assert all(len(ax.lines) >= n for ax in axes)
+    marked = sum(len(c.get_offsets()) for ax in axes for c in ax.collections)
+    assert record.safety_conflict is not None
+    assert marked == int(record.safety_conflict.sum()) > 0

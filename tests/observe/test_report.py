@@ -205,6 +205,37 @@ def test_collision_and_velocity_bound_violations(case2: RunRecord) -> None:
     assert report.max_abs_velocity_mps == pytest.approx(3.5)
 
 
+def test_the_envelope_margins_and_conflicts_are_reported_and_a_crossing_is_a_violation(
+        ) -> None:
+    """configs/case2_envelope.toml for 2 s: the report holds the closest approach to each
+    boundary (computed here from the positions) and the conflict count; a drone put 0.1 m
+    above the ceiling at one step is an ``envelope`` violation, shown in the figures line."""
+    record = short_record("case2_envelope", 2.0)
+    safety = record.config.safety
+    report = build_report(record)
+    assert report.ok and report.safety_conflicts == 0
+    z = record.drone_positions_m[..., 2]
+    assert report.envelope_margins_m["ceiling"] == pytest.approx(safety.ceiling_m - z.max())
+    assert report.envelope_margins_m["floor"] == pytest.approx(z.min() - safety.floor_m)
+    y = record.drone_positions_m[..., 1]
+    assert report.envelope_margins_m["fence"] == pytest.approx(
+        min(safety.keep_in_box_m[3] - y.max(), y.min() - safety.keep_in_box_m[1],
+            safety.keep_in_box_m[2] - record.drone_positions_m[..., 0].max(),
+            record.drone_positions_m[..., 0].min() - safety.keep_in_box_m[0]))
+    document = json_roundtrip(report_to_json(report))
+    assert document["envelope_margins_m"].keys() == {"floor", "ceiling", "fence", "obstacle"}
+    assert document["safety_conflicts"] == 0
+    positions = record.drone_positions_m.copy()
+    positions[60, 4, 2] = safety.ceiling_m + 0.1
+    crossed = build_report(with_arrays(record, drone_positions_m=positions))
+    assert [v.invariant for v in crossed.violations] == ["envelope"]
+    assert "0.1000 m beyond the ceiling" in crossed.violations[0].detail
+    assert "ceiling -0.1000 m" in render(with_arrays(record, drone_positions_m=positions))
+    without = dataclasses.replace(record, config=load_config(ROOT / "configs" / "case2.toml"))
+    assert build_report(without).envelope_margins_m == {}
+    assert "envelope" not in render(without)
+
+
 # -- missing samples (NaN rows) ------------------------------------------------------------
 
 
