@@ -6,10 +6,10 @@ It reads the ``scene`` channel of ``DIR/run.mcap`` (``foxglove.SceneUpdate``, pr
 the MCAP reader and the MCAP project's protobuf decoder, takes the scene at ``--time`` (default:
 the last one) and draws exactly its primitives: spheres as discs of their colour (translucent
 ones — the collision spheres of radius Δ, the uncertainty ellipsoids — as their equator: the
-ellipse of their first two axes, posed as the primitive says), LINE_LIST lines as segments,
-texts at their positions. The README's picture of the live view comes from here: no
-Foxglove or Lichtblick app runs headless on this project's machines (Lichtblick is on npm only
-as a library to embed), so this draws what they would be sent.
+ellipse of their first two axes, posed as the primitive says), cylinders as their rims,
+LINE_LIST lines as segments, texts at their positions. The README's picture of the live view
+comes from here: no Foxglove or Lichtblick app runs headless on this project's machines
+(Lichtblick is on npm only as a library to embed), so this draws what they would be sent.
 """
 
 from __future__ import annotations
@@ -83,6 +83,14 @@ def draw_scene(scene: Any, title: str = "") -> Figure:
                 ax.scatter(*centre, color=[colour], s=900 * sphere.size.x ** 2,
                            depthshade=False, edgecolors="k", linewidths=0.4)
             points.append(centre)
+        for cylinder in entity.cylinders:  # its top and bottom rims
+            centre, colour = np.array(_xyz(cylinder.pose.position)), _rgba(cylinder.color)
+            angle = np.linspace(0.0, 2 * np.pi, RING_POINTS)
+            for dz in (-cylinder.size.z / 2, cylinder.size.z / 2):
+                ax.plot(centre[0] + cylinder.size.x / 2 * np.cos(angle),
+                        centre[1] + cylinder.size.y / 2 * np.sin(angle),
+                        np.full(RING_POINTS, centre[2] + dz), color=colour[:3], lw=1.0)
+            points.append(centre.tolist())
         for text in entity.texts:
             ax.text(*_xyz(text.pose.position), text.text, color=_rgba(text.color), fontsize=8)
     cloud = np.array(points) if points else np.zeros((1, 3))

@@ -12,6 +12,9 @@ truth message and each drone's telemetry — so it costs the swarm nothing:
 * ``graph``: the communication graph's edges;
 * ``targets``: the targets' true positions, labelled T0, T1, …;
 * ``estimates``: every drone's estimate of every target's position;
+* ``envelope``: the [safety] envelope, when the scenario has one: the keep-in polygon's
+  edges at the floor and the ceiling (the ground and 1 m above the start box when not set)
+  with a post at each vertex, and each keep-out cylinder between the same heights;
 * ``uncertainty``: around each estimate, the ellipsoid holding the target with probability
   ``ELLIPSOID_PROBABILITY`` if the drone's filter covariance P⁺ = pinv(W⁺) (its position
   block, sent in telemetry) were exact: semi-axes ``ELLIPSOID_SIGMAS``·√(eigenvalue) along
@@ -37,6 +40,7 @@ from typing import Any
 import numpy as np
 from foxglove.messages import (
     Color,
+    CylinderPrimitive,
     LinePrimitive,
     LinePrimitiveLineType,
     Log,
@@ -80,7 +84,10 @@ ESTIMATE_COLOUR = (0.10, 0.75, 0.20, 1.0)
 UNCERTAINTY_COLOUR = (0.10, 0.75, 0.20, 0.25)
 ELLIPSOID_PROBABILITY = 0.95
 ELLIPSOID_SIGMAS = 2.7954834829151074  # √(χ²₃ quantile at 0.95): a 3-D Gaussian's 95 % region
-ENTITIES = ("drones", "collision", "fov", "graph", "targets", "estimates", "uncertainty")
+ENVELOPE_COLOUR = (0.80, 0.10, 0.10, 0.8)
+OBSTACLE_COLOUR = (0.80, 0.10, 0.10, 0.3)
+ENTITIES = ("drones", "collision", "fov", "graph", "targets", "estimates", "uncertainty",
+            "envelope")
 
 
 @dataclass(frozen=True)
@@ -166,6 +173,32 @@ def _entity(name: str, stamp: Timestamp, **primitives: list) -> SceneEntity:
                        **primitives)
 
 
+def envelope_heights(config: ScenarioConfig) -> tuple[float, float]:
+    """The heights [m] the envelope is drawn between: its floor and ceiling, or the ground
+    and 1 m above the start box where it has none."""
+    envelope = config.safety.params
+    top = config.swarm.initial_box_center_m[2] + config.swarm.initial_box_size_m[2] / 2 + 1.0
+    return (envelope.floor_m if envelope.floor_m is not None else 0.0,
+            envelope.ceiling_m if envelope.ceiling_m is not None else top)
+
+
+def _envelope_entity(config: ScenarioConfig, stamp: Timestamp) -> SceneEntity:
+    envelope = config.safety.params
+    low, high = envelope_heights(config)
+    vertices = envelope.keep_in
+    segments = [np.array([[*vertices[k], z], [*vertices[(k + 1) % len(vertices)], z]])
+                for z in (low, high) for k in range(len(vertices))]
+    segments += [np.array([[x, y, low], [x, y, high]]) for x, y in vertices]
+    cylinders = [CylinderPrimitive(
+        pose=_pose(np.array([*obstacle.center_m, (low + high) / 2])),
+        size=Vector3(x=2 * obstacle.radius_m, y=2 * obstacle.radius_m, z=high - low),
+        bottom_scale=1.0, top_scale=1.0, color=_colour(OBSTACLE_COLOUR))
+        for obstacle in envelope.keep_out]
+    return _entity("envelope", stamp,
+                   lines=[_lines(segments, ENVELOPE_COLOUR, 2.0)] if segments else [],
+                   cylinders=cylinders)
+
+
 def scene_update(config: ScenarioConfig, state: SceneState) -> SceneUpdate:
     """The scene of ``state`` (entities ``ENTITIES``, each replacing its previous self)."""
     stamp = _stamp(state.time_s)
@@ -209,6 +242,7 @@ def scene_update(config: ScenarioConfig, state: SceneState) -> SceneUpdate:
         _entity("estimates", stamp,
                 spheres=[_sphere(p, ESTIMATE_DIAMETER_M, ESTIMATE_COLOUR) for p in estimates]),
         _entity("uncertainty", stamp, spheres=ellipsoids),
+        _envelope_entity(config, stamp),
     ]
     return SceneUpdate(entities=entities)
 

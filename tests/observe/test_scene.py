@@ -207,6 +207,35 @@ def _telemetry(step: int, drone: int) -> TelemetryWire:
     return msgspec.structs.replace(_SAMPLE, step=step, drone=drone)
 
 
+def test_the_envelope_is_drawn_from_the_config_and_only_when_there_is_one() -> None:
+    """configs/case2_envelope.toml: the keep-in box's 4 edges at the floor and at the
+    ceiling and a post at each corner (12 segments), the obstacle as a cylinder from floor to
+    ceiling; Case 2 (no envelope): an empty entity."""
+    config = load_config(ROOT / "configs" / "case2_envelope.toml")
+    n, m = config.swarm.n_drones, len(config.targets)
+    state = SceneState(step=0, time_s=0.0, drones_m=np.zeros((n, 3)),
+                       targets_m=np.zeros((m, 3)), weights=np.zeros((n, m)),
+                       estimates_m=np.zeros((n, m, 3)))
+    entity = {e.id: e for e in decode_scene(scene_update(config, state)).entities}["envelope"]
+    (lines,) = entity.lines
+    segments = np.array([_xyz(p) for p in lines.points]).reshape(-1, 2, 3)
+    safety = config.safety
+    x0, y0, x1, y1 = safety.keep_in_box_m
+    corners = {(x0, y0), (x1, y0), (x1, y1), (x0, y1)}
+    assert len(segments) == 12
+    assert {(float(x), float(y)) for x, y in segments[..., :2].reshape(-1, 2)} == corners
+    assert set(segments[..., 2].ravel().tolist()) == {safety.floor_m, safety.ceiling_m}
+    (cylinder,) = entity.cylinders
+    (obstacle,) = safety.keep_out
+    assert _xyz(cylinder.pose.position) == [*obstacle.center_m,
+                                            (safety.floor_m + safety.ceiling_m) / 2]
+    assert _xyz(cylinder.size) == [2 * obstacle.radius_m, 2 * obstacle.radius_m,
+                                   safety.ceiling_m - safety.floor_m]
+    plain = load_config(CASE2)
+    empty = {e.id: e for e in decode_scene(scene_update(plain, state)).entities}["envelope"]
+    assert (list(empty.lines), list(empty.cylinders)) == ([], [])
+
+
 def test_the_assembler_waits_for_every_drone_and_gives_up_stale_steps() -> None:
     config = load_config(CASE2)
     n, m = config.swarm.n_drones, len(config.targets)
