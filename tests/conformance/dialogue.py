@@ -143,6 +143,16 @@ def _at_rest_after(pilot: Pilot, start_s: float, still_m_s: float,
     return pilot.sample.t_s - 0.5 * window_s - start_s
 
 
+def _slowest_mean_speed(samples: list[Sample], window_s: float) -> float:
+    """The smallest horizontal speed averaged over consecutive ``window_s`` windows of the
+    samples (PX4 SIH's reported velocity is noisy sample to sample) [m/s]."""
+    start = samples[0].t_s
+    bins: dict[int, list[float]] = {}
+    for s in samples:
+        bins.setdefault(int((s.t_s - start) // window_s), []).append(_speed_xy(s))
+    return min(float(np.mean(speeds)) for speeds in bins.values() if len(speeds) >= 3)
+
+
 def _landing(pilot: Pilot, record: Record, ground_ned: np.ndarray, rate_band: tuple[float, float],
              disarm_band: tuple[float, float]) -> None:
     """After a land command: LANDING, the descent rate (mean between 2 m and 0.6 m above the
@@ -387,14 +397,20 @@ def px4_dialogue(pilot: Pilot, record: Record) -> None:
 
     # --- offboard loss: Hold after COM_OF_LOSS_T (1 s); setpoints again: OFFBOARD again
     lost = pilot.now()
+    at_loss = max(float(np.mean([_speed_xy(s) for s in pilot.since(lost - 0.5)])), 0.1)
     pilot.setpoint = None
     record.figure("loss: last setpoint → Hold",
                   pilot.until(lambda: pilot.mode == "LOITER", 4.0, "Hold after the loss"),
                   0.9, 2.3, "s")
     record.answer("loss: armed", pilot.armed, True)
-    record.figure("loss: at rest after",
-                  _at_rest_after(pilot, lost, PX4_STILL_M_S, 6.0, "at rest after the loss"),
-                  0.5, 4.0, "s")
+    # Judged by the braking, not by coming to rest: SIH's Hold brakes within ~0.4 s of the
+    # switch and then drifts again with its simulated GPS noise, to 0.3-0.4 m/s 7 s after the
+    # loss (a CI run: still 0.47 m/s at 6 s). This ratio measured 0.07-0.44 on SITL (4 runs;
+    # the emulator 0.06); a vehicle that does not brake gives ~1; the band is the Hold's below.
+    hold = pilot.now()
+    pilot.pump(1.5)
+    record.figure("loss: slowest 0.25 s in the first 1.5 s of Hold / speed at the loss",
+                  _slowest_mean_speed(pilot.since(hold), 0.25) / at_loss, 0.0, 0.7, "")
     pilot.setpoint = Setpoint.velocity(0.0, 0.0, 0.0)
     record.figure("setpoints again → OFFBOARD again",
                   pilot.until(lambda: pilot.mode == "OFFBOARD", 3.0, "OFFBOARD again"),

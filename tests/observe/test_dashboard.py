@@ -251,6 +251,23 @@ def test_a_drone_saying_it_cannot_hold_a_target_is_printed_at_once(
     assert "fb 3 λ̄ 1" in console.export_text()  # the drone's events column
 
 
+def test_steps_the_safety_envelope_overruled_localization_are_warned_and_shown(
+        config: ScenarioConfig, final_diagnostics: list[StepDiagnostics]) -> None:
+    """A drone's ``safety_conflicts`` counter (issue 18) rising: a warning line saying so,
+    and ``env`` in its events column."""
+    dt = config.scenario.dt_s
+    console = recording_console(terminal=False)
+    dashboard = Dashboard(config, console, settings=DashboardSettings(warning_period_s=0.0))
+    tel = telemetry(final_diagnostics[4])
+    dashboard.on_telemetry(at_step(tel, 1, dt, safety_conflicts=5))
+    dashboard.advance(1)
+    assert warnings_in(console) == [
+        "t=  0.02s  warning: drone 4: +5 steps the safety envelope overruled localization "
+        "(5 total)"]
+    console.print(dashboard.render())
+    assert "env 5" in console.export_text()
+
+
 def test_inprocess_feed_counts_fallbacks_and_warns(
         config: ScenarioConfig, final_diagnostics: list[StepDiagnostics]) -> None:
     console = recording_console(terminal=False)
