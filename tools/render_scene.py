@@ -9,7 +9,8 @@ ones — the collision spheres of radius Δ, the uncertainty ellipsoids — as t
 ellipse of their first two axes, posed as the primitive says), cylinders as their rims,
 LINE_LIST lines as segments, texts at their positions. The README's picture of the live view
 comes from here: no Foxglove or Lichtblick app runs headless on this project's machines
-(Lichtblick is on npm only as a library to embed), so this draws what they would be sent.
+(npm has only Lichtblick's extension API, not its app), so this draws what they would be
+sent.
 """
 
 from __future__ import annotations
