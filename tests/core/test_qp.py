@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import daqp
 import numpy as np
@@ -22,6 +23,7 @@ from swarm.core.barrier import collision_row
 from swarm.core.qp import INACTIVE_ROW_LOWER, LocalQp, QpSolver, build_local_qp
 
 U_MAX = 3.0
+CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 SLACK_WEIGHT = 1e6
 WEIGHT_FLOOR = 1e-3
 N_DRONES = 4  # three collision slots
@@ -567,33 +569,43 @@ def instance_of(qp: LocalQp, m_targets: int) -> Instance:
                     u_high=qp.z_max[:3].copy())
 
 
-def test_the_qps_of_a_case2_run_are_solved_exactly(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Every QP the agents of 16 s of Case 2 handed to the solver (in process, seed 0), as the
-    workspace held it: the velocity they flew is within 1e-6 of the brute-force optimum."""
-    from pathlib import Path
-
+def _solved_qps(monkeypatch: pytest.MonkeyPatch, config, keep=None
+                ) -> list[tuple[LocalQp, np.ndarray]]:
+    """(QP as the workspace held it, its solution z) of every solve of an in-process run
+    (seed 0) that DAQP solved and that ``keep(u_columns, lower, z)`` accepts (default: all)."""
     from swarm.runs.reference import run_reference
-    from swarm.scenario.config import load_config
 
-    configs = Path(__file__).resolve().parents[2] / "configs"
-    config = load_config(configs / "case2.toml").with_duration(16.0)
-    assert config.control.slack_weight == SLACK_WEIGHT
-    assert config.control.weight_floor == WEIGHT_FLOOR and config.control.u_max_m_s == U_MAX
     captured: list[tuple[LocalQp, np.ndarray]] = []
     original = qp_module.LocalQpWorkspace.solve
 
-    def solve(self, *args, **kwargs):
-        solution = original(self, *args, **kwargs)
-        if solution.status == qp_module.SOLVED:
+    def solve(self, nominal, u_columns, lower, weights, u_box=None):
+        solution = original(self, nominal, u_columns, lower, weights, u_box)
+        if solution.status == qp_module.SOLVED and (
+                keep is None or keep(u_columns, lower, solution.z)):
             captured.append((self.current_qp(), solution.z.copy()))
         return solution
 
     monkeypatch.setattr(qp_module.LocalQpWorkspace, "solve", solve)
     run_reference(config, seed=0)
+    return captured
+
+
+def _spread_picks(items: list, count: int) -> np.ndarray:
+    return np.unique(np.linspace(0, len(items) - 1, count).round().astype(int))
+
+
+def test_the_qps_of_a_case2_run_are_solved_exactly(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Every QP the agents of 16 s of Case 2 handed to the solver (in process, seed 0), as the
+    workspace held it: the velocity they flew is within 1e-6 of the brute-force optimum."""
+    from swarm.scenario.config import load_config
+
+    config = load_config(CONFIGS / "case2.toml").with_duration(16.0)
+    assert config.control.slack_weight == SLACK_WEIGHT
+    assert config.control.weight_floor == WEIGHT_FLOOR and config.control.u_max_m_s == U_MAX
+    captured = _solved_qps(monkeypatch, config)
     assert len(captured) >= 100, len(captured)
-    picks = np.unique(np.linspace(0, len(captured) - 1, 80).round().astype(int))
     worst = 0.0
-    for k in picks:
+    for k in _spread_picks(captured, 80):
         qp, z = captured[k]
         m_targets = (qp.n_variables - 3) // 2
         reference = brute_force_optimum(instance_of(qp, m_targets), relaxed=True)
@@ -609,31 +621,16 @@ def test_the_qps_where_the_envelope_overrules_localization_buy_only_the_slack_ne
     brute-force optimum with the envelope's rows among the hard ones: the velocity within
     1e-6 and the objective — the slack cost the envelope forces — no more than the exact
     optimum's. So localization is relaxed only as much as the envelope needs."""
-    from pathlib import Path
-
     from swarm.core.safety import safety_conflict
-    from swarm.runs.reference import run_reference
     from swarm.scenario.config import load_config
 
-    config = load_config(Path(__file__).resolve().parents[2] / "configs"
-                         / "case2_envelope.toml")
+    config = load_config(CONFIGS / "case2_envelope.toml")
     n_safety = config.safety.params.n_rows
-    conflicts: list[tuple[LocalQp, np.ndarray]] = []
-    original = qp_module.LocalQpWorkspace.solve
-
-    def solve(self, nominal, u_columns, lower, weights, u_box=None):
-        solution = original(self, nominal, u_columns, lower, weights, u_box)
-        if solution.status == qp_module.SOLVED and safety_conflict(
-                u_columns, lower, n_safety, solution.z[:3].tolist(), solution.z[3:].tolist()):
-            conflicts.append((self.current_qp(), solution.z.copy()))
-        return solution
-
-    monkeypatch.setattr(qp_module.LocalQpWorkspace, "solve", solve)
-    run_reference(config, seed=0)
+    conflicts = _solved_qps(monkeypatch, config, lambda u_columns, lower, z: safety_conflict(
+        u_columns, lower, n_safety, z[:3].tolist(), z[3:].tolist()))
     assert len(conflicts) >= 1000, len(conflicts)
-    picks = np.unique(np.linspace(0, len(conflicts) - 1, 60).round().astype(int))
     worst = 0.0
-    for k in picks:
+    for k in _spread_picks(conflicts, 60):
         qp, z = conflicts[k]
         m_targets = (qp.n_variables - 3) // 2
         reference = brute_force_optimum(instance_of(qp, m_targets), relaxed=True)
