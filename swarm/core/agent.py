@@ -501,7 +501,7 @@ class DroneAgent:
             velocity=velocity,
             nominal_velocity=np.array(nominal) if nominal is not _ZERO3 else np.zeros(3),
             estimates=self._posterior_state.copy(),
-            estimate_covariance=np.ascontiguousarray(self._position_covariance),
+            estimate_covariance=self._position_covariance,
             lambda_bar=series[0:m], psi0=series[m:2 * m], psi1=series[2 * m:3 * m],
             weights=series[3 * m:4 * m], weight_sum_estimate=series[4 * m:],
             slacks=slacks, weight_slacks=weight_slacks, detected=self._detected,
@@ -525,7 +525,7 @@ class DroneAgent:
             packed[:self._n_info].reshape(m, n, n), packed[self._n_info:].reshape(m, n),
             self._communicated_velocity if self._single_integrator else None)
         self._posterior_state = posterior_state
-        self._position_covariance = covariance[:, :3, :3]
+        self._position_covariance = covariance[:, :3, :3].copy()  # contiguous, as sent
         estimates = posterior_state.tolist()
         if not self._single_integrator:
             return estimates, [e[3:6] for e in estimates]

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from functools import cached_property
 
 from swarm.core.params import require, require_finite, require_finite_positive
 
@@ -75,6 +76,12 @@ class SafetyParams:
     def empty(self) -> bool:
         return (self.floor_m is None and self.ceiling_m is None and not self.keep_in
                 and not self.keep_out)
+
+    @cached_property
+    def fence_edges(self) -> tuple[tuple[Vec2, Vec2], ...]:
+        """(inward unit normal n_k, vertex v_k) of each keep-in edge, worked out once (every
+        step's rows and every margin use them)."""
+        return tuple(fence_edges(self.keep_in))
 
     @property
     def n_rows(self) -> int:
@@ -139,7 +146,7 @@ def safety_rows(position: Vec3, params: SafetyParams) -> tuple[list[Vec3], list[
     if params.ceiling_m is not None:
         rows.append((0.0, 0.0, -1.0))
         lower.append(-params.altitude_gain * (params.ceiling_m - pz))
-    for (nx, ny), (vx, vy) in fence_edges(params.keep_in):
+    for (nx, ny), (vx, vy) in params.fence_edges:
         rows.append((nx, ny, 0.0))
         lower.append(-params.fence_gain * (nx * (px - vx) + ny * (py - vy)))
     for obstacle in params.keep_out:
@@ -162,7 +169,7 @@ def envelope_margins(position: Vec3, params: SafetyParams) -> dict[str, float]:
         margins["ceiling"] = params.ceiling_m - pz
     if params.keep_in:
         margins["fence"] = min(nx * (px - vx) + ny * (py - vy)
-                               for (nx, ny), (vx, vy) in fence_edges(params.keep_in))
+                               for (nx, ny), (vx, vy) in params.fence_edges)
     if params.keep_out:
         margins["obstacle"] = min(math.hypot(px - o.center_m[0], py - o.center_m[1])
                                   - o.radius_m for o in params.keep_out)
