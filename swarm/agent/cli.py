@@ -1,4 +1,9 @@
-"""``swarm-agent``: one drone's process (the core's step between Zenoh and MAVLink)."""
+"""``swarm-agent``: one drone's process (the core's step between Zenoh and MAVLink).
+
+Its ``udpin`` MAVLink socket is bound first, before pymavlink, numpy, the core and Zenoh are
+imported (``swarm.mavlink.udpin``): the link's listening window for a second autopilot then
+runs while they load instead of after.
+"""
 
 from __future__ import annotations
 
@@ -6,6 +11,7 @@ import os
 import sys
 from collections.abc import Sequence
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 # pymavlink.mavutil imports its MAVLink 1 "all" dialect (every dialect in one module) at import
 # time only so that PyInstaller bundles it: ~6 MB of RSS and ~0.1 s of CPU per agent, which
@@ -15,28 +21,22 @@ sys.modules.setdefault("pymavlink.dialects.v10.all", None)  # type: ignore[arg-t
 os.environ.setdefault("MAVLINK20", "1")
 os.environ.setdefault("MAVLINK_DIALECT", "ardupilotmega")
 
-from swarm.agent.process import AgentOptions, AgentProcess  # noqa: E402
-from swarm.mavlink.link import LinkError  # noqa: E402
-from swarm.net.transport import LinkFaults, check_tls_endpoints, local_endpoint  # noqa: E402
-from swarm.scenario.cli_common import (  # noqa: E402
-    DEFAULT_MAVLINK_BASE,
-    ConfigError,
-    OneLineParser,
-    add_run_arguments,
-    exit_code,
-    fail,
-    fail_on,
-    fraction,
-    load_scenario,
-    step_count,
-    terminate_on_sigterm,
-)
-from swarm.scenario.config import realtime_only_reason  # noqa: E402
+from swarm.mavlink.udpin import DEFAULT_MAVLINK_BASE, BoundSocket, bind_early  # noqa: E402
+
+if TYPE_CHECKING:
+    from swarm.scenario.cli_common import OneLineParser
 
 PROG = "swarm-agent"
 
 
 def build_parser() -> OneLineParser:
+    from swarm.scenario.cli_common import (
+        OneLineParser,
+        add_run_arguments,
+        fraction,
+        step_count,
+    )
+
     parser = OneLineParser(prog=PROG, description=(
         "Run drone I: estimate and keep every target localized, talking to graph neighbours "
         "over Zenoh and commanding the autopilot over MAVLink."))
@@ -64,6 +64,30 @@ def build_parser() -> OneLineParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    early = bind_early(argv)
+    try:
+        return _main(argv, early)
+    finally:
+        if early is not None:
+            early.close()  # a no-op once the link took it over and closed it
+
+
+def _main(argv: list[str], early: BoundSocket | None) -> int:
+    # Imported now, with the MAVLink socket already bound (module docstring).
+    from swarm.agent.process import AgentOptions, AgentProcess
+    from swarm.mavlink.link import LinkError
+    from swarm.net.transport import LinkFaults, check_tls_endpoints, local_endpoint
+    from swarm.scenario.cli_common import (
+        ConfigError,
+        exit_code,
+        fail,
+        fail_on,
+        load_scenario,
+        terminate_on_sigterm,
+    )
+    from swarm.scenario.config import realtime_only_reason
+
     args = build_parser().parse_args(argv)
     try:
         config = load_scenario(args.config, args.duration)
@@ -86,15 +110,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     if reason is not None:
         return fail(PROG, reason)
     terminate_on_sigterm()
+    url = args.mavlink or f"udpin:127.0.0.1:{DEFAULT_MAVLINK_BASE + args.id}"
     options = AgentOptions(
         config=config, drone_id=args.id,
         seed=config.scenario.seed if args.seed is None else args.seed,
         run_id=args.run_id,
-        mavlink_url=args.mavlink or f"udpin:127.0.0.1:{DEFAULT_MAVLINK_BASE + args.id}",
+        mavlink_url=url,
         connect=tuple(args.connect or [local_endpoint(7447, tls=config.security.enabled)]),
         listen=tuple(args.listen),
         mode=args.mode, log=lambda line: print(line, flush=True), consensus_faults=faults,
-        qp_dump_dir=args.qp_dump_dir)
+        qp_dump_dir=args.qp_dump_dir,
+        mavlink_socket=early if early is not None and early.url == url else None)
     process = None
     try:
         process = AgentProcess(options)

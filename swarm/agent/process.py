@@ -33,6 +33,7 @@ from swarm.agent.qp_failures import QpFailureLog
 from swarm.core.agent import ConsensusMessage, DroneAgent, StepDiagnostics
 from swarm.errors import EXIT_END_MISSION, EXIT_FAILED, EXIT_OK, VigilError
 from swarm.mavlink.link import AutopilotLink, LinkError, PositionSample
+from swarm.mavlink.udpin import BoundSocket
 from swarm.messages.wire import (
     BeaconWire,
     CameraFrameWire,
@@ -91,6 +92,9 @@ class AgentOptions:
     consensus_faults: LinkFaults = field(default_factory=LinkFaults)
     # Where the first failed QPs are saved (swarm.agent.qp_failures); None: only logged.
     qp_dump_dir: Path | None = None
+    # mavlink_url's udpin socket, bound before the imports (swarm-agent); None: the link
+    # opens its connection itself.
+    mavlink_socket: BoundSocket | None = None
 
 
 class AgentProcess:
@@ -127,7 +131,8 @@ class AgentProcess:
         # while the Zenoh session and subscriptions are set up.
         self.link = AutopilotLink(options.mavlink_url, self.id, cfg.vehicles.flavour,
                                   cfg.vehicles.origin_w(self.id), log=options.log,
-                                  signing_key=cfg.vehicles.signing_key())
+                                  signing_key=cfg.vehicles.signing_key(),
+                                  bound=options.mavlink_socket)
         self.watch = VehicleWatch(self.link.setpoint_mode)
         self.localization = LocalizationWatch(len(cfg.targets), cfg.gramian.epsilon,
                                               cfg.checks.lambda_tolerance)

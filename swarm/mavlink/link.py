@@ -70,7 +70,9 @@ idle setpoints sent by ``handshake`` and ``keepalive``, so they never match a lo
 stamp); ``PositionSample``; ``LinkError``.
 
 ``AutopilotLink(url, drone_id, flavour, origin_w, *, log=print, source_system=None,
-clock=time.monotonic, signing_key=None)``: ``wait_heartbeat(timeout_s)``, ``handshake(...)``,
+clock=time.monotonic, signing_key=None, bound=None)`` (``bound``: the ``udpin`` socket,
+bound earlier by ``swarm.mavlink.udpin.bind_udpin``; its listening time counts):
+``wait_heartbeat(timeout_s)``, ``handshake(...)``,
 ``keepalive(now_s=None)``, ``latest_position()``, ``position_at(time_boot_ms)``,
 ``wait_position(time_boot_ms, timeout_s)``,
 ``send_velocity(velocity_w, time_boot_ms)``, ``send_position(position_w, time_boot_ms)``,
@@ -93,7 +95,6 @@ from __future__ import annotations
 import contextlib
 import errno
 import math
-import os
 import select
 import socket
 import time
@@ -108,8 +109,9 @@ from numpy.typing import ArrayLike, NDArray
 from pymavlink import mavutil
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
-from swarm.errors import VigilError
 from swarm.mavlink import px4_events
+from swarm.mavlink.connection import LinkError, open_connection
+from swarm.mavlink.connection import one_line as _one_line
 from swarm.mavlink.parse import (
     LOCAL_POSITION_NED,
     POSITION_ONLY_TYPE_MASK,
@@ -119,6 +121,7 @@ from swarm.mavlink.parse import (
     parse_bytes,
 )
 from swarm.mavlink.signing import KEY_BYTES, refresh_signing_timestamp
+from swarm.mavlink.udpin import BoundSocket, udpin_address
 from swarm.models import frames
 
 Array = NDArray[np.float64]
@@ -197,17 +200,9 @@ class PositionSample:
     received_s: float
 
 
-class LinkError(VigilError, RuntimeError):
-    """The autopilot link failed; the message is one line saying what to check."""
-
-
 def _result_name(result: int) -> str:
     entry = mavlink2.enums["MAV_RESULT"].get(result)
     return entry.name if entry is not None else "UNKNOWN"
-
-
-def _one_line(text: str) -> str:
-    return " ".join(str(text).split())
 
 
 def _is_vehicle_heartbeat(msg: Any) -> bool:
@@ -242,6 +237,7 @@ class AutopilotLink:
         source_system: int | None = None,
         clock: Callable[[], float] = time.monotonic,
         signing_key: bytes | None = None,
+        bound: BoundSocket | None = None,
     ) -> None:
         if flavour not in ("px4", "ardupilot"):
             raise ValueError(f"flavour must be 'px4' or 'ardupilot', got {flavour!r}")
@@ -257,22 +253,10 @@ class AutopilotLink:
         self._clock = clock
         self._source_system = self._sysid if source_system is None else int(source_system)
 
-        _check_udpin_port_free(url)
-        # pymavlink picks MAVLink 1 or 2 from this variable when the connection sets its
-        # dialect (it is read at connection time, and inherited by child processes).
-        os.environ.setdefault("MAVLINK20", "1")
-        try:
-            self._conn: Any = mavutil.mavlink_connection(
-                url, source_system=self._source_system,
-                source_component=mavlink2.MAV_COMP_ID_ONBOARD_COMPUTER,
-                dialect="ardupilotmega", udp_timeout=5.0)
-        except Exception as exc:
-            raise LinkError(_one_line(
-                f"{self._me}: cannot open MAVLink connection {url!r}: {exc}")) from exc
-        if not self._conn.mavlink20():
-            self._conn.close()
-            raise LinkError(f"{self._me}: pymavlink did not select MAVLink 2 for "
-                            f"{url} (MAVLINK20={os.environ.get('MAVLINK20')!r})")
+        if bound is not None and clock is not time.monotonic:
+            raise ValueError(f"{self._me}: a bound socket's listening time is on "
+                             "time.monotonic, not on this link's clock")
+        self._conn: Any = open_connection(url, self._source_system, who=self._me, bound=bound)
         self._signing = signing_key is not None
         if signing_key is not None:
             if len(signing_key) != KEY_BYTES:
@@ -283,7 +267,8 @@ class AutopilotLink:
             self._conn.setup_signing(bytes(signing_key), sign_outgoing=True,
                                      allow_unsigned_callback=None, link_id=_SIGNING_LINK_ID)
         self._closed = False
-        self._opened_s = self._clock()
+        # The listening window (EXCLUSIVE_LISTEN_S) counts from when the socket was bound.
+        self._opened_s = bound.bound_s if bound is not None else self._clock()
 
         self._heartbeat: Any = None
         self._mode_name: str | None = None  # mode_string_v10 of _heartbeat, computed once
@@ -749,7 +734,8 @@ class AutopilotLink:
         if self._other_systems:
             heard = ", ".join(str(s) for s in sorted(self._other_systems))
             return f"{text}: heard system(s) {heard} instead: check --id and the port"
-        port = _udpin_port(self._url)
+        address = udpin_address(self._url)
+        port = None if address is None else address[1]
         if port is not None and port > 0:
             return (f"{text}: is the vehicle (sim-world --mavlink-base {port - self._drone_id}, "
                     f"or an autopilot) sending to port {port}?")
@@ -1129,28 +1115,3 @@ def _stamp(time_boot_ms: int) -> int:
     return stamp
 
 
-def _udpin_port(url: str) -> int | None:
-    if not url.startswith("udpin:"):
-        return None
-    try:
-        return int(url.rsplit(":", 1)[1])
-    except ValueError:
-        return None
-
-
-def _check_udpin_port_free(url: str) -> None:
-    """pymavlink binds udpin sockets with SO_REUSEADDR, so on Linux a second process can bind
-    the same port silently and steal datagrams. Probe with a plain bind first."""
-    port = _udpin_port(url)
-    if port is None or port == 0:
-        return
-    host = url[len("udpin:"):].rsplit(":", 1)[0]
-    probe = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-    try:
-        probe.bind((host, port))
-    except OSError as exc:
-        raise LinkError(_one_line(
-            f"cannot listen on {url}: {exc.strerror or exc}: is another agent (same --id and "
-            f"--mavlink-base) or a ground station already using that port?")) from exc
-    finally:
-        probe.close()

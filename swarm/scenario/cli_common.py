@@ -17,14 +17,9 @@ from swarm.errors import (  # noqa: F401 (the executables import the codes from 
     EXIT_USAGE,
     exit_code,
 )
+from swarm.mavlink.udpin import DEFAULT_MAVLINK_BASE  # noqa: F401 (the executables' default)
 from swarm.scenario.config import ConfigError, ScenarioConfig, load_config
 
-# Emulated vehicle i talks to agent i on UDP DEFAULT_MAVLINK_BASE + i. Clear of every port
-# autopilot SITL uses by default (PX4: 14540-14549 offboard, 14550 GCS, 14580+, 18570+,
-# 13030+, 14030+, 19410+; ArduPilot: TCP 5760+, UDP 5501+, 9002+, MAVProxy 14550/14551), so
-# that an emulated run never hears a real autopilot of the same machine, and below Linux's
-# ephemeral ports (32768+).
-DEFAULT_MAVLINK_BASE = 24540
 RUN_ID_PATTERN = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
 

@@ -2,12 +2,14 @@
 
 Both ends are real pymavlink; ports come from the OS. A served vehicle is a small loop in a
 background thread stepping the vehicle at 50 Hz wall clock (``fly`` + telemetry) and
-answering every datagram at once. Waits are on conditions with deadlines, never sleeps.
+answering every datagram at once. Waits are on conditions with deadlines, never sleeps (but
+one, standing for the imports of an agent whose socket is already bound).
 """
 
 from __future__ import annotations
 
 import math
+import os
 import select
 import socket
 import threading
@@ -22,9 +24,16 @@ from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from sim_world.mavlink_endpoint import VehicleEndpoint
 from sim_world.vehicle import EmulatedVehicle
-from swarm.mavlink.link import IDLE_STAMP_MS, AutopilotLink, LinkError, PositionSample
+from swarm.mavlink.link import (
+    EXCLUSIVE_LISTEN_S,
+    IDLE_STAMP_MS,
+    AutopilotLink,
+    LinkError,
+    PositionSample,
+)
 from swarm.mavlink.parse import LOCAL_POSITION_NED, parse_bytes
 from swarm.mavlink.sitl import free_udp_port
+from swarm.mavlink.udpin import bind_udpin
 from swarm.models import frames
 
 DT = 0.02
@@ -606,6 +615,91 @@ def test_a_second_autopilot_is_refused_and_never_commanded(flavour: str, served:
     with server.lock:
         assert not server.vehicle.armed  # refused before the first was armed either
     assert not link.end_mission("hold")  # nothing was commanded: nothing to end
+
+
+# ---------------------------------------------------------------- a socket bound early
+# swarm-agent binds its udpin socket before its imports (swarm.mavlink.udpin) and the link
+# takes it over: the listening window counts from the bind, so it must also hear what
+# arrived before the link existed.
+MOVING_COMMANDS = {mav.MAV_CMD_DO_SET_MODE, mav.MAV_CMD_COMPONENT_ARM_DISARM,
+                   mav.MAV_CMD_NAV_TAKEOFF}
+
+
+def test_a_link_on_an_early_bound_socket_listens_from_the_bind(logs: list[str]) -> None:
+    """The vehicle sends to the port for a while before the link exists; the link hears it,
+    answers from the bound port, and sends nothing that arms or moves the vehicle before
+    EXCLUSIVE_LISTEN_S after the bind, nor a whole window after its own start."""
+    flavour = "px4"  # in the air: its first setpoint and OFFBOARD move it
+    bound = bind_udpin(f"udpin:127.0.0.1:{free_udp_port()}")
+    port = bound.sock.getsockname()[1]
+    sent: list[tuple[float, str]] = []  # (monotonic s, what) of every command and setpoint
+
+    def record(msg: Any, t: float) -> None:
+        kind = msg.get_type()
+        if kind == "COMMAND_LONG" and msg.command in MOVING_COMMANDS:
+            sent.append((time.monotonic(), f"command {msg.command}"))
+        elif kind == "SET_POSITION_TARGET_LOCAL_NED":
+            sent.append((time.monotonic(), "setpoint"))
+
+    vehicle = EmulatedVehicle(DRONE, flavour, START, ORIGIN)  # type: ignore[arg-type]
+    server = ServedVehicle(vehicle, port, lambda msg, t: record(msg, t))
+    try:
+        # Its datagrams wait in the kernel for a link that does not exist yet, as while
+        # swarm-agent imports (~1 s of a 6-drone launch on two cores).
+        assert select.select([bound.sock], [], [], 5.0)[0]
+        time.sleep(1.2)
+        created_s = time.monotonic()
+        link = AutopilotLink(bound.url, DRONE, flavour, ORIGIN,  # type: ignore[arg-type]
+                             log=logs.append, bound=bound)
+        try:
+            assert link.local_address == ("127.0.0.1", port)
+            assert not os.get_inheritable(link._conn.port.fileno())
+            link.handshake(timeout_s=30.0, start_position_w=START)
+            with server.lock:  # everything came from the bound port
+                assert server.endpoint.peer_address == ("127.0.0.1", port)
+                assert server.endpoint.peer_changes == 0
+            assert sent, "the handshake commanded nothing"
+            first_s = min(t for t, _ in sent)
+            assert first_s >= bound.bound_s + EXCLUSIVE_LISTEN_S, sent
+            assert first_s < created_s + EXCLUSIVE_LISTEN_S, (first_s - created_s, sent)
+            with server.lock:
+                assert server.vehicle.armed and server.vehicle.in_setpoint_mode
+        finally:
+            link.close()
+    finally:
+        server.stop()
+
+
+@pytest.mark.parametrize("flavour", ["px4", "ardupilot"])
+def test_a_second_autopilot_heard_before_the_link_existed_is_refused(flavour: str,
+                                                                     logs: list[str]) -> None:
+    """Both autopilots' heartbeats arrived while the agent was still importing: the link
+    reads them from the bound socket, keeps the first and refuses to fly."""
+    bound = bind_udpin(f"udpin:127.0.0.1:{free_udp_port()}")
+    port = bound.sock.getsockname()[1]
+    first = VehicleEndpoint(("127.0.0.1", port))
+    other = VehicleEndpoint(("127.0.0.1", port))
+    link = None
+    try:
+        make = EmulatedVehicle
+        first.send([make(DRONE, flavour, START, ORIGIN, start="ground").heartbeat()])
+        assert select.select([bound.sock], [], [], 5.0)[0]  # queued first
+        other.send([make(DRONE, flavour, START, ORIGIN, start="ground").heartbeat()])
+        link = AutopilotLink(bound.url, DRONE, flavour, ORIGIN,  # type: ignore[arg-type]
+                             log=logs.append, bound=bound)
+        with pytest.raises(LinkError) as err:
+            link.handshake(timeout_s=5.0, start_position_w=START)
+        text = str(err.value)
+        assert "second autopilot" in text, text
+        for endpoint in (first, other):
+            host, number = endpoint.local_address
+            assert f"{host}:{number}" in text, text
+        assert other.poll() == []  # nothing was ever sent to the second one
+    finally:
+        if link is not None:
+            link.close()
+        first.close()
+        other.close()
 
 
 # ---------------------------------------------------------------- what the autopilot says
