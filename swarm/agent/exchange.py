@@ -40,6 +40,7 @@ from swarm.scenario.config import ScenarioConfig
 
 Mode = Literal["lockstep", "realtime"]
 WAIT_SLICE_S = 0.25  # lockstep waits wake at least this often to check their deadline
+FIRST_FRAME_POLL_S = 0.01  # realtime, before the mission: how often the rings are looked at
 
 # One step of the agent: (step, the vehicle's position sample, the camera frame or None, the
 # sample's age [s], the pose the frame was taken from when not the sample's).
@@ -62,6 +63,8 @@ class Peers:
     camera_latest: LatestValues[CameraFrameWire]
     check_clock: Callable[[], None]
     log: Callable[[str], None]
+    # Take what waits in the subscriptions' rings (realtime: ``RingSubscriber.drain``).
+    drain: Callable[[], None]
 
 
 class Exchange(Protocol):
@@ -76,10 +79,10 @@ class Exchange(Protocol):
     neighbour_age_ms: float
 
     def ring(self, per_step: int) -> int | None: ...
-    def put_camera(self, frame: CameraFrameWire) -> None: ...
-    def put_consensus(self, msg: ConsensusMessage) -> None: ...
+    def put_camera(self, frame: CameraFrameWire, arrived_s: float | None = None) -> None: ...
+    def put_consensus(self, msg: ConsensusMessage, arrived_s: float | None = None) -> None: ...
     def consensus_sent(self, msg: ConsensusMessage, sent_unix_s: float) -> None: ...
-    def put_beacon(self, beacon: BeaconWire) -> None: ...
+    def put_beacon(self, beacon: BeaconWire, arrived_s: float | None = None) -> None: ...
     def close(self) -> None: ...
     def announce(self) -> PositionSample | None: ...
     def wait_first_frame(self, timeout_s: float) -> None: ...
@@ -110,16 +113,16 @@ class LockstepExchange:
     def ring(self, per_step: int) -> int | None:
         return None  # every message is kept until its step is taken
 
-    def put_camera(self, frame: CameraFrameWire) -> None:
+    def put_camera(self, frame: CameraFrameWire, arrived_s: float | None = None) -> None:
         self.camera_steps.put(frame.step, 0, 0, frame)
 
-    def put_consensus(self, msg: ConsensusMessage) -> None:
+    def put_consensus(self, msg: ConsensusMessage, arrived_s: float | None = None) -> None:
         self.consensus_steps.put(msg.step, msg.round, msg.sender, msg)
 
     def consensus_sent(self, msg: ConsensusMessage, sent_unix_s: float) -> None:
         return None
 
-    def put_beacon(self, beacon: BeaconWire) -> None:
+    def put_beacon(self, beacon: BeaconWire, arrived_s: float | None = None) -> None:
         self.beacon_steps.put(beacon.step, 0, beacon.sender, beacon)
 
     def close(self) -> None:
@@ -176,12 +179,14 @@ class LockstepExchange:
 class RealtimeExchange:
     """The newest of everything, on the wall clock (module docstring)."""
 
-    # Callbacks on a Python thread of their own (zenoh queues samples without the GIL), so a
-    # receiving thread never stalls on the GIL while the step computes: Case 2 scaled to
-    # N = 12, three interleaved pairs of 10 s runs, 11-13 % late steps against 21-38 % with
-    # direct callbacks. Bounded rings (``ring``: a few steps' worth of every source) instead
-    # of zenoh's unbounded queue, which on an overloaded machine grew by ~300 kB/s per agent
-    # (Case 2 at N = 24) while the agents fell ever further behind.
+    # Samples wait in bounded rings inside zenoh (``ring``: a few steps' worth of every
+    # source; no Python, no GIL) and the loop takes them where it reads them (``drain``: at
+    # each tick, before each round's inbox and before the beacons), so receiving never
+    # preempts the step. Direct callbacks preempted it (Case 2 scaled to N = 12: 21-38 % late
+    # steps), a Python thread per ring less so (11-13 % that day; on another, side by side,
+    # 44 % with a thread per ring against 7 % drained here). Zenoh's own unbounded queue
+    # grew by ~300 kB/s per agent on an overloaded machine (Case 2 at N = 24) while the
+    # agents fell ever further behind.
     direct = False
     block_consensus = False  # the newest message is what counts: drop when the queue is full
     sent_times = True
@@ -205,18 +210,18 @@ class RealtimeExchange:
     def ring(self, per_step: int) -> int | None:
         return 4 * per_step
 
-    def put_camera(self, frame: CameraFrameWire) -> None:
+    def put_camera(self, frame: CameraFrameWire, arrived_s: float | None = None) -> None:
         return None  # the loop reads the newest frame (``Peers.camera_latest``)
 
-    def put_consensus(self, msg: ConsensusMessage) -> None:
-        self.consensus_latest.put((msg.sender, msg.round), msg)
+    def put_consensus(self, msg: ConsensusMessage, arrived_s: float | None = None) -> None:
+        self.consensus_latest.put((msg.sender, msg.round), msg, arrived_s=arrived_s)
 
     def consensus_sent(self, msg: ConsensusMessage, sent_unix_s: float) -> None:
         if msg.sender in self.peers.neighbours:
             self._consensus_sent[(msg.sender, msg.round)] = sent_unix_s
 
-    def put_beacon(self, beacon: BeaconWire) -> None:
-        self.beacon_latest.put(beacon.sender, beacon)
+    def put_beacon(self, beacon: BeaconWire, arrived_s: float | None = None) -> None:
+        self.beacon_latest.put(beacon.sender, beacon, arrived_s=arrived_s)
 
     def close(self) -> None:
         return None  # nothing waits: the loop checks the clock every tick
@@ -227,7 +232,15 @@ class RealtimeExchange:
         return self.peers.link.latest_position()
 
     def wait_first_frame(self, timeout_s: float) -> None:
-        self.peers.camera_latest.wait_for([0], timeout_s)
+        """Until the first frame or ``timeout_s``: the rings are looked at every
+        ``FIRST_FRAME_POLL_S`` (before the mission only; nothing wakes a wait on a ring)."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            self.peers.drain()
+            remaining = deadline - time.monotonic()
+            if self.peers.camera_latest.get(0) is not None or remaining <= 0:
+                return
+            time.sleep(min(FIRST_FRAME_POLL_S, remaining))
 
     def begin(self, step: int) -> None:
         """N = the own drone and the drones heard within ``member_timeout_s``.
@@ -259,6 +272,7 @@ class RealtimeExchange:
 
     def inbox(self, step: int, rnd: int) -> dict[int, ConsensusMessage]:
         """Each neighbour's newest message of this round, if fresh enough."""
+        self.peers.drain()
         stale_after = self.peers.config.runtime.stale_timeout_s
         inbox: dict[int, ConsensusMessage] = {}
         ages = []
@@ -289,6 +303,7 @@ class RealtimeExchange:
         A beacon older than the stale timeout belongs to a drone that is late or lost; its
         vehicle flies the last setpoint until its failsafe holds it, so it is carried forward
         for at most that long and kept there: nobody flies into a hovering drone."""
+        self.peers.drain()
         hold_after = self.peers.config.vehicles.failsafe_timeout_s
         own_shift = sample_age_s * flying
         out: dict[int, np.ndarray] = {}
@@ -317,6 +332,7 @@ class RealtimeExchange:
         first = peers.camera_latest.get(0)
         k = first[0].step if first is not None else 0
         while True:
+            peers.drain()
             peers.check_clock()
             current = link.latest_position() or current
             latest = peers.camera_latest.get(0)

@@ -48,6 +48,7 @@ from swarm.net.transport import (
     LatestValues,
     LinkFaults,
     RejectionCounter,
+    RingSubscriber,
     TransportError,
     declare_publisher,
     open_session,
@@ -136,10 +137,11 @@ class AgentProcess:
         self.watch = VehicleWatch(self.link.setpoint_mode)
         self.localization = LocalizationWatch(len(cfg.targets), cfg.gramian.epsilon,
                                               cfg.checks.lambda_tolerance)
+        self._rings: list[RingSubscriber] = []  # the realtime subscriptions, drained by the loop
         # Before the subscriptions: their callbacks store through it.
         self.exchange = exchange = exchange_for(options.mode, Peers(
             self.id, self.neighbours, self.others, cfg, self.agent, self.link,
-            self.camera_latest, self._check_clock, options.log))
+            self.camera_latest, self._check_clock, options.log, self._drain_rings))
         try:
             self.session = self._open_session()
         except BaseException:
@@ -166,6 +168,7 @@ class AgentProcess:
                            keep_latest=ring(rounds))
                  for j in sorted(self.neighbours)]
         self._subscribers = subs
+        self._rings = [sub for sub in subs if isinstance(sub, RingSubscriber)]
         # Consensus: blocking or dropping, as the exchange says. Beacons and telemetry never
         # drop: the recorder keeps every one (in realtime, ~2-4 %
         # of the telemetry used to be dropped in zenoh's tx queues on a loaded machine), and
@@ -214,35 +217,41 @@ class AgentProcess:
 
     # -- subscriptions (zenoh threads) ------------------------------------------------------
 
-    def _on_clock(self, _key: str, clock: ClockWire) -> None:
-        self.clock.put(0, clock)
+    def _drain_rings(self) -> None:
+        for ring in self._rings:
+            ring.drain()
+
+    def _on_clock(self, _key: str, clock: ClockWire, arrived_s: float | None = None) -> None:
+        self.clock.put(0, clock, arrived_s=arrived_s)
         if clock.state in ("done", "aborted"):  # whatever the loop waits for is not coming
             self.exchange.close()
 
-    def _on_camera(self, _key: str, frame: CameraFrameWire) -> None:
+    def _on_camera(self, _key: str, frame: CameraFrameWire,
+                   arrived_s: float | None = None) -> None:
         if frame.drone != self.id:
             self.rejections.reject("camera", f"frame for drone {frame.drone} on drone {self.id}")
             return
-        self.exchange.put_camera(frame)
-        self.camera_latest.put(0, frame)  # every mode: start() waits on it
+        self.exchange.put_camera(frame, arrived_s)
+        self.camera_latest.put(0, frame, arrived_s=arrived_s)  # every mode: start() waits
 
-    def _on_consensus(self, key: str, msg: ConsensusMessage) -> None:
+    def _on_consensus(self, key: str, msg: ConsensusMessage,
+                      arrived_s: float | None = None) -> None:
         if msg.sender not in self.neighbours:
             self.rejections.reject("consensus", f"message from non-neighbour {msg.sender}")
             return
         if key != self._consensus_keys[msg.sender]:  # j's data on another drone's key
             self.rejections.reject("consensus", f"sender {msg.sender} on {key}")
             return
-        self.exchange.put_consensus(msg)
+        self.exchange.put_consensus(msg, arrived_s)
 
-    def _on_beacon(self, key: str, beacon: BeaconWire) -> None:
+    def _on_beacon(self, key: str, beacon: BeaconWire, arrived_s: float | None = None) -> None:
         # Our own beacons never come back (remote only): one with our id is another process
         # claiming to be this drone, or a replay.
         if beacon.sender == self.id or key != self._beacon_keys[beacon.sender]:
             self.rejections.reject("beacon", f"sender {beacon.sender} on {key} (drone "
                                              f"{self.id})")
             return
-        self.exchange.put_beacon(beacon)
+        self.exchange.put_beacon(beacon, arrived_s)
 
     # -- helpers ------------------------------------------------------------------------------
 
@@ -264,10 +273,16 @@ class AgentProcess:
             self.rejections.reject("outgoing", err.reason, err.rule)
             return None
 
-    def _send(self, publisher, encode: Callable[..., bytes], *args, **kwargs) -> None:
-        """Encode with ``encode`` and send; count failures."""
+    def _send(self, publisher, encode: Callable[..., bytes], *args, stamped: bool = False,
+              **kwargs) -> None:
+        """Encode with ``encode`` and send (``stamped``: with a Zenoh timestamp of now,
+        ``put_stamped``); count failures."""
         payload = self._encode(encode, *args, **kwargs)
-        if payload is not None:
+        if payload is None:
+            return
+        if stamped:
+            put_stamped(self.session, publisher, payload)
+        else:
             publisher.put(payload)
 
     def _publish_consensus(self, msg: ConsensusMessage | None) -> None:
@@ -294,10 +309,11 @@ class AgentProcess:
         msg = agent.begin_step(step, position, detections, communicated, camera_position)
         # Consensus first: the neighbours wait for it before anything else of this step.
         self._publish_consensus(msg)
+        # Realtime: stamped, so a receiver that takes it from its ring later knows when it came.
         self._send(self._pub_beacon, self.codec.encode_beacon, self.id, step,
                    step * self.options.config.scenario.dt_s, position,
                    velocity_m_s=self._flying, sample_age_s=sample_age_s,
-                   vehicle_time_ms=sample.time_boot_ms)
+                   vehicle_time_ms=sample.time_boot_ms, stamped=exchange.sent_times)
         for rnd in range(agent.n_rounds):
             msg = agent.consensus_round(exchange.inbox(step, rnd))
             self._publish_consensus(msg)

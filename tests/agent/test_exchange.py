@@ -50,7 +50,8 @@ def link() -> Iterator[AutopilotLink]:
         link.close()
 
 
-def peers(link: AutopilotLink, *, ended: bool = False, **runtime: float) -> Peers:
+def peers(link: AutopilotLink, *, ended: bool = False, drains: list[int] | None = None,
+          **runtime: float) -> Peers:
     config = load_config(CASE1)
     config = dataclasses.replace(config, runtime=dataclasses.replace(config.runtime, **runtime))
 
@@ -59,8 +60,13 @@ def peers(link: AutopilotLink, *, ended: bool = False, **runtime: float) -> Peer
             raise Ended
 
     lines: list[str] = []
+    def drain() -> None:  # stands for the process's rings (RingSubscriber.drain)
+        if drains is not None:
+            drains.append(1)
+
     return Peers(0, set(config.swarm.graph.neighbours[0]), set(range(1, 6)), config,
-                 build_agent(config, 0, 0), link, LatestValues(), check_clock, lines.append)
+                 build_agent(config, 0, 0), link, LatestValues(), check_clock, lines.append,
+                 drain)
 
 
 def message(sender: int, step: int, rnd: int) -> ConsensusMessage:
@@ -121,6 +127,31 @@ def test_realtime_beacons_are_carried_forward_at_most_the_failsafe_time(
     beacons = exchange.beacons(5, 0.02, flying)
     np.testing.assert_allclose(beacons[2], [1.0 + 0.04, 2.0, 3.0 - 0.02])  # p + v·a − v_i·a_i
     np.testing.assert_allclose(beacons[4], [0.0, 2 * hold_s, 3.0 - 0.02])  # held after
+
+
+def test_realtime_reads_take_the_rings_first_and_date_beacons_from_their_arrival(
+        link: AutopilotLink) -> None:
+    """Realtime samples wait in rings until the loop reads (``Peers.drain``): a beacon
+    taken from its ring 15 ms after it arrived is carried forward from its arrival, not
+    from when it was taken."""
+    drains: list[int] = []
+    exchange = RealtimeExchange(peers(link, drains=drains))
+    exchange.beacon_latest = LatestValues(clock=(clock := Clock()))
+    clock.now = 10.0
+    exchange.put_beacon(BeaconWire.build(2, 3, 0.06, (1.0, 2.0, 3.0), velocity_m_s=(1, 0, 0)),
+                        arrived_s=clock.now - 0.015)
+    exchange.put_beacon(BeaconWire.build(3, 3, 0.06, (5.0, 2.0, 3.0), velocity_m_s=(1, 0, 0)))
+    clock.now += 0.005
+    beacons = exchange.beacons(4, 0.0, np.zeros(3))
+    np.testing.assert_allclose(beacons[2], [1.0 + 0.020, 2.0, 3.0])
+    np.testing.assert_allclose(beacons[3], [5.0 + 0.005, 2.0, 3.0])
+    assert len(drains) == 1
+    exchange.inbox(4, 0)
+    assert len(drains) == 2
+    # An arrival stamped after now (a skewed clock) counts as now: no negative age.
+    exchange.put_beacon(BeaconWire.build(2, 4, 0.08, (1.0, 2.0, 3.0), velocity_m_s=(1, 0, 0)),
+                        arrived_s=clock.now + 1.0)
+    np.testing.assert_allclose(exchange.beacons(5, 0.0, np.zeros(3))[2], [1.0, 2.0, 3.0])
 
 
 def test_realtime_swarm_size_follows_the_drones_heard(link: AutopilotLink) -> None:

@@ -55,18 +55,25 @@ def test_messages_on_another_drones_key_are_counted_and_dropped() -> None:
         ]
         right = [(keys.beacon(3), wrong[0][1]), (keys.consensus(1), wrong[2][1])]
 
+        # Realtime samples wait in rings until the agent's loop takes them (Peers.drain);
+        # nothing runs that loop here, so the test takes them itself.
+        def taken(condition) -> bool:
+            agent.exchange.peers.drain()
+            return condition()
+
         # Our own publications reach the router once the subscriptions are declared: repeat
         # the valid beacon until it is in (zenoh declares routes asynchronously).
         def delivered() -> bool:
             router.put(*right[0])
-            return agent.exchange.beacon_latest.get(3) is not None
+            return taken(lambda: agent.exchange.beacon_latest.get(3) is not None)
 
         assert wait_until(delivered)
         for key, payload in wrong:
             router.put(key, payload)
         router.put(*right[1])
-        assert wait_until(lambda: agent.exchange.consensus_latest.get((1, 1)) is not None)
-        assert wait_until(lambda: agent.rejections.total() == len(wrong))
+        assert wait_until(lambda: taken(
+            lambda: agent.exchange.consensus_latest.get((1, 1)) is not None))
+        assert wait_until(lambda: taken(lambda: agent.rejections.total() == len(wrong)))
         counts = agent.rejections.snapshot()
         assert counts["beacon"]["rejected"] == 2 and counts["consensus"]["rejected"] == 1
         assert counts["beacon"]["rules"] == {"source": 2}  # valid messages on the wrong key

@@ -760,52 +760,91 @@ def test_a_slow_link_sends_each_message_k_steps_late_stamped_when_it_was_put() -
         assert released_s[step + 2] - put_s[step] >= 0.015
 
 
-def test_a_ring_subscription_keeps_the_newest_and_drops_what_its_thread_cannot_take() -> None:
-    """``keep_latest=K``: while the callback is held up, a burst leaves only the newest K
-    samples waiting (the indirect callback's queue would have kept all 200); the newest
-    always arrives; ``undeclare`` ends the thread."""
+def test_a_ring_subscription_waits_for_its_drain_and_keeps_only_the_newest() -> None:
+    """``keep_latest=K``: samples wait in zenoh until ``drain()``, which runs the callback on
+    the caller's thread (no thread of its own); a burst of 200 between two drains leaves the
+    newest K, in order."""
     port = free_tcp_port()
     keys = Keys("ring")
-    release = threading.Event()
-    steps: list[int] = []
+    threads_before = threading.active_count()
+    taken: list[tuple[int, int]] = []  # (step, thread id)
+    seen = LatestValues()  # a plain subscriber beside the ring: the burst has arrived
 
-    def on_value(_key: str, beacon) -> None:
-        release.wait(DEADLINE_S)
-        steps.append(beacon.step)
+    def on_value(_key: str, beacon, arrived_s: float) -> None:
+        taken.append((beacon.step, threading.get_ident()))
 
     with session(zenoh_config(mode="peer", listen=[endpoint(port)])) as hub, \
             session(zenoh_config(mode="peer", connect=[endpoint(port)])) as client:
         ring = subscribe(hub, keys.all_beacons, CODEC.decode_beacon, on_value,
                          RejectionCounter(), "beacon", keep_latest=4)
+        assert threading.active_count() == threads_before  # no thread of ours
+        subscribe(hub, keys.all_beacons, CODEC.decode_beacon,
+                  lambda _k, b: seen.put(0, b.step, seq=b.step), RejectionCounter(), "beacon")
         publisher = declare_publisher(client, keys.beacon(2))
 
         def put(step: int) -> None:
             publisher.put(CODEC.encode(BeaconWire.build(2, step, 0.0, [0, 0, 1.0])))
 
-        release.set()
-        repeat_until(lambda: put(0), lambda _wait_s: steps or None)
-        release.clear()  # the thread now holds the next sample until released
+        repeat_until(lambda: put(0), lambda wait_s: seen.wait_for([0], wait_s))
+        assert ring.drain() >= 1 and taken and taken[-1][0] == 0
+        taken.clear()
+        assert ring.drain() == 0 and not taken  # nothing new
         for step in range(1, 201):
             put(step)
-        time.sleep(0.5)  # let every sample reach the ring (nothing to wait on: it drops)
-        release.set()
-        deadline = time.monotonic() + DEADLINE_S
-        while (not steps or steps[-1] != 200) and time.monotonic() < deadline:
-            time.sleep(0.01)  # polling the list with a deadline
-        later = [k for k in steps if k >= 1]
-        assert later[-1] == 200 and later == sorted(later)
-        # One sample in the held callback, four in the ring: the rest were dropped.
-        assert len(later) <= 1 + 4, later
+        assert seen.wait_for([0], DEADLINE_S, min_seq=200)  # the burst has come
+        assert ring.drain() == 4
+        assert [step for step, _ in taken] == [197, 198, 199, 200]
+        assert {thread for _, thread in taken} == {threading.get_ident()}
         ring.undeclare()
-        assert not any(t.name == "ring-beacon" for t in threading.enumerate())
+        ring.undeclare()  # twice is harmless
+        assert ring.drain() == 0
     with pytest.raises(ValueError, match="keep_latest"):
         subscribe(hub, "x", CODEC.decode_beacon, on_value, RejectionCounter(), "beacon",
                   keep_latest=0)
 
 
+def test_a_ring_dates_a_stamped_sample_from_its_put_not_from_its_drain() -> None:
+    """A sample taken from its ring 0.2 s after it came is dated from its Zenoh timestamp
+    (the sender's put), bounded by the previous drain; an unstamped one from the drain."""
+    port = free_tcp_port()
+    keys = Keys("ringage")
+    arrivals: dict[int, float] = {}
+    seen = LatestValues()
+
+    def on_value(_key: str, beacon, arrived_s: float) -> None:
+        arrivals[beacon.step] = arrived_s
+
+    with session(zenoh_config(mode="peer", listen=[endpoint(port)])) as hub, \
+            session(zenoh_config(mode="peer", connect=[endpoint(port)])) as client:
+        ring = subscribe(hub, keys.all_beacons, CODEC.decode_beacon, on_value,
+                         RejectionCounter(), "beacon", keep_latest=8)
+        subscribe(hub, keys.all_beacons, CODEC.decode_beacon,
+                  lambda _k, b: seen.put(b.step, b), RejectionCounter(), "beacon")
+        publisher = declare_publisher(client, keys.beacon(2))
+
+        def put(step: int, stamped: bool) -> None:
+            payload = CODEC.encode(BeaconWire.build(2, step, 0.0, [0, 0, 1.0]))
+            if stamped:
+                put_stamped(client, publisher, payload)
+            else:
+                publisher.put(payload)
+
+        repeat_until(lambda: put(0, True), lambda wait_s: seen.wait_for([0], wait_s))
+        ring.drain()
+        before_s = time.monotonic()
+        put(1, True)
+        put(2, False)
+        assert seen.wait_for([1, 2], DEADLINE_S)
+        time.sleep(0.2)  # the owner is busy: the samples wait in the ring
+        drained_s = time.monotonic()
+        ring.drain()
+        assert before_s <= arrivals[1] <= before_s + 0.05, arrivals[1] - before_s
+        assert drained_s <= arrivals[2] <= time.monotonic()
+
+
 def test_a_process_left_with_ring_subscriptions_exits_cleanly() -> None:
-    """No ``undeclare``, no session close: the exit hook undeclares the ring so its thread
-    is not woken inside zenoh while Python finalizes (that aborts the process)."""
+    """No ``undeclare``, no session close, samples left in the rings: the process still
+    exits cleanly (a thread woken inside zenoh while Python finalizes used to abort it)."""
     script = (
         "import time\n"
         "from swarm.net.transport import subscribe, zenoh_config, open_session, RejectionCounter\n"
