@@ -12,7 +12,9 @@
 - Memory per agent process: peak resident set (VmHWM) and RSS from /proc/<pid>/status, and
   the proportional set size (Pss, shared library pages split between the processes that map
   them) from /proc/<pid>/smaps_rollup, sampled through the mission; in MiB.
-- Imports: ``python -X importtime -c "import swarm.agent.cli"`` (the agent's entry module),
+- Imports: ``python -X importtime -c "import swarm.agent.process"`` (what ``swarm-agent``
+  loads once its MAVLink socket is bound; its entry module ``swarm.agent.cli`` loads only the
+  standard library before that),
   its wall time against a bare interpreter, the self time summed per top-level package, and
   the heaviest modules the project imports directly (who pulls in what).
 """
@@ -44,7 +46,8 @@ from rich.table import Table
 from swarm_configs import load_scaled
 from swarm_probe import AGENT_PHASES, attempt_swarm
 
-ENTRY_MODULE = "swarm.agent.cli"
+# What swarm-agent imports after binding its socket: everything but the light entry module.
+ENTRY_MODULE = "swarm.agent.process"
 PROJECT_PACKAGES = ("swarm", "sim_world")
 TOP_PACKAGES = 12
 TOP_EDGES = 12
