@@ -11,7 +11,6 @@ import pytest
 
 from swarm.launch.launcher import LaunchOptions, SwarmLauncher
 from swarm.runs.checks import check_invariants, min_envelope_margins
-from swarm.runs.reference import run_reference
 from swarm.scenario.config import load_config
 from tests.helpers.reference_tools import assert_matches_reference
 
@@ -28,8 +27,7 @@ def test_lockstep_flies_the_envelope_scenario_as_the_in_process_run() -> None:
                              log=lambda _line: None)
     record = launcher.run()
     assert record.n_steps == config.n_steps
-    assert_matches_reference(config, record, seed=0)
-    reference = run_reference(config, seed=0)
+    reference = assert_matches_reference(config, record, seed=0)
     assert record.safety_conflict is not None
     assert np.array_equal(record.safety_conflict, reference.safety_conflict)
     assert check_invariants(record) == []
