@@ -79,7 +79,7 @@ class Exchange(Protocol):
     neighbour_age_ms: float
 
     def ring(self, per_step: int) -> int | None: ...
-    def put_camera(self, frame: CameraFrameWire, arrived_s: float | None = None) -> None: ...
+    def put_camera(self, frame: CameraFrameWire) -> None: ...
     def put_consensus(self, msg: ConsensusMessage, arrived_s: float | None = None) -> None: ...
     def consensus_sent(self, msg: ConsensusMessage, sent_unix_s: float) -> None: ...
     def put_beacon(self, beacon: BeaconWire, arrived_s: float | None = None) -> None: ...
@@ -113,7 +113,7 @@ class LockstepExchange:
     def ring(self, per_step: int) -> int | None:
         return None  # every message is kept until its step is taken
 
-    def put_camera(self, frame: CameraFrameWire, arrived_s: float | None = None) -> None:
+    def put_camera(self, frame: CameraFrameWire) -> None:
         self.camera_steps.put(frame.step, 0, 0, frame)
 
     def put_consensus(self, msg: ConsensusMessage, arrived_s: float | None = None) -> None:
@@ -210,7 +210,7 @@ class RealtimeExchange:
     def ring(self, per_step: int) -> int | None:
         return 4 * per_step
 
-    def put_camera(self, frame: CameraFrameWire, arrived_s: float | None = None) -> None:
+    def put_camera(self, frame: CameraFrameWire) -> None:
         return None  # the loop reads the newest frame (``Peers.camera_latest``)
 
     def put_consensus(self, msg: ConsensusMessage, arrived_s: float | None = None) -> None:

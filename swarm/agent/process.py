@@ -231,7 +231,7 @@ class AgentProcess:
         if frame.drone != self.id:
             self.rejections.reject("camera", f"frame for drone {frame.drone} on drone {self.id}")
             return
-        self.exchange.put_camera(frame, arrived_s)
+        self.exchange.put_camera(frame)
         self.camera_latest.put(0, frame, arrived_s=arrived_s)  # every mode: start() waits
 
     def _on_consensus(self, key: str, msg: ConsensusMessage,

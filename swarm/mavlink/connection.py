@@ -57,8 +57,7 @@ def open_connection(url: str, source_system: int, *, who: str,
     if bound is not None:
         if bound.url != url:
             raise ValueError(f"{who}: the bound socket is {bound.url}, not {url}")
-        host, _ = udpin_address(url) or ("", 0)
-        url_opened = f"udpin:{host}:0"
+        url_opened = f"udpin:{bound.sock.getsockname()[0]}:0"
     else:
         check_udpin_port_free(url)
         url_opened = url

@@ -594,6 +594,17 @@ def _spread_picks(items: list, count: int) -> np.ndarray:
     return np.unique(np.linspace(0, len(items) - 1, count).round().astype(int))
 
 
+def _against_brute_force(captured, n_picks: int):
+    """(index, QP, our solution z, the brute-force optimum) for ``n_picks`` captured QPs
+    spread over the run; the optimum exists for every one."""
+    for k in _spread_picks(captured, n_picks):
+        qp, z = captured[k]
+        m_targets = (qp.n_variables - 3) // 2
+        reference = brute_force_optimum(instance_of(qp, m_targets), relaxed=True)
+        assert reference is not None
+        yield k, qp, z, reference
+
+
 def test_the_qps_of_a_case2_run_are_solved_exactly(monkeypatch: pytest.MonkeyPatch) -> None:
     """Every QP the agents of 16 s of Case 2 handed to the solver (in process, seed 0), as the
     workspace held it: the velocity they flew is within 1e-6 of the brute-force optimum."""
@@ -605,11 +616,7 @@ def test_the_qps_of_a_case2_run_are_solved_exactly(monkeypatch: pytest.MonkeyPat
     captured = _solved_qps(monkeypatch, config)
     assert len(captured) >= 100, len(captured)
     worst = 0.0
-    for k in _spread_picks(captured, 80):
-        qp, z = captured[k]
-        m_targets = (qp.n_variables - 3) // 2
-        reference = brute_force_optimum(instance_of(qp, m_targets), relaxed=True)
-        assert reference is not None
+    for _k, _qp, z, reference in _against_brute_force(captured, 80):
         worst = max(worst, float(np.abs(z[:3] - reference[0]).max()))
     assert worst <= VELOCITY_ATOL, worst
 
@@ -630,11 +637,7 @@ def test_the_qps_where_the_envelope_overrules_localization_buy_only_the_slack_ne
         u_columns, lower, n_safety, z[:3].tolist(), z[3:].tolist()))
     assert len(conflicts) >= 1000, len(conflicts)
     worst = 0.0
-    for k in _spread_picks(conflicts, 60):
-        qp, z = conflicts[k]
-        m_targets = (qp.n_variables - 3) // 2
-        reference = brute_force_optimum(instance_of(qp, m_targets), relaxed=True)
-        assert reference is not None
+    for k, qp, z, reference in _against_brute_force(conflicts, 60):
         worst = max(worst, float(np.abs(z[:3] - reference[0]).max()))
         nominal = -qp.cost_linear[:3] / 2.0  # the SPEC objective is ½zᵀPz + qᵀz + ‖u_d‖²
         objective = qp.objective(z) + float(nominal @ nominal)
