@@ -40,6 +40,7 @@ from swarm.net.transport import (
     RejectionCounter,
     declare_publisher,
     open_session,
+    put_stamped,
     subscribe,
     zenoh_config,
 )
@@ -177,10 +178,12 @@ class World:
         was placed at (how an agent pairs the frame with that pose)."""
         view = self.scene.at(step, self.positions)
         for i in range(self.n):
-            self._pub_camera[i].put(self.codec.encode(CameraFrameWire.build(
+            frame = self.codec.encode(CameraFrameWire.build(
                 drone=i, step=step, time_s=view.time_s, vehicle_time_ms=vehicle_times_ms[i],
                 detections=view.detections[i],
-                target_velocities=view.communicated_velocities_m_s)))
+                target_velocities=view.communicated_velocities_m_s))
+            # Stamped: a realtime agent sets the phase of its loop from when frames leave.
+            put_stamped(self.session, self._pub_camera[i], frame)
         self._pub_truth.put(self.codec.encode(TruthWire.build(
             step=step, time_s=view.time_s, drone_positions=self.positions,
             target_positions=view.target_positions_m,

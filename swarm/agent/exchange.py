@@ -15,9 +15,10 @@ the publishers, the checks on who sent what) and runs one step the same way in e
 ``LockstepExchange``: step k waits for the camera frame of step k, the position sample
 stamped with that frame's ``vehicle_time_ms``, every neighbour's round messages and every
 beacon of step k: deterministic (equal to the in-process reference bit for bit).
-``RealtimeExchange``: a loop on the wall clock with the newest of everything; neighbour data
-older than ``runtime.stale_timeout_s`` is left out and counted; N follows the drones heard
-within ``runtime.member_timeout_s``.
+``RealtimeExchange``: a loop on the wall clock with the newest of everything, each drone's
+at its own phase after the world's tick (``loop_phase_s``); neighbour data older than
+``runtime.stale_timeout_s`` is left out and counted; N follows the drones heard within
+``runtime.member_timeout_s``.
 """
 
 from __future__ import annotations
@@ -322,7 +323,6 @@ class RealtimeExchange:
     def run(self, step: StepFunction) -> None:
         peers = self.peers
         link = peers.link
-        limiter = RateLimiter(peers.config.scenario.dt_s)
         n_steps = peers.config.n_steps
         last_frame_step = -1
         current: PositionSample | None = None
@@ -331,6 +331,16 @@ class RealtimeExchange:
         # lines up with truth and the filter predicts exactly as far as the targets moved.
         first = peers.camera_latest.get(0)
         k = first[0].step if first is not None else 0
+        # The loop ticks at its own phase after the world's (which the first frame's stamp
+        # gives), so that the agents' steps are spread over the period instead of all
+        # contending for the cores at once.
+        now = time.monotonic()
+        first_tick_s = (now - (first[1] if first is not None else 0.0)
+                        + loop_phase_s(peers.drone_id, peers.config.swarm.n_drones,
+                                       peers.config.scenario.dt_s))
+        if first_tick_s > now:
+            time.sleep(first_tick_s - now)
+        limiter = RateLimiter(peers.config.scenario.dt_s, first_tick_s=first_tick_s)
         while True:
             peers.drain()
             peers.check_clock()
@@ -359,6 +369,12 @@ class RealtimeExchange:
                 k += 1
             if limiter.sleep():
                 self.late_steps += 1
+
+
+def loop_phase_s(drone_id: int, n_drones: int, period_s: float) -> float:
+    """How long after the world's tick drone ``drone_id``'s realtime loop ticks [s]: the N
+    loops spread evenly over the period, none at the world's own tick."""
+    return period_s * (drone_id + 1) / (n_drones + 1)
 
 
 EXCHANGES: dict[Mode, type[LockstepExchange] | type[RealtimeExchange]] = {

@@ -31,11 +31,15 @@ class RateLimiter:
     catches up fast). Only after a stall of more than ``max_behind_periods`` (default 1 s at
     50 Hz: the process was stopped, not merely preempted) is the schedule restarted from now,
     counted in ``restarts``.
+
+    ``first_tick_s``: when the first tick was (on ``clock``; default now): the schedule is
+    first_tick_s + k·period, which sets its phase.
     """
 
     def __init__(self, period_s: float, *, max_behind_periods: float = 50.0,
                  clock: Callable[[], float] = time.monotonic,
-                 sleep: Callable[[float], None] = time.sleep) -> None:
+                 sleep: Callable[[float], None] = time.sleep,
+                 first_tick_s: float | None = None) -> None:
         if not (period_s > 0 and math.isfinite(period_s)):
             raise ValueError(f"period_s must be a finite number > 0 (got {period_s})")
         if not max_behind_periods >= 1:
@@ -44,7 +48,9 @@ class RateLimiter:
         self.max_behind_s = max_behind_periods * period_s
         self._clock = clock
         self._sleep = sleep
-        self._next = clock() + period_s
+        if first_tick_s is not None and not math.isfinite(first_tick_s):
+            raise ValueError(f"first_tick_s must be finite (got {first_tick_s})")
+        self._next = (clock() if first_tick_s is None else first_tick_s) + period_s
         self.ticks = 0
         self.late_ticks = 0
         self.restarts = 0

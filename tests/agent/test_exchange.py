@@ -5,22 +5,28 @@ messages are stored as the subscriptions store them; a settable clock ages them)
 from __future__ import annotations
 
 import dataclasses
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
+from sim_world.mavlink_endpoint import VehicleEndpoint
+from sim_world.vehicle import EmulatedVehicle
 from swarm.agent.exchange import (
     ExchangeError,
     LockstepExchange,
     Peers,
     RealtimeExchange,
     exchange_for,
+    loop_phase_s,
 )
 from swarm.core.agent import ConsensusMessage
 from swarm.mavlink.link import AutopilotLink, LinkError
-from swarm.messages.wire import BeaconWire
+from swarm.messages.wire import BeaconWire, CameraFrameWire
 from swarm.net.transport import LatestValues
 from swarm.scenario.config import load_config
 from swarm.scenario.setup import build_agent
@@ -168,6 +174,53 @@ def test_realtime_swarm_size_follows_the_drones_heard(link: AutopilotLink) -> No
     clock.now += 0.7  # 4 and 5 last heard 1.2 s ago
     exchange.begin(60)
     assert exchange.members == frozenset({0, 1, 2, 3}) and p.agent.swarm_size == 4
+
+
+@given(st.integers(1, 64), st.floats(1e-3, 1.0))
+def test_the_loops_spread_evenly_over_the_period_none_at_the_worlds_tick(
+        n_drones: int, period_s: float) -> None:
+    phases = [loop_phase_s(i, n_drones, period_s) for i in range(n_drones)]
+    gap = period_s / (n_drones + 1)
+    assert phases[0] == pytest.approx(gap) and period_s - phases[-1] == pytest.approx(gap)
+    assert np.allclose(np.diff(phases), gap)
+
+
+def test_realtime_loop_ticks_at_its_phase_after_the_first_frame_left_the_world(
+        link: AutopilotLink) -> None:
+    """The first step runs ``loop_phase_s`` after the first frame was put (its arrival, as
+    the ring dates it from its stamp), each next one a period later: drone 5 of 6 ticks
+    6/7 of a period after the world, not as soon as it sees the frame."""
+    p = dataclasses.replace(peers(link), drone_id=5)
+    config = p.config
+    assert link.local_address is not None
+    # PX4 streams LOCAL_POSITION_NED unasked; the link reads samples whatever its flavour.
+    vehicle = EmulatedVehicle(0, "px4", (0.0, 0.0, 3.0), config.vehicles.origin_w(0))
+    endpoint = VehicleEndpoint(("127.0.0.1", link.local_address[1]))
+    try:
+        endpoint.send(vehicle.telemetry(1000, 1.0))
+        deadline = time.monotonic() + 3.0
+        while link.latest_position() is None:
+            assert time.monotonic() < deadline, "no position sample reached the link"
+            time.sleep(0.005)
+        put_s = time.monotonic()
+        p.camera_latest.put(0, CameraFrameWire.build(5, 7, 0.14, 1000, []), arrived_s=put_s)
+        ticks: list[tuple[int, float]] = []
+
+        def step(k: int, *_: object) -> None:
+            ticks.append((k, time.monotonic()))
+            if len(ticks) == 4:
+                raise Ended
+
+        with pytest.raises(Ended):
+            RealtimeExchange(p).run(step)
+    finally:
+        endpoint.close()
+    period = config.scenario.dt_s
+    phase = loop_phase_s(5, 6, period)
+    assert phase == pytest.approx(6 / 7 * period)
+    assert [k for k, _ in ticks] == [7, 8, 9, 10]  # counted from the frame's step
+    for i, (_, at) in enumerate(ticks):
+        assert at >= put_s + phase + i * period
 
 
 def test_an_unknown_mode_is_refused(link: AutopilotLink) -> None:

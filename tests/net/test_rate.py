@@ -83,3 +83,23 @@ def test_a_stall_restarts_the_schedule_instead_of_bursting() -> None:
 def test_bad_period_is_refused(period: float) -> None:
     with pytest.raises(ValueError, match="period_s"):
         RateLimiter(period)
+
+
+def test_the_first_tick_sets_the_phase() -> None:
+    """``first_tick_s`` ahead of now: the schedule is first_tick + k·period; behind now (the
+    loop started late): the first sleep is late and the schedule keeps that phase."""
+    fake = FakeTime()
+    rate = limiter(fake, first_tick_s=100.013)
+    assert rate.sleep() is False
+    assert fake.now == pytest.approx(100.033)
+    late = limiter(fake, first_tick_s=fake.now - 0.025)
+    assert late.sleep() is True
+    fake.now += 0.002
+    assert late.sleep() is False
+    assert fake.now == pytest.approx(100.033 - 0.025 + 0.04)
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_a_non_finite_first_tick_is_refused(bad: float) -> None:
+    with pytest.raises(ValueError, match="first_tick_s must be finite"):
+        limiter(FakeTime(), first_tick_s=bad)

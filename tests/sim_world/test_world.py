@@ -67,9 +67,11 @@ def test_running_is_published_at_the_start_then_every_clock_period(
 class _Captured:
     def __init__(self) -> None:
         self.payloads: list[bytes] = []
+        self.stamped: list[bool] = []
 
-    def put(self, payload: bytes) -> None:
+    def put(self, payload: bytes, timestamp: object = None) -> None:
         self.payloads.append(payload)
+        self.stamped.append(timestamp is not None)
 
 
 def test_the_clock_reports_every_input_the_world_rejected(world: World) -> None:
@@ -130,6 +132,8 @@ def test_an_external_vehicle_world_counts_bad_beacons_on_its_clock() -> None:
         frames = [made.codec.decode_camera(c.payloads[-1]) for c in cameras]
         assert [f.vehicle_time_ms for f in frames] == [0, 0, 43_210, 0, 0, 0]
         assert {f.step for f in frames} == {7}
+        # Stamped: a realtime agent sets the phase of its loop from when they left.
+        assert all(c.stamped == [True] for c in cameras)
     finally:
         session.close()
         made.close()
