@@ -8,7 +8,9 @@ clock. Two time modes:
   then the world waits until every vehicle has received a setpoint stamped t_k and integrates
   with exactly those; deterministic, reproduces the in-process reference.
 - ``realtime``: a 50 Hz wall-clock loop integrates each vehicle with its latest setpoint under
-  the flavour's failsafe rules; nothing waits.
+  the flavour's failsafe rules; nothing waits. At each tick the world also relays every
+  drone's newest beacon to the agents in one message (``world/beacons``): N messages a period
+  through the router instead of N(N − 1).
 
 With ``vehicles = "external"`` it serves no vehicles: each drone's position is taken from its
 beacon, so the agents can fly real autopilots against virtual targets.
@@ -27,9 +29,11 @@ from sim_world.fleet import VehicleFleet
 from swarm.errors import EXIT_FAILED, EXIT_OK, VigilError
 from swarm.mavlink.sitl import GeoPoint
 from swarm.messages.wire import (
+    BeaconRelayWire,
     BeaconWire,
     CameraFrameWire,
     ClockWire,
+    RelayedBeacon,
     TruthWire,
 )
 from swarm.net.rate import RateLimiter, freeze_heap
@@ -38,6 +42,7 @@ from swarm.net.transport import (
     Keys,
     LatestValues,
     RejectionCounter,
+    RingSubscriber,
     declare_publisher,
     open_session,
     put_stamped,
@@ -55,6 +60,8 @@ PRE_MISSION_PERIOD_S = 0.02  # telemetry and vehicle motion before the mission s
 # "running" on world/clock is repeated this often (wall), not every step: readers only act on
 # state changes (start, done, aborted), and a message per step cost every agent a wake-up.
 CLOCK_PERIOD_S = 0.25
+# The beacon ring holds this many periods of every drone's beacons (drained at each tick).
+BEACON_RING_PERIODS = 4
 MISSION_TIME_OFFSET_MS = 1000  # mission stamps start this far past every pre-mission stamp
 DONE_LINGER_S = 10.0  # the world stays up this long after the mission unless stopped
 
@@ -107,7 +114,8 @@ class World:
         self.beacons: LatestValues[BeaconWire] = LatestValues()
         self.fleet: VehicleFleet | None = None
         self._failsafes_reported = [0] * self.n
-        self._subscribers = []
+        self._subscribers: list = []
+        self._beacon_ring: RingSubscriber | None = None
         security = cfg.security
         self.session = open_session(zenoh_config(
             mode="router", listen=options.listen, connect=options.connect,
@@ -125,13 +133,17 @@ class World:
                     response=cfg.vehicles.velocity_response, gcs=options.gcs,
                     gcs_control=options.gcs_control,
                     geo_origin=GeoPoint(*cfg.vehicles.geo_origin), log=options.log)
-            else:
-                # Not direct: this process hosts the router, whose threads must never wait
-                # for the GIL.
-                self._subscribers.append(subscribe(
-                    self.session, self.keys.all_beacons, self.codec.decode_beacon,
-                    lambda _key, beacon: self.beacons.put(beacon.sender, beacon),
-                    self.rejections, "beacon"))
+            if options.mode == "realtime":
+                # Every drone's beacon, to relay (and, with external vehicles, where the drones
+                # are). A ring taken at each tick: no Python thread, and the router's threads
+                # (this process hosts the router) never wait for the GIL. External vehicles
+                # are realtime only (realtime_only_reason).
+                ring = subscribe(self.session, self.keys.all_beacons, self.codec.decode_beacon,
+                                 self._on_beacon, self.rejections, "beacon",
+                                 keep_latest=BEACON_RING_PERIODS * self.n)
+                assert isinstance(ring, RingSubscriber)
+                self._beacon_ring = ring
+                self._subscribers.append(ring)
         except Exception:
             self.session.close()
             raise
@@ -142,6 +154,9 @@ class World:
                             for i in range(self.n)]
         self._pub_truth = declare_publisher(self.session, self.keys.truth, block=True)
         self._pub_clock = declare_publisher(self.session, self.keys.clock, block=True)
+        # The relay drops rather than waits: the next tick brings the newest beacons anyway.
+        self._pub_relay = (declare_publisher(self.session, self.keys.beacon_relay, block=False)
+                           if self._beacon_ring is not None else None)
 
     # -- plumbing ---------------------------------------------------------------------------
 
@@ -189,6 +204,30 @@ class World:
             target_positions=view.target_positions_m,
             target_velocities=view.target_velocities_m_s)))
 
+    def _on_beacon(self, key: str, beacon: BeaconWire, arrived_s: float | None = None) -> None:
+        if key != self.keys.beacon(beacon.sender):  # drone j's position on another's key
+            self.rejections.reject("beacon", f"sender {beacon.sender} on {key}")
+            return
+        self.beacons.put(beacon.sender, beacon, arrived_s=arrived_s)
+
+    def take_beacons(self) -> None:
+        """Store the beacons that arrived since the last call (realtime)."""
+        if self._beacon_ring is not None:
+            self._beacon_ring.drain()
+
+    def relay_beacons(self, step: int) -> None:
+        """Every drone's newest beacon to the agents in one message (realtime), each with how
+        long the world has held it, so that an agent dates it from its arrival here."""
+        if self._pub_relay is None:
+            return
+        relayed = []
+        for i in range(self.n):
+            latest = self.beacons.get(i)
+            if latest is not None:
+                relayed.append(RelayedBeacon(latest[0], latest[1]))
+        put_stamped(self.session, self._pub_relay, self.codec.encode(
+            BeaconRelayWire(step=step, beacons=tuple(relayed))))
+
     def _not_ready(self) -> list[int]:
         if self.fleet is None:
             return [i for i in range(self.n) if self.beacons.get(i) is None]
@@ -216,6 +255,7 @@ class World:
             # Drain what arrived first: after a stall (a loaded machine) the queued setpoints
             # must count before any failsafe timer is evaluated.
             self._wait(0.0)
+            self.take_beacons()
             pending = self._not_ready()
             if not pending:
                 return
@@ -280,6 +320,7 @@ class World:
     def run_realtime(self) -> None:
         limiter = RateLimiter(self.dt_s)
         for k in range(self.options.config.n_steps):
+            self.take_beacons()
             if self.fleet is None:
                 self._external_positions()
                 stamps = self.pose_stamps_ms
@@ -288,6 +329,8 @@ class World:
                 stamp = self.boot_ms()
                 self.fleet.send_telemetry(stamp)
                 stamps = [stamp] * self.n
+            # Before the frames: an agent's step k, which starts on frame k, has the relay.
+            self.relay_beacons(k)
             self.publish_step(k, stamps)
             self.publish_running(k)
             # Until the next tick: answer MAVLink as it comes, then move every vehicle with

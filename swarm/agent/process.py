@@ -2,7 +2,8 @@
 
 Inputs: its own position from the autopilot (LOCAL_POSITION_NED, converted in
 ``swarm.models.frames``), its camera frames (``world/camera/<i>``), its graph neighbours' consensus
-messages and every drone's beacon (collision rows). Outputs: velocity setpoints to the
+messages and every drone's beacon (collision rows; in realtime, as the world relays them at
+each tick on ``world/beacons``). Outputs: velocity setpoints to the
 autopilot, its own consensus messages, beacon and telemetry. It never reads ``world/truth``.
 
 A step is the same in every mode (``AgentProcess._step``); what the mode decides (how
@@ -35,6 +36,7 @@ from swarm.errors import EXIT_END_MISSION, EXIT_FAILED, EXIT_OK, VigilError
 from swarm.mavlink.link import AutopilotLink, LinkError, PositionSample
 from swarm.mavlink.udpin import BoundSocket
 from swarm.messages.wire import (
+    BeaconRelayWire,
     BeaconWire,
     CameraFrameWire,
     ClockWire,
@@ -154,6 +156,10 @@ class AgentProcess:
             subscribe(self.session, self.keys.camera(self.id), self.codec.decode_camera,
                       self._on_camera, self.rejections, "camera", direct=direct,
                       keep_latest=ring(1)),
+            subscribe(self.session, self.keys.beacon_relay, self.codec.decode_beacon_relay,
+                      self._on_beacon_relay, self.rejections, "beacon relay", direct=direct,
+                      keep_latest=ring(1))
+            if exchange.relayed_beacons else
             subscribe(self.session, self.keys.all_beacons, self.codec.decode_beacon,
                       self._on_beacon, self.rejections, "beacon", direct=direct,
                       remote_only=True, keep_latest=ring(self.n)),
@@ -252,6 +258,15 @@ class AgentProcess:
                                              f"{self.id})")
             return
         self.exchange.put_beacon(beacon, arrived_s)
+
+    def _on_beacon_relay(self, _key: str, relay: BeaconRelayWire,
+                         arrived_s: float | None = None) -> None:
+        """Every drone's newest beacon as the world relays it (the world checked that each
+        came on its sender's key); each dated from its arrival at the world."""
+        now_s = time.monotonic() if arrived_s is None else arrived_s
+        for entry in relay.beacons:
+            if entry.beacon.sender != self.id:  # our own comes back with everyone's
+                self.exchange.put_beacon(entry.beacon, now_s - entry.held_s)
 
     # -- helpers ------------------------------------------------------------------------------
 

@@ -64,7 +64,9 @@ _W = TypeVar("_W")
 
 # 3: a consensus message carries one packed float64 block (ConsensusWire.data) and its sizes.
 # 4: telemetry carries the position covariance of each estimate (estimate_covariance).
-WIRE_VERSION: Final = 4
+# 5: in realtime the world relays every drone's beacon (BeaconRelayWire): an agent of an
+#    older build would wait for beacons that no longer come to it.
+WIRE_VERSION: Final = 5
 
 MAX_DRONES: Final = 1024  # codec limits: a swarm larger than this is a configuration error
 MAX_TARGETS: Final = 1024
@@ -231,6 +233,25 @@ class BeaconWire(_Wire, tag="beacon", kw_only=True):
 
     def position(self) -> Array:
         return np.array(self.position_m, dtype=np.float64)
+
+
+class RelayedBeacon(msgspec.Struct, frozen=True, array_like=True, forbid_unknown_fields=True,
+                    gc=False):
+    """One drone's newest beacon as the world relays it, and how long the world had held it
+    when the relay left [s] (measured on the world's clock: a duration, whatever the hosts'
+    clocks say)."""
+
+    beacon: BeaconWire
+    held_s: NonNegativeFinite
+
+
+class BeaconRelayWire(_Wire, tag="beacons", kw_only=True):
+    """Every drone's newest beacon, relayed by the world at each realtime tick on
+    ``world/beacons``: one message per agent and period instead of one per other drone."""
+
+    step: NonNegativeInt  # the world's step when it relayed them
+    beacons: Annotated[tuple[RelayedBeacon, ...], msgspec.Meta(
+        max_length=MAX_DRONES, extra={"max_items": "drones", "distinct": "beacon.sender"})] = ()
 
 
 class DetectionWire(msgspec.Struct, frozen=True, array_like=True, forbid_unknown_fields=True,
@@ -433,11 +454,12 @@ class TelemetryWire(_Wire, tag="telemetry", kw_only=True):
         )
 
 
-WireMessage = (ConsensusWire | BeaconWire | CameraFrameWire | TruthWire | ClockWire
-               | TelemetryWire)
+WireMessage = (ConsensusWire | BeaconWire | BeaconRelayWire | CameraFrameWire | TruthWire
+               | ClockWire | TelemetryWire)
 _KINDS: Final[dict[type, str]] = {
-    ConsensusWire: "consensus", BeaconWire: "beacon", CameraFrameWire: "camera",
-    TruthWire: "truth", ClockWire: "clock", TelemetryWire: "telemetry",
+    ConsensusWire: "consensus", BeaconWire: "beacon", BeaconRelayWire: "beacons",
+    CameraFrameWire: "camera", TruthWire: "truth", ClockWire: "clock",
+    TelemetryWire: "telemetry",
 }
 
 
@@ -797,6 +819,9 @@ class WireCodec:
 
     def decode_beacon(self, payload: bytes) -> BeaconWire:
         return self._decode(payload, BeaconWire)
+
+    def decode_beacon_relay(self, payload: bytes) -> BeaconRelayWire:
+        return self._decode(payload, BeaconRelayWire)
 
     def decode_camera(self, payload: bytes) -> CameraFrameWire:
         return self._decode(payload, CameraFrameWire)

@@ -16,8 +16,9 @@ CA (mutual TLS): a session without one cannot connect at all. The router also ma
 client's certificate common name to a role (zenoh ``access_control``, default deny):
 
 - drone i may publish only its own ``agent/i/{consensus,beacon,telemetry}`` and subscribe to
-  its camera ``world/camera/i``, ``world/clock``, every beacon and its graph neighbours'
-  consensus, and is sent nothing else: never ``world/truth``;
+  its camera ``world/camera/i``, ``world/clock``, every beacon (each drone's, and the world's
+  realtime relay ``world/beacons``) and its graph neighbours' consensus, and is sent nothing
+  else: never ``world/truth``;
 - the observer may subscribe to everything of the run and publishes nothing;
 - anyone else (a certificate of the CA with another common name) may do nothing.
 
@@ -152,7 +153,7 @@ def router_access_control(prefix: str, neighbours: Sequence[Iterable[int]]) -> d
         role = agent_role(i)
         own = [f"{prefix}/agent/{i}/{kind}" for kind in ("consensus", "beacon", "telemetry")]
         reads = [f"{prefix}/world/camera/{i}", f"{prefix}/world/clock",
-                 f"{prefix}/agent/*/beacon",
+                 f"{prefix}/agent/*/beacon", f"{prefix}/world/beacons",
                  *(f"{prefix}/agent/{j}/consensus" for j in sorted(set(adjacent)))]
         policy(role, [allow(f"{role}-publish", ["put"], "ingress", own),
                       allow(f"{role}-subscribe", ["declare_subscriber"], "ingress", reads),

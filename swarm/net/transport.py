@@ -329,6 +329,8 @@ class Keys:
         self.prefix = f"{KEY_ROOT}/{run_id}"
         self.truth = f"{self.prefix}/world/truth"
         self.clock = f"{self.prefix}/world/clock"
+        # Realtime: every drone's newest beacon, relayed by the world at each tick.
+        self.beacon_relay = f"{self.prefix}/world/beacons"
         self.all_consensus = f"{self.prefix}/agent/*/consensus"
         self.all_beacons = f"{self.prefix}/agent/*/beacon"
         self.all_telemetry = f"{self.prefix}/agent/*/telemetry"

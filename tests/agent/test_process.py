@@ -1,4 +1,5 @@
-"""An agent process's Zenoh inputs: a message is taken only from the key of its sender.
+"""An agent process's Zenoh inputs: a message is taken only from the key of its sender, and
+realtime beacons only from the world's relay.
 
 A real ``AgentProcess`` (drone 0 of Case 1) joins a router in this process; another session
 puts valid messages on the wrong keys (another drone's data, a beacon claiming to be drone
@@ -7,14 +8,18 @@ puts valid messages on the wrong keys (another drone's data, a beacon claiming t
 
 from __future__ import annotations
 
+import contextlib
 import time
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
+import pytest
 
 from swarm.agent.process import AgentOptions, AgentProcess
 from swarm.core.agent import ConsensusMessage
-from swarm.messages.wire import BeaconWire
+from swarm.messages.wire import BeaconRelayWire, BeaconWire, RelayedBeacon
 from swarm.net.transport import Keys, open_session, zenoh_config
 from swarm.scenario.config import load_config
 from tests.helpers.process_tools import free_tcp_port
@@ -37,50 +42,99 @@ def consensus(sender: int, m: int, n_state: int) -> ConsensusMessage:
                             rng.normal(size=(m, n_state)))
 
 
-def test_messages_on_another_drones_key_are_counted_and_dropped() -> None:
+@contextlib.contextmanager
+def agent_on_a_router(mode: str, run_id: str) -> Iterator[tuple[AgentProcess, Any]]:
+    """A real AgentProcess (drone 0 of Case 1, neighbours 1, 3, 5) on a router of this
+    process, and the router's session to put messages with."""
     config = load_config(CASE1)
     endpoint = f"tcp/127.0.0.1:{free_tcp_port()}"
     router = open_session(zenoh_config(mode="router", listen=[endpoint]))
     agent = None
     try:
         agent = AgentProcess(AgentOptions(
-            config=config, drone_id=0, seed=0, run_id="keys", mavlink_url="udpin:127.0.0.1:0",
-            connect=(endpoint,), mode="realtime", log=lambda _line: None))
+            config=config, drone_id=0, seed=0, run_id=run_id, mavlink_url="udpin:127.0.0.1:0",
+            connect=(endpoint,), mode=mode, log=lambda _line: None))
         assert agent.neighbours == {1, 3, 5}
-        keys, codec = Keys("keys"), agent.codec
-        wrong = [  # (key, payload)
-            (keys.beacon(2), codec.encode(BeaconWire.build(3, 1, 0.02, (1.0, 0.0, 3.0)))),
-            (keys.beacon(0), codec.encode(BeaconWire.build(0, 1, 0.02, (1.0, 0.0, 3.0)))),
-            (keys.consensus(3), codec.encode(consensus(1, 1, 6))),
-        ]
-        right = [(keys.beacon(3), wrong[0][1]), (keys.consensus(1), wrong[2][1])]
-
-        # Realtime samples wait in rings until the agent's loop takes them (Peers.drain);
-        # nothing runs that loop here, so the test takes them itself.
-        def taken(condition) -> bool:
-            agent.exchange.peers.drain()
-            return condition()
-
-        # Our own publications reach the router once the subscriptions are declared: repeat
-        # the valid beacon until it is in (zenoh declares routes asynchronously).
-        def delivered() -> bool:
-            router.put(*right[0])
-            return taken(lambda: agent.exchange.beacon_latest.get(3) is not None)
-
-        assert wait_until(delivered)
-        for key, payload in wrong:
-            router.put(key, payload)
-        router.put(*right[1])
-        assert wait_until(lambda: taken(
-            lambda: agent.exchange.consensus_latest.get((1, 1)) is not None))
-        assert wait_until(lambda: taken(lambda: agent.rejections.total() == len(wrong)))
-        counts = agent.rejections.snapshot()
-        assert counts["beacon"]["rejected"] == 2 and counts["consensus"]["rejected"] == 1
-        assert counts["beacon"]["rules"] == {"source": 2}  # valid messages on the wrong key
-        beacons = agent.exchange.beacon_latest
-        assert beacons.get(0) is None and beacons.get(2) is None
-        assert set(agent.exchange.consensus_latest.ages()) == {(1, 1)}
+        yield agent, router
     finally:
         if agent is not None:
             agent.close()
         router.close()
+
+
+def taken(agent: AgentProcess, condition: Callable[[], bool]) -> bool:
+    """Realtime samples wait in rings until the agent's loop takes them (Peers.drain);
+    nothing runs that loop here, so the test takes them itself."""
+    agent.exchange.peers.drain()
+    return condition()
+
+
+def test_messages_on_another_drones_key_are_counted_and_dropped() -> None:
+    with agent_on_a_router("realtime", "keys") as (agent, router):
+        keys, codec = Keys("keys"), agent.codec
+        payload = codec.encode(consensus(1, 1, 6))
+
+        # Our own publications reach the router once the subscriptions are declared: repeat
+        # the valid message until it is in (zenoh declares routes asynchronously).
+        def delivered() -> bool:
+            router.put(keys.consensus(1), payload)
+            return taken(agent, lambda: agent.exchange.consensus_latest.get((1, 1)) is not None)
+
+        assert wait_until(delivered)
+        router.put(keys.consensus(3), payload)  # drone 1's message on drone 3's key
+        assert wait_until(lambda: taken(agent, lambda: agent.rejections.total() == 1))
+        counts = agent.rejections.snapshot()
+        assert counts["consensus"]["rejected"] == 1
+        assert counts["consensus"]["rules"] == {"source": 1}
+        assert set(agent.exchange.consensus_latest.ages()) == {(1, 1)}
+
+
+def test_lockstep_beacons_on_another_drones_key_are_counted_and_dropped() -> None:
+    """In lockstep every drone's beacon comes from that drone: one on another's key, or one
+    claiming to be this drone, is rejected; the same beacon on its own key is kept."""
+    with agent_on_a_router("lockstep", "lockkeys") as (agent, router):
+        keys, codec = Keys("lockkeys"), agent.codec
+        beacon3 = codec.encode(BeaconWire.build(3, 1, 0.02, (1.0, 0.0, 3.0)))
+        mailbox = agent.exchange.beacon_steps
+
+        def delivered() -> bool:
+            router.put(keys.beacon(3), beacon3)
+            return 3 in mailbox.wait_for(1, 0, {3}, 0.01)
+
+        assert wait_until(delivered)
+        router.put(keys.beacon(2), beacon3)
+        router.put(keys.beacon(0), codec.encode(BeaconWire.build(0, 1, 0.02, (1.0, 0.0, 3.0))))
+        assert wait_until(lambda: agent.rejections.total() == 2)
+        counts = agent.rejections.snapshot()
+        assert counts["beacon"]["rejected"] == 2 and counts["beacon"]["rules"] == {"source": 2}
+        assert set(mailbox.wait_for(1, 0, {0, 2, 3}, 0.01)) == {3}
+
+
+def test_realtime_beacons_come_from_the_worlds_relay_dated_from_their_arrival_there() -> None:
+    """A realtime agent takes the others' beacons from the world's relay (world/beacons),
+    each dated from when it reached the world (the relay's arrival minus how long the world
+    held it), and leaves out its own; a drone's own beacon key is not listened to."""
+    with agent_on_a_router("realtime", "relay") as (agent, router):
+        keys, codec = Keys("relay"), agent.codec
+        relay = codec.encode(BeaconRelayWire(step=9, beacons=tuple(
+            RelayedBeacon(BeaconWire.build(j, 8, 0.16, (float(j), 0.0, 3.0)), held_s)
+            for j, held_s in ((0, 0.0), (2, 0.004), (3, 5.0)))))
+
+        def delivered() -> bool:
+            router.put(keys.beacon_relay, relay)
+            return taken(agent, lambda: agent.exchange.beacon_latest.get(2) is not None)
+
+        assert wait_until(delivered)
+        ages = agent.exchange.beacon_latest.ages()
+        assert set(ages) == {2, 3}  # not our own
+        assert ages[3] >= 5.0 and ages[2] >= 0.004 and ages[3] - ages[2] == pytest.approx(
+            5.0 - 0.004, abs=0.05)
+        router.put(keys.beacon(4), codec.encode(BeaconWire.build(4, 8, 0.16, (4.0, 0.0, 3.0))))
+        # The next relay leaves after that beacon on the same link: once it is in, the
+        # beacon would be too, had the agent listened to drone 4's key.
+        router.put(keys.beacon_relay, codec.encode(BeaconRelayWire(step=10, beacons=(
+            RelayedBeacon(BeaconWire.build(1, 9, 0.18, (1.0, 0.0, 3.0)), 0.0),))))
+        assert wait_until(lambda: taken(
+            agent, lambda: agent.exchange.beacon_latest.get(1) is not None))
+        assert agent.exchange.beacon_latest.get(4) is None
+        assert agent.rejections.total() == 0

@@ -16,12 +16,14 @@ from hypothesis import strategies as st
 from swarm.core.agent import ConsensusMessage
 from swarm.messages.wire import (
     WIRE_VERSION,
+    BeaconRelayWire,
     BeaconWire,
     CameraFrameWire,
     ClockWire,
     ConsensusWire,
     DetectionWire,
     F64Array,
+    RelayedBeacon,
     TelemetryCounters,
     TelemetryWire,
     TruthWire,
@@ -64,6 +66,7 @@ from tests.helpers.wire_samples import (
 DECODERS: dict[str, Callable[[bytes], object]] = {
     "consensus": CODEC.decode_consensus,
     "beacon": CODEC.decode_beacon,
+    "beacons": CODEC.decode_beacon_relay,
     "camera": CODEC.decode_camera,
     "truth": CODEC.decode_truth,
     "clock": CODEC.decode_clock,
@@ -171,6 +174,9 @@ def test_non_finite_values_are_rejected(bad: float) -> None:
         ("consensus", consensus_with_nan(MESSAGES["consensus_round"], "information_vector", bad)),
         ("beacon", msgspec.structs.replace(MESSAGES["beacon"], position_m=(0.0, bad, 1.0))),
         ("beacon", msgspec.structs.replace(MESSAGES["beacon"], time_s=bad)),
+        ("beacons", relayed((2, bad))),
+        ("beacons", BeaconRelayWire(step=3, beacons=(RelayedBeacon(msgspec.structs.replace(
+            MESSAGES["beacon"], position_m=(bad, 0.0, 0.0)), 0.0),))),
         ("camera", msgspec.structs.replace(MESSAGES["camera"],
                                            detections=(DetectionWire(0, bad, 0.0),))),
         ("truth", msgspec.structs.replace(MESSAGES["truth"], target_velocities=with_nan(
@@ -233,6 +239,13 @@ def test_wrong_shapes_and_lengths_are_rejected() -> None:
     assert "velocity" in reason_of(CODEC.decode_telemetry, raw(tel))
 
 
+def relayed(*entries: tuple[int, float]) -> BeaconRelayWire:
+    """A relay of these (sender, held_s): no codec involved, so it may break the rules."""
+    return BeaconRelayWire(step=3, beacons=tuple(
+        RelayedBeacon(BeaconWire.build(sender, 2, 0.04, (0.0, 0.0, 3.0)), held)
+        for sender, held in entries))
+
+
 def test_ids_steps_and_rounds_are_range_checked() -> None:
     cons, cam = MESSAGES["consensus"], MESSAGES["camera"]
     cases = [
@@ -260,6 +273,12 @@ def test_ids_steps_and_rounds_are_range_checked() -> None:
          "flying"),
         (CODEC.decode_clock, msgspec.structs.replace(MESSAGES["clock"], mode="fast"), "fast"),
         (CODEC.decode_beacon, msgspec.structs.replace(MESSAGES["beacon"], sender=True), "int"),
+        # The world's relay: each beacon's rules, each drone once, at most N, held ≥ 0.
+        (CODEC.decode_beacon_relay, relayed((9, 0.0)), "beacons[0].beacon.sender 9 out of range"),
+        (CODEC.decode_beacon_relay, relayed((1, 0.0), (1, 0.5)), "sender 1 appears twice"),
+        (CODEC.decode_beacon_relay, relayed((2, -0.001)), "beacons[0].held_s must be >= 0"),
+        (CODEC.decode_beacon_relay, relayed(*((j % N, 0.0) for j in range(N + 1))),
+         "more than this swarm's 6 drones"),
     ]
     for decode, message, needle in cases:
         assert needle in reason_of(decode, raw(message)), needle

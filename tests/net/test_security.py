@@ -255,6 +255,7 @@ def test_an_agent_never_receives_truth_while_the_observer_does(tls_dir: Path, ro
     world, endpoint = router
     truth = declare_publisher(world, KEYS.truth)
     clock = declare_publisher(world, KEYS.clock)
+    relay = declare_publisher(world, KEYS.beacon_relay)
     cameras = [declare_publisher(world, KEYS.camera(i)) for i in range(N)]
     with client(endpoint, identity(tls_dir, agent_role(0))) as agent, \
             client(endpoint, identity(tls_dir, OBSERVER_ROLE)) as observer:
@@ -265,20 +266,23 @@ def test_an_agent_never_receives_truth_while_the_observer_does(tls_dir: Path, ro
         agent_camera, s5 = listen(agent, KEYS.camera(0))
         other_camera, s6 = listen(agent, KEYS.camera(1))
         observer_truth, s7 = listen(observer, KEYS.truth)
+        agent_relay, s8 = listen(agent, KEYS.beacon_relay)  # realtime beacons
 
         def publish() -> None:
             truth.put(b"truth")
             clock.put(b"clock")
+            relay.put(b"relay")
             for i, camera in enumerate(cameras):
                 camera.put(f"camera {i}".encode())
 
         publish_until(publish, lambda: observer_truth.count() >= 5
-                      and agent_clock.count() >= 5 and agent_camera.count() >= 5)
+                      and agent_clock.count() >= 5 and agent_camera.count() >= 5
+                      and agent_relay.count() >= 5)
         assert agent_truth.count() == 0
         assert other_camera.count() == 0
         for heard in (agent_run, agent_any):
-            assert heard.keys() <= {KEYS.clock, KEYS.camera(0)}, heard.keys()
-        del s1, s2, s3, s4, s5, s6, s7
+            assert heard.keys() <= {KEYS.clock, KEYS.camera(0), KEYS.beacon_relay}, heard.keys()
+        del s1, s2, s3, s4, s5, s6, s7, s8
 
 
 @requires_openssl

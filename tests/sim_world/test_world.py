@@ -113,18 +113,22 @@ def test_an_external_vehicle_world_counts_bad_beacons_on_its_clock() -> None:
                                                    vehicle_time_ms=43_210))
         junk = [b"", b"\x93\x01\x02", valid[:-3], valid.replace(b"beacon", b"camera"),
                 msgspec.msgpack.encode(["beacon", 3, 2, 5, 0.1, [math.nan, 2.0, 3.0],
-                                        [0.0, 0.0, 0.0], 0.0])]
+                                        [0.0, 0.0, 0.0], 0.0]),
+                # a valid beacon of drone 3 on drone 2's key
+                made.codec.encode(BeaconWire.build(3, 5, 0.1, (9.0, 9.0, 9.0)))]
         for payload in [*junk, valid]:
             session.put(made.keys.beacon(2), payload)
         deadline = time.monotonic() + 10.0
         while (made.rejections.total() < len(junk) or made.beacons.get(2) is None) \
                 and time.monotonic() < deadline:
+            made.take_beacons()  # what the realtime loop does at each tick
             time.sleep(0.01)  # polling the world's counters (bounded by the deadline)
         assert made.rejections.total() == len(junk)
         made.publish_clock(0, "waiting")
         assert made.codec.decode_clock(captured.payloads[-1]).rejected_inputs == len(junk)
         made._external_positions()
         assert made.positions[2].tolist() == [1.0, 2.0, 3.0]
+        assert made.beacons.get(3) is None
         assert made.pose_stamps_ms == [0, 0, 43_210, 0, 0, 0]
         cameras = made._pub_camera = [_Captured() for _ in range(made.n)]
         made._pub_truth = _Captured()
@@ -184,3 +188,56 @@ def test_a_stalled_realtime_tick_counts_queued_setpoints_before_the_failsafe(
                                    atol=1e-6)
     finally:
         link.close()
+
+
+def test_a_realtime_world_relays_every_drones_newest_beacon_and_how_long_it_held_it() -> None:
+    """At each realtime tick the agents get one message (world/beacons, stamped) with every
+    drone's newest beacon, each with how long the world has held it: N messages a period
+    through the router instead of N(N − 1)."""
+    config = load_config(CASE1)
+    port = free_tcp_port()
+    made = World(WorldOptions(config=config, seed=0, run_id="relay", mode="realtime",
+                              vehicles="external", listen=(f"tcp/127.0.0.1:{port}",),
+                              log=lambda _line: None))
+    session = open_session(zenoh_config(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))
+    heard: list[tuple[bytes, bool]] = []
+    listener = session.declare_subscriber(made.keys.beacon_relay, lambda sample: heard.append(
+        (sample.payload.to_bytes(), sample.timestamp is not None)))
+    try:
+        # Drone 1 twice (the newest counts), drone 4 once.
+        for j, x in ((1, 1.0), (4, 4.0), (1, 1.5)):
+            session.put(made.keys.beacon(j), made.codec.encode(
+                BeaconWire.build(j, 5, 0.1, (x, 0.0, 3.0))))
+        deadline = time.monotonic() + 10.0
+
+        def both_in() -> bool:
+            made.take_beacons()
+            one = made.beacons.get(1)
+            return one is not None and one[0].position_m[0] == 1.5 and made.beacons.get(4)
+
+        while not both_in():
+            assert time.monotonic() < deadline, "the beacons did not reach the world"
+            time.sleep(0.01)  # polling the world's store (bounded by the deadline)
+        relays = []
+        for step in (9, 10):
+            before = time.monotonic()
+            made.relay_beacons(step)
+            relays.append((before, time.monotonic()))
+            time.sleep(0.05)  # so that the second relay's beacons are older
+        deadline = time.monotonic() + 10.0
+        while len(heard) < 2:
+            assert time.monotonic() < deadline, "no relay reached the subscriber"
+            time.sleep(0.01)
+        first, second = (made.codec.decode_beacon_relay(payload) for payload, _ in heard)
+        assert all(stamped for _, stamped in heard)
+        assert (first.step, second.step) == (9, 10)
+        assert [(e.beacon.sender, e.beacon.position_m[0]) for e in first.beacons] == [
+            (1, 1.5), (4, 4.0)]
+        (start1, end1), (start2, end2) = relays
+        for a, b in zip(first.beacons, second.beacons, strict=True):
+            assert start2 - end1 <= b.held_s - a.held_s <= end2 - start1
+        assert made.rejections.total() == 0
+    finally:
+        listener.undeclare()
+        session.close()
+        made.close()
