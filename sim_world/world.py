@@ -8,9 +8,12 @@ clock. Two time modes:
   then the world waits until every vehicle has received a setpoint stamped t_k and integrates
   with exactly those; deterministic, reproduces the in-process reference.
 - ``realtime``: a 50 Hz wall-clock loop integrates each vehicle with its latest setpoint under
-  the flavour's failsafe rules; nothing waits. At each tick the world also relays every
-  drone's newest beacon to the agents in one message (``world/beacons``): N messages a period
-  through the router instead of N(N − 1).
+  the flavour's failsafe rules; nothing waits.
+
+In both, the agents get the others' beacons from the world in one message (``world/beacons``,
+``BeaconRelayWire``): N messages a step through the router instead of N(N − 1). Lockstep: step
+k's relay leaves as soon as every drone's beacon of step k is in. Realtime: at each tick, every
+drone's newest beacon with how long the world has held it.
 
 With ``vehicles = "external"`` it serves no vehicles: each drone's position is taken from its
 beacon, so the agents can fly real autopilots against virtual targets.
@@ -18,6 +21,7 @@ beacon, so the agents can fly real autopilots against virtual targets.
 
 from __future__ import annotations
 
+import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -62,6 +66,9 @@ PRE_MISSION_PERIOD_S = 0.02  # telemetry and vehicle motion before the mission s
 CLOCK_PERIOD_S = 0.25
 # The beacon ring holds this many periods of every drone's beacons (drained at each tick).
 BEACON_RING_PERIODS = 4
+# Lockstep: beacons of a step this far past the last one relayed are refused (bounded memory;
+# a drone cannot be more than one step ahead).
+RELAY_AHEAD_STEPS = 4
 MISSION_TIME_OFFSET_MS = 1000  # mission stamps start this far past every pre-mission stamp
 DONE_LINGER_S = 10.0  # the world stays up this long after the mission unless stopped
 
@@ -116,6 +123,10 @@ class World:
         self._failsafes_reported = [0] * self.n
         self._subscribers: list = []
         self._beacon_ring: RingSubscriber | None = None
+        # Lockstep: each step's beacons until every drone's is in, and the last step relayed.
+        self._step_beacons: dict[int, dict[int, BeaconWire]] = {}
+        self._relayed_step = -1
+        self._relay_lock = threading.Lock()
         security = cfg.security
         self.session = open_session(zenoh_config(
             mode="router", listen=options.listen, connect=options.connect,
@@ -144,6 +155,13 @@ class World:
                 assert isinstance(ring, RingSubscriber)
                 self._beacon_ring = ring
                 self._subscribers.append(ring)
+            else:
+                # Not direct (this process hosts the router): the subscription's own Python
+                # thread relays step k as soon as its last beacon is in, while the main thread
+                # waits for the setpoints.
+                self._subscribers.append(subscribe(
+                    self.session, self.keys.all_beacons, self.codec.decode_beacon,
+                    self._on_step_beacon, self.rejections, "beacon"))
         except Exception:
             self.session.close()
             raise
@@ -154,9 +172,10 @@ class World:
                             for i in range(self.n)]
         self._pub_truth = declare_publisher(self.session, self.keys.truth, block=True)
         self._pub_clock = declare_publisher(self.session, self.keys.clock, block=True)
-        # The relay drops rather than waits: the next tick brings the newest beacons anyway.
-        self._pub_relay = (declare_publisher(self.session, self.keys.beacon_relay, block=False)
-                           if self._beacon_ring is not None else None)
+        # Realtime, the relay drops rather than waits: the next tick brings the newest beacons
+        # anyway. Lockstep, every agent waits for it.
+        self._pub_relay = declare_publisher(self.session, self.keys.beacon_relay,
+                                            block=self._beacon_ring is None)
 
     # -- plumbing ---------------------------------------------------------------------------
 
@@ -215,10 +234,34 @@ class World:
         if self._beacon_ring is not None:
             self._beacon_ring.drain()
 
+    def _on_step_beacon(self, key: str, beacon: BeaconWire) -> None:
+        """Lockstep: keep drone j's beacon of step k (the first one: a repeat changes nothing);
+        once every drone's of step k is in, relay them. Held 0 s: the mission's clock stands
+        still while the world waits, and every beacon of step k is of the same instant."""
+        if key != self.keys.beacon(beacon.sender):
+            self.rejections.reject("beacon", f"sender {beacon.sender} on {key}")
+            return
+        step = beacon.step
+        with self._relay_lock:
+            if not self._relayed_step < step <= self._relayed_step + RELAY_AHEAD_STEPS:
+                self.rejections.reject("beacon", f"step {step} from drone {beacon.sender}: "
+                                       f"step {self._relayed_step} was relayed last")
+                return
+            got = self._step_beacons.setdefault(step, {})
+            got.setdefault(beacon.sender, beacon)
+            if len(got) < self.n:
+                return
+            self._relayed_step = step
+            for old in [s for s in self._step_beacons if s <= step]:
+                del self._step_beacons[old]
+            relay = BeaconRelayWire(step=step, beacons=tuple(
+                RelayedBeacon(got[i], 0.0) for i in range(self.n)))
+            self._pub_relay.put(self.codec.encode(relay))
+
     def relay_beacons(self, step: int) -> None:
-        """Every drone's newest beacon to the agents in one message (realtime), each with how
+        """Realtime: every drone's newest beacon to the agents in one message, each with how
         long the world has held it, so that an agent dates it from its arrival here."""
-        if self._pub_relay is None:
+        if self._beacon_ring is None:
             return
         relayed = []
         for i in range(self.n):

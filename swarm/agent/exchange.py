@@ -5,7 +5,8 @@ the publishers, the checks on who sent what) and runs one step the same way in e
 (``AgentProcess.step``). What a mode decides is here, behind ``Exchange``:
 
 * how messages are received and kept (``direct``, ``ring``, ``sent_times``) and stored
-  (``put_camera``, ``put_consensus``, ``put_beacon``);
+  (``put_camera``, ``put_consensus``, ``put_beacon``: each beacon of the world's relay,
+  ``world/beacons``, which carries every drone's in one message);
 * what a step sees of its neighbours (``inbox``: the consensus messages of a round) and of
   every other drone (``beacons``: positions for the collision rows), and the swarm size N
   (``begin``);
@@ -14,7 +15,8 @@ the publishers, the checks on who sent what) and runs one step the same way in e
 
 ``LockstepExchange``: step k waits for the camera frame of step k, the position sample
 stamped with that frame's ``vehicle_time_ms``, every neighbour's round messages and every
-beacon of step k: deterministic (equal to the in-process reference bit for bit).
+beacon of step k (the world's relay of step k): deterministic (equal to the in-process
+reference bit for bit).
 ``RealtimeExchange``: a loop on the wall clock with the newest of everything, each drone's
 at its own phase after the world's tick (``loop_phase_s``); neighbour data older than
 ``runtime.stale_timeout_s`` is left out and counted; N follows the drones heard within
@@ -74,7 +76,6 @@ class Exchange(Protocol):
     direct: bool  # subscription callbacks on zenoh's thread (True) or a thread of their own
     block_consensus: bool  # a consensus put waits for room (True) or drops (False)
     sent_times: bool  # read each consensus message's Zenoh timestamp (neighbour age)
-    relayed_beacons: bool  # the others' beacons from the world's relay, not from each drone
     late_steps: int
     unpaired_frames: int
     stale_messages: int
@@ -103,7 +104,6 @@ class LockstepExchange:
     direct = True
     block_consensus = True  # peers wait for every message
     sent_times = False  # lockstep reports no neighbour age: its hot path skips them
-    relayed_beacons = False  # every beacon of step k, from each drone (the world waits too)
 
     def __init__(self, peers: Peers) -> None:
         self.peers = peers
@@ -193,10 +193,6 @@ class RealtimeExchange:
     direct = False
     block_consensus = False  # the newest message is what counts: drop when the queue is full
     sent_times = True
-    # The world relays every drone's newest beacon at its tick: one message a period instead
-    # of one per other drone (Case 2 scaled to N = 12: N − 1 = 11 beacons were ~0.3 of the
-    # swarm's ~1.7 cores).
-    relayed_beacons = True
 
     def __init__(self, peers: Peers) -> None:
         self.peers = peers

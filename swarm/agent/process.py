@@ -1,10 +1,11 @@
 """One drone as an OS process: the core's per-drone step between Zenoh and MAVLink (SPEC §12).
 
 Inputs: its own position from the autopilot (LOCAL_POSITION_NED, converted in
-``swarm.models.frames``), its camera frames (``world/camera/<i>``), its graph neighbours' consensus
-messages and every drone's beacon (collision rows; in realtime, as the world relays them at
-each tick on ``world/beacons``). Outputs: velocity setpoints to the
-autopilot, its own consensus messages, beacon and telemetry. It never reads ``world/truth``.
+``swarm.models.frames``), its camera frames (``world/camera/<i>``), its graph neighbours'
+consensus messages and every drone's beacon (collision rows), all in one message of the
+world's (``world/beacons``: N messages a step through the router instead of N(N − 1)).
+Outputs: velocity setpoints to the autopilot, its own consensus messages, beacon and
+telemetry. It never reads ``world/truth``.
 
 A step is the same in every mode (``AgentProcess._step``); what the mode decides (how
 messages are kept, what a step sees of its neighbours, the loop) is its ``Exchange``
@@ -117,7 +118,6 @@ class AgentProcess:
         # Each sender's own keys (the codec bounds ids to 0..N-1): a string compare per
         # message, not a key parse.
         self._consensus_keys = [self.keys.consensus(j) for j in range(self.n)]
-        self._beacon_keys = [self.keys.beacon(j) for j in range(self.n)]
         self.camera_latest: LatestValues[CameraFrameWire] = LatestValues()  # start() waits on it
         self.clock: LatestValues[ClockWire] = LatestValues()
         self.qp_failures = QpFailureLog(options.log, options.qp_dump_dir)
@@ -158,11 +158,7 @@ class AgentProcess:
                       keep_latest=ring(1)),
             subscribe(self.session, self.keys.beacon_relay, self.codec.decode_beacon_relay,
                       self._on_beacon_relay, self.rejections, "beacon relay", direct=direct,
-                      keep_latest=ring(1))
-            if exchange.relayed_beacons else
-            subscribe(self.session, self.keys.all_beacons, self.codec.decode_beacon,
-                      self._on_beacon, self.rejections, "beacon", direct=direct,
-                      remote_only=True, keep_latest=ring(self.n)),
+                      keep_latest=ring(1)),
             subscribe(self.session, self.keys.clock, self.codec.decode_clock,
                       self._on_clock, self.rejections, "clock", direct=direct,
                       keep_latest=ring(1)),
@@ -250,19 +246,10 @@ class AgentProcess:
             return
         self.exchange.put_consensus(msg, arrived_s)
 
-    def _on_beacon(self, key: str, beacon: BeaconWire, arrived_s: float | None = None) -> None:
-        # Our own beacons never come back (remote only): one with our id is another process
-        # claiming to be this drone, or a replay.
-        if beacon.sender == self.id or key != self._beacon_keys[beacon.sender]:
-            self.rejections.reject("beacon", f"sender {beacon.sender} on {key} (drone "
-                                             f"{self.id})")
-            return
-        self.exchange.put_beacon(beacon, arrived_s)
-
     def _on_beacon_relay(self, _key: str, relay: BeaconRelayWire,
                          arrived_s: float | None = None) -> None:
-        """Every drone's newest beacon as the world relays it (the world checked that each
-        came on its sender's key); each dated from its arrival at the world."""
+        """Every drone's beacon as the world relays it (the world checked that each came on
+        its sender's key); each dated from its arrival at the world (realtime)."""
         now_s = time.monotonic() if arrived_s is None else arrived_s
         for entry in relay.beacons:
             if entry.beacon.sender != self.id:  # our own comes back with everyone's

@@ -89,25 +89,30 @@ def test_messages_on_another_drones_key_are_counted_and_dropped() -> None:
         assert set(agent.exchange.consensus_latest.ages()) == {(1, 1)}
 
 
-def test_lockstep_beacons_on_another_drones_key_are_counted_and_dropped() -> None:
-    """In lockstep every drone's beacon comes from that drone: one on another's key, or one
-    claiming to be this drone, is rejected; the same beacon on its own key is kept."""
-    with agent_on_a_router("lockstep", "lockkeys") as (agent, router):
-        keys, codec = Keys("lockkeys"), agent.codec
-        beacon3 = codec.encode(BeaconWire.build(3, 1, 0.02, (1.0, 0.0, 3.0)))
+def test_lockstep_beacons_of_step_k_come_in_the_worlds_relay_of_step_k() -> None:
+    """A lockstep agent waits for every other drone's beacon of step k, which the world relays
+    in one message once they are all in: the relay fills its step-k mailbox, its own beacon
+    left out, and a drone's own beacon key is not listened to."""
+    with agent_on_a_router("lockstep", "lockrelay") as (agent, router):
+        keys, codec = Keys("lockrelay"), agent.codec
+        forged = codec.encode(BeaconWire.build(4, 1, 0.02, (9.0, 0.0, 3.0)))
+        relay = codec.encode(BeaconRelayWire(step=1, beacons=tuple(
+            RelayedBeacon(BeaconWire.build(j, 1, 0.02, (float(j), 0.0, 3.0)), 0.0)
+            for j in range(6))))
         mailbox = agent.exchange.beacon_steps
 
+        # Each relay leaves after a beacon on drone 4's own key, on the same link: had the
+        # agent listened to that key, the mailbox would keep that beacon (the first one).
         def delivered() -> bool:
-            router.put(keys.beacon(3), beacon3)
-            return 3 in mailbox.wait_for(1, 0, {3}, 0.01)
+            router.put(keys.beacon(4), forged)
+            router.put(keys.beacon_relay, relay)
+            return len(mailbox.wait_for(1, 0, set(range(1, 6)), 0.01)) == 5
 
         assert wait_until(delivered)
-        router.put(keys.beacon(2), beacon3)
-        router.put(keys.beacon(0), codec.encode(BeaconWire.build(0, 1, 0.02, (1.0, 0.0, 3.0))))
-        assert wait_until(lambda: agent.rejections.total() == 2)
-        counts = agent.rejections.snapshot()
-        assert counts["beacon"]["rejected"] == 2 and counts["beacon"]["rules"] == {"source": 2}
-        assert set(mailbox.wait_for(1, 0, {0, 2, 3}, 0.01)) == {3}
+        got = mailbox.wait_for(1, 0, set(range(6)), 0.01)
+        assert set(got) == {1, 2, 3, 4, 5}  # not our own
+        assert got[4].position_m == (4.0, 0.0, 3.0)
+        assert agent.rejections.total() == 0
 
 
 def test_realtime_beacons_come_from_the_worlds_relay_dated_from_their_arrival_there() -> None:

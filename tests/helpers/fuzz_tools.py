@@ -45,7 +45,7 @@ NONFINITE = (math.nan, -math.nan, math.inf, -math.inf)
 # NaN payloads beyond the canonical one: signalling, negative, all-ones mantissa.
 _NONFINITE_BYTES = (*(struct.pack("<d", v) for v in NONFINITE),
                     struct.pack("<Q", 0x7FF0000000000001), struct.pack("<Q", 0xFFFFFFFFFFFFFFFF))
-_KINDS = ("consensus", "beacon", "camera", "truth", "clock", "telemetry")
+_KINDS = ("consensus", "beacon", "beacons", "camera", "truth", "clock", "telemetry")
 
 
 # -- Zenoh payloads --------------------------------------------------------------------------

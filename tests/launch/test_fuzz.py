@@ -5,9 +5,9 @@ MAVLink/UDP) and, while the mission runs, a separate Zenoh session and separate 
 flood every input the processes have:
 
 - 10 000 payloads on every Zenoh key an agent subscribes to: ``world/camera/<i>`` for each
-  drone, the beacons (``agent/*/beacon``, spread over every drone's key and one of no
-  drone), ``world/clock`` and ``agent/<j>/consensus`` of each drone (the world subscribes to
-  nothing with simulated vehicles);
+  drone, the world's beacon relay ``world/beacons``, ``world/clock`` and
+  ``agent/<j>/consensus`` of each drone; and 10 000 on the beacons the world relays
+  (``agent/*/beacon``, spread over every drone's key and one of no drone);
 - 10 000 datagrams at every UDP endpoint: each emulated vehicle's socket in the world and
   each agent's ``udpin`` port.
 
@@ -19,9 +19,9 @@ datagram at an agent's port comes from an address that is not its vehicle's. Not
 lost on the way (Zenoh publishes with congestion control BLOCK over TCP; the UDP flood never
 lets a socket queue overflow, and the kernel's drop counters are checked), so the counts are
 exact: each agent's telemetry ``counters.rejected_messages`` rises by exactly its share and
-the world's clock ``rejected_inputs`` by exactly the vehicles' share. Every process stays up,
-the mission completes, and its result equals the in-process reference to 1e-9 — so no
-rejected value (NaN/inf included) reached any computation.
+the world's clock ``rejected_inputs`` by exactly the vehicles' share and the beacons'. Every
+process stays up, the mission completes, and its result equals the in-process reference to
+1e-9 — so no rejected value (NaN/inf included) reached any computation.
 
 The boundary test checks each numerical input on its own: NaN/±inf in a position sample, a
 detection's image point, a consensus message, a beacon and a setpoint at the vehicle is
@@ -55,7 +55,15 @@ from swarm.core.qp import LocalQpWorkspace
 from swarm.launch.launcher import LaunchOptions, SwarmLauncher
 from swarm.mavlink.link import AutopilotLink, LinkError
 from swarm.mavlink.parse import LOCAL_POSITION_NED
-from swarm.messages.wire import BeaconWire, CameraFrameWire, ClockWire, TelemetryWire, WireCodec
+from swarm.messages.wire import (
+    BeaconRelayWire,
+    BeaconWire,
+    CameraFrameWire,
+    ClockWire,
+    RelayedBeacon,
+    TelemetryWire,
+    WireCodec,
+)
 from swarm.net.transport import (
     Keys,
     RejectionCounter,
@@ -99,6 +107,14 @@ def _beacon_bases(codec: WireCodec, n: int) -> list[bytes]:
     return [codec.encode(BeaconWire.build(j, 7 + j, 0.14 + 0.02 * j, (j, -1.0, 3.5),
                                           velocity_m_s=(0.1, 0.2, -0.1), sample_age_s=0.01))
             for j in range(n)]
+
+
+def _relay_bases(codec: WireCodec, n: int) -> list[bytes]:
+    beacons = [BeaconWire.build(j, 9, 0.18, (j, -1.0, 3.5), velocity_m_s=(0.1, 0.2, -0.1),
+                                sample_age_s=0.01) for j in range(n)]
+    return [codec.encode(BeaconRelayWire(step=9, beacons=tuple(
+        RelayedBeacon(b, 0.001 * j) for j, b in enumerate(beacons[:count]))))
+        for count in (1, n)]
 
 
 def _clock_bases(codec: WireCodec) -> list[bytes]:
@@ -146,9 +162,13 @@ class Plan:
         beacons = zenoh_payloads(rng, _beacon_bases(codec, n), codec.decode_beacon, PER_KEY,
                                  n_drones=n)
         beacon_keys = [keys.beacon(j) for j in (*range(n), 999)]
-        for k, key in enumerate(beacon_keys):  # agent/*/beacon: every agent gets all of them
+        for k, key in enumerate(beacon_keys):  # agent/*/beacon: the world relays them
             self.zenoh[key] = beacons[k::len(beacon_keys)]
-            self.reach[key] = tuple(range(n))
+            self.reach[key] = ()
+        self.world_zenoh_expected = PER_KEY
+        self.zenoh[keys.beacon_relay] = zenoh_payloads(
+            rng, _relay_bases(codec, n), codec.decode_beacon_relay, PER_KEY, n_drones=n)
+        self.reach[keys.beacon_relay] = tuple(range(n))
         self.agent_expected = [e + PER_KEY for e in self.agent_expected]
         self.zenoh[keys.clock] = zenoh_payloads(rng, _clock_bases(codec), codec.decode_clock,
                                                 PER_KEY, n_drones=n)
@@ -305,7 +325,7 @@ def test_a_flood_of_bad_input_changes_nothing_and_every_rejection_is_counted(
     assert_matches_reference(config, record, seed=0)
     assert check_invariants(record) == []
     # Every input was delivered (no kernel drops, Zenoh never drops with BLOCK)...
-    assert zenoh_sent == sum(map(len, plan.zenoh.values())) == 14 * PER_KEY
+    assert zenoh_sent == sum(map(len, plan.zenoh.values())) == 15 * PER_KEY
     assert all(flood.sent[p] == PER_ENDPOINT for p in udp_plan)
     assert drops_after == flood.drops_before, (flood.drops_before, drops_after)
     # ...and every one counted where it can be seen: agents in their telemetry,
@@ -315,7 +335,7 @@ def test_a_flood_of_bad_input_changes_nothing_and_every_rejection_is_counted(
     # the world on its clock (its last one, the mission's "done"),
     done = [c for c in clocks if c.state == "done"]
     assert done, [c.state for c in clocks[-3:]]
-    assert done[0].rejected_inputs == n * plan.vehicle_expected_each
+    assert done[0].rejected_inputs == n * plan.vehicle_expected_each + plan.world_zenoh_expected
     # and the launcher (a subscriber of world/clock too) in its own counter.
     assert launcher.rejections.snapshot()["clock"]["rejected"] == PER_KEY
     # Each agent's log says, per kind, how many, by rule, and the last reason with its key.
@@ -328,7 +348,8 @@ def test_a_flood_of_bad_input_changes_nothing_and_every_rejection_is_counted(
     print(f"\n[fuzz] {zenoh_sent} Zenoh payloads on {len(plan.zenoh)} keys, "
           f"{sum(flood.sent.values())} datagrams at {len(udp_plan)} UDP endpoints in "
           f"{flood_s:.1f} s; counted: agents {got}, world {done[0].rejected_inputs} "
-          f"(vehicles {plan.vehicle_expected_each} each); generation "
+          f"(vehicles {plan.vehicle_expected_each} each, beacons "
+          f"{plan.world_zenoh_expected}); generation "
           f"{generated - started:.1f} s, total {time.monotonic() - started:.1f} s")
 
 

@@ -241,3 +241,56 @@ def test_a_realtime_world_relays_every_drones_newest_beacon_and_how_long_it_held
         listener.undeclare()
         session.close()
         made.close()
+
+
+def test_a_lockstep_world_relays_step_k_as_soon_as_every_drones_beacon_of_it_is_in(
+        world: World) -> None:
+    """Lockstep: the relay of step k leaves once every drone's beacon of step k is in (the
+    first of each: a repeat changes nothing), in drone order, each held 0 s (the mission
+    clock stands still while the world waits); a beacon on another drone's key, of a step
+    already relayed or too far ahead is refused."""
+    session = open_session(zenoh_config(mode="client", connect=list(world.options.listen)))
+    heard: list[bytes] = []
+    listener = session.declare_subscriber(world.keys.beacon_relay,
+                                          lambda sample: heard.append(sample.payload.to_bytes()))
+    keys, codec = world.keys, world.codec
+
+    def beacon(j: int, step: int, x: float = 0.0) -> bytes:
+        return codec.encode(BeaconWire.build(j, step, 0.02 * step, (j + x, 0.0, 3.0)))
+
+    def refused(count: int) -> None:
+        deadline = time.monotonic() + 10.0
+        while world.rejections.total() < count:
+            assert time.monotonic() < deadline, world.rejections.snapshot()
+            time.sleep(0.01)  # polling the world's counters (bounded by the deadline)
+
+    try:
+        # Until the world's subscription is known to this session (routes are declared
+        # asynchronously), put a beacon on the wrong key: the first refusal says it is.
+        deadline = time.monotonic() + 10.0
+        while world.rejections.total() == 0:
+            assert time.monotonic() < deadline, "the world heard no beacon"
+            session.put(keys.beacon(2), beacon(3, 0))
+            time.sleep(0.01)
+        session.put(keys.beacon(0), beacon(0, 0, x=0.5))
+        session.put(keys.beacon(0), beacon(0, 0, x=0.9))  # a repeat: the first one counts
+        for j in range(1, world.n):
+            session.put(keys.beacon(j), beacon(j, 0))
+        deadline = time.monotonic() + 10.0
+        while not heard:
+            assert time.monotonic() < deadline, "no relay of step 0"
+            time.sleep(0.01)
+        relay = codec.decode_beacon_relay(heard[0])
+        assert relay.step == 0
+        assert [e.beacon.sender for e in relay.beacons] == list(range(world.n))
+        assert relay.beacons[0].beacon.position_m == (0.5, 0.0, 3.0)
+        assert all(e.held_s == 0.0 and e.beacon.step == 0 for e in relay.beacons)
+        # Every probe went out before the beacons of step 0, on the same link: all counted.
+        refusals = world.rejections.total()
+        session.put(keys.beacon(1), beacon(1, 0))  # step 0 was relayed already
+        session.put(keys.beacon(1), beacon(1, 1 + world_module.RELAY_AHEAD_STEPS))
+        refused(refusals + 2)
+        assert len(heard) == 1
+    finally:
+        listener.undeclare()
+        session.close()
