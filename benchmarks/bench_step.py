@@ -23,7 +23,8 @@ Per sample, wall clock (``time.perf_counter``):
   the consensus message of every round, the beacon and the telemetry (``encode_consensus``,
   ``encode_beacon``, ``encode_telemetry``: built from the core's types and checked);
 - decode: what it decodes for that step: the camera frame (and its detections), every
-  neighbour's consensus message of every round and the other drones' beacons. The agent runs
+  neighbour's consensus message of every round and the world's relay of every drone's beacon
+  (``decode_beacon_relay``; the world's own work is not timed). The agent runs
   on the decoded messages (bit-exact), as in the process swarm;
 - total = core + encode + decode ("everything included"); cpu = thread CPU time of the same
   work (leaves out waiting for a CPU on a loaded machine).
@@ -61,7 +62,7 @@ from rich.text import Text
 
 import swarm.runs.reference as reference
 from swarm.core.agent import ConsensusMessage, Detection, DroneAgent, StepResult
-from swarm.messages.wire import CameraFrameWire, WireCodec
+from swarm.messages.wire import BeaconRelayWire, CameraFrameWire, RelayedBeacon, WireCodec
 from swarm.scenario.config import ScenarioConfig, TargetSection, load_config
 
 CORE_SECTIONS = ("estimation", "consensus", "barrier", "qp", "other")
@@ -108,9 +109,19 @@ def scenarios(profile: Profile) -> list[Scenario]:
 class WireBus:
     """The payloads of the current step, as the process swarm would have them on Zenoh."""
 
-    def __init__(self) -> None:
+    def __init__(self, codec: WireCodec) -> None:
+        self.codec = codec
         self.consensus: dict[tuple[int, int], bytes] = {}  # (round, sender) → payload
         self.beacons: dict[int, bytes] = {}  # sender → payload
+        self._relay: tuple[int, bytes] | None = None
+
+    def relay(self, step: int) -> bytes:
+        """The world's relay of every drone's beacon of ``step`` (its work, not timed)."""
+        if self._relay is None or self._relay[0] != step:
+            beacons = (self.codec.decode_beacon(self.beacons[j]) for j in sorted(self.beacons))
+            self._relay = (step, self.codec.encode(BeaconRelayWire(
+                step=step, beacons=tuple(RelayedBeacon(b, 0.0) for b in beacons))))
+        return self._relay[1]
 
 
 class StepProbe:
@@ -126,7 +137,6 @@ class StepProbe:
                  config: ScenarioConfig) -> None:
         self.agent, self.codec, self.bus, self.config = agent, codec, bus, config
         self.drone = agent.setup.drone_id
-        self.others = [j for j in range(config.swarm.n_drones) if j != self.drone]
         self._begin, self._round, self._finish = (agent.begin_step, agent.consensus_round,
                                                   agent.finish_step)
         agent.begin_step, agent.consensus_round, agent.finish_step = (  # type: ignore[method-assign]
@@ -195,9 +205,11 @@ class StepProbe:
         return message
 
     def finish_step(self, _beacons: dict[int, np.ndarray]) -> StepResult:
+        relay = self.bus.relay(self._step)
         decoded = self._timed("decode beacons", lambda: {
-            j: np.asarray(self.codec.decode_beacon(self.bus.beacons[j]).position_m, dtype=float)
-            for j in self.others})
+            e.beacon.sender: np.asarray(e.beacon.position_m, dtype=float)
+            for e in self.codec.decode_beacon_relay(relay).beacons
+            if e.beacon.sender != self.drone})
         result: StepResult = self._core(self._finish, decoded)
         agent = self.agent
         self._timed("encode telemetry", lambda: self.codec.encode_telemetry(
@@ -240,7 +252,7 @@ def warm_up_cvxpy() -> None:
 def probed_agents(config: ScenarioConfig) -> Iterator[list[StepProbe]]:
     """The agents ``run_reference`` builds, each wrapped in a ``StepProbe``."""
     probes: list[StepProbe] = []
-    bus = WireBus()
+    bus = WireBus(config.wire_codec())
     original = reference.build_agent
 
     def build(*args: Any, **kwargs: Any) -> DroneAgent:
@@ -394,7 +406,8 @@ def tables(result: dict[str, Any]) -> list[Table]:
         "Wire work of one drone step [µs], by message (medians; M = number of targets)",
         ["scenario", "M", *WIRE_KINDS],
         caption=("consensus: every round's message (sent once, decoded once per neighbour); "
-                 "beacons: the other N − 1 drones'; camera: the frame and its detections"))
+                 "beacons: the world's relay of every drone's; camera: the frame and its "
+                 "detections"))
     for res in result["results"]:
         s = res["summary"]
         wire.add_row(res["scenario"], str(res["m_targets"]),
