@@ -223,11 +223,17 @@ class World:
             target_positions=view.target_positions_m,
             target_velocities=view.target_velocities_m_s)))
 
+    def _from_its_drone(self, key: str, beacon: BeaconWire) -> bool:
+        """Whether ``beacon`` came on its sender's key; drone j's position on another's key is
+        refused and counted."""
+        if key == self.keys.beacon(beacon.sender):
+            return True
+        self.rejections.reject("beacon", f"sender {beacon.sender} on {key}")
+        return False
+
     def _on_beacon(self, key: str, beacon: BeaconWire, arrived_s: float | None = None) -> None:
-        if key != self.keys.beacon(beacon.sender):  # drone j's position on another's key
-            self.rejections.reject("beacon", f"sender {beacon.sender} on {key}")
-            return
-        self.beacons.put(beacon.sender, beacon, arrived_s=arrived_s)
+        if self._from_its_drone(key, beacon):
+            self.beacons.put(beacon.sender, beacon, arrived_s=arrived_s)
 
     def take_beacons(self) -> None:
         """Store the beacons that arrived since the last call (realtime)."""
@@ -238,8 +244,7 @@ class World:
         """Lockstep: keep drone j's beacon of step k (the first one: a repeat changes nothing);
         once every drone's of step k is in, relay them. Held 0 s: the mission's clock stands
         still while the world waits, and every beacon of step k is of the same instant."""
-        if key != self.keys.beacon(beacon.sender):
-            self.rejections.reject("beacon", f"sender {beacon.sender} on {key}")
+        if not self._from_its_drone(key, beacon):
             return
         step = beacon.step
         with self._relay_lock:

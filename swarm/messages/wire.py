@@ -64,7 +64,7 @@ _W = TypeVar("_W")
 
 # 3: a consensus message carries one packed float64 block (ConsensusWire.data) and its sizes.
 # 4: telemetry carries the position covariance of each estimate (estimate_covariance).
-# 5: in realtime the world relays every drone's beacon (BeaconRelayWire): an agent of an
+# 5: the world relays every drone's beacon to the agents (BeaconRelayWire): an agent of an
 #    older build would wait for beacons that no longer come to it.
 WIRE_VERSION: Final = 5
 
@@ -246,8 +246,9 @@ class RelayedBeacon(msgspec.Struct, frozen=True, array_like=True, forbid_unknown
 
 
 class BeaconRelayWire(_Wire, tag="beacons", kw_only=True):
-    """Every drone's newest beacon, relayed by the world at each realtime tick on
-    ``world/beacons``: one message per agent and period instead of one per other drone."""
+    """Every drone's beacon, relayed by the world on ``world/beacons`` (lockstep: step k's
+    once all are in; realtime: the newest at each tick): one message per agent and step
+    instead of one per other drone."""
 
     step: NonNegativeInt  # the world's step when it relayed them
     beacons: Annotated[tuple[RelayedBeacon, ...], msgspec.Meta(

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 import socket
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import msgspec
 import pytest
@@ -38,6 +40,25 @@ def world() -> Iterator[World]:
         mavlink_base=choose_mavlink_base(0, config.swarm.n_drones), log=lambda _line: None))
     try:
         yield made
+    finally:
+        made.close()
+
+
+@contextlib.contextmanager
+def external_world(run_id: str) -> Iterator[tuple[World, Any]]:
+    """A realtime world with external vehicles (it serves none) and a client session on its
+    router, both closed on the way out."""
+    port = free_tcp_port()
+    made = World(WorldOptions(config=load_config(CASE1), seed=0, run_id=run_id,
+                              mode="realtime", vehicles="external",
+                              listen=(f"tcp/127.0.0.1:{port}",), log=lambda _line: None))
+    try:
+        session = open_session(zenoh_config(mode="client",
+                                            connect=[f"tcp/127.0.0.1:{port}"]))
+        try:
+            yield made, session
+        finally:
+            session.close()
     finally:
         made.close()
 
@@ -100,13 +121,7 @@ def test_an_external_vehicle_world_counts_bad_beacons_on_its_clock() -> None:
     """With external vehicles the world subscribes to the beacons: junk there is counted and
     shows on its clock, and only a valid beacon moves a drone; the frame rendered from it
     carries the autopilot stamp of that position (the agent pairs the two)."""
-    config = load_config(CASE1)
-    port = free_tcp_port()
-    made = World(WorldOptions(config=config, seed=0, run_id="extfuzz", mode="realtime",
-                              vehicles="external", listen=(f"tcp/127.0.0.1:{port}",),
-                              log=lambda _line: None))
-    session = open_session(zenoh_config(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))
-    try:
+    with external_world("extfuzz") as (made, session):
         captured = _Captured()
         made._pub_clock = captured
         valid = made.codec.encode(BeaconWire.build(2, 5, 0.1, (1.0, 2.0, 3.0),
@@ -138,9 +153,6 @@ def test_an_external_vehicle_world_counts_bad_beacons_on_its_clock() -> None:
         assert {f.step for f in frames} == {7}
         # Stamped: a realtime agent sets the phase of its loop from when they left.
         assert all(c.stamped == [True] for c in cameras)
-    finally:
-        session.close()
-        made.close()
 
 
 def test_a_stalled_realtime_tick_counts_queued_setpoints_before_the_failsafe(
@@ -194,16 +206,10 @@ def test_a_realtime_world_relays_every_drones_newest_beacon_and_how_long_it_held
     """At each realtime tick the agents get one message (world/beacons, stamped) with every
     drone's newest beacon, each with how long the world has held it: N messages a period
     through the router instead of N(N − 1)."""
-    config = load_config(CASE1)
-    port = free_tcp_port()
-    made = World(WorldOptions(config=config, seed=0, run_id="relay", mode="realtime",
-                              vehicles="external", listen=(f"tcp/127.0.0.1:{port}",),
-                              log=lambda _line: None))
-    session = open_session(zenoh_config(mode="client", connect=[f"tcp/127.0.0.1:{port}"]))
     heard: list[tuple[bytes, bool]] = []
-    listener = session.declare_subscriber(made.keys.beacon_relay, lambda sample: heard.append(
-        (sample.payload.to_bytes(), sample.timestamp is not None)))
-    try:
+    with external_world("relay") as (made, session):
+        session.declare_subscriber(made.keys.beacon_relay, lambda sample: heard.append(
+            (sample.payload.to_bytes(), sample.timestamp is not None)))
         # Drone 1 twice (the newest counts), drone 4 once.
         for j, x in ((1, 1.0), (4, 4.0), (1, 1.5)):
             session.put(made.keys.beacon(j), made.codec.encode(
@@ -237,10 +243,6 @@ def test_a_realtime_world_relays_every_drones_newest_beacon_and_how_long_it_held
         for a, b in zip(first.beacons, second.beacons, strict=True):
             assert start2 - end1 <= b.held_s - a.held_s <= end2 - start1
         assert made.rejections.total() == 0
-    finally:
-        listener.undeclare()
-        session.close()
-        made.close()
 
 
 def test_a_lockstep_world_relays_step_k_as_soon_as_every_drones_beacon_of_it_is_in(
