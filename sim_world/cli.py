@@ -7,6 +7,7 @@ from collections.abc import Sequence
 
 from sim_world.fleet import mavlink_hosts
 from sim_world.world import World, WorldOptions
+from swarm.children import follow_parent
 from swarm.net.transport import check_tls_endpoints, local_endpoint
 from swarm.scenario.cli_common import (
     DEFAULT_MAVLINK_BASE,
@@ -51,6 +52,7 @@ def build_parser() -> OneLineParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    follow_parent(PROG)  # started by launch-swarm: die with it (swarm.children)
     args = build_parser().parse_args(argv)
     try:
         config = load_scenario(args.config, args.duration)

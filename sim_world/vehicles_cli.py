@@ -13,6 +13,7 @@ import time
 from collections.abc import Sequence
 
 from sim_world.fleet import VehicleFleet, serve_forever
+from swarm.children import follow_parent
 from swarm.mavlink.sitl import GeoPoint
 from swarm.scenario.cli_common import (
     DEFAULT_MAVLINK_BASE,
@@ -49,6 +50,7 @@ def build_parser() -> OneLineParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    follow_parent(PROG)  # started by launch-swarm: die with it (swarm.children)
     args = build_parser().parse_args(argv)
     try:
         config = load_scenario(args.config, None)

@@ -21,6 +21,7 @@ sys.modules.setdefault("pymavlink.dialects.v10.all", None)  # type: ignore[arg-t
 os.environ.setdefault("MAVLINK20", "1")
 os.environ.setdefault("MAVLINK_DIALECT", "ardupilotmega")
 
+from swarm.children import follow_parent  # noqa: E402
 from swarm.mavlink.udpin import DEFAULT_MAVLINK_BASE, BoundSocket, bind_early  # noqa: E402
 
 if TYPE_CHECKING:
@@ -64,6 +65,7 @@ def build_parser() -> OneLineParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    follow_parent(PROG)  # started by launch-swarm: die with it (swarm.children)
     argv = sys.argv[1:] if argv is None else list(argv)
     early = bind_early(argv)
     try:

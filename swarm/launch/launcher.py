@@ -12,7 +12,6 @@ with every beacon and camera frame, to an MCAP file as the run goes (``swarm.obs
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import dataclasses
 import fcntl
 import math
@@ -36,6 +35,7 @@ from typing import IO
 import numpy as np
 import zenoh
 
+from swarm.children import child_environment
 from swarm.errors import EXIT_END_MISSION, VigilError
 from swarm.mavlink.sitl import (
     DEFAULT_BOOT_SPEEDUP,
@@ -79,7 +79,6 @@ AGENT_END_GRACE_S = 1.5  # agents stop first (their end action), then the world 
 CLEAN_EXIT_GRACE_S = 2.0  # a child's exit 0 waits this long for the world's "done" to arrive
 SUPERVISE_PERIOD_S = 0.1
 LOG_TAIL_LINES = 12
-PR_SET_PDEATHSIG = 1
 BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
 
 
@@ -146,33 +145,6 @@ class LaunchOptions:
         if self.sitl is not None and self.config.vehicles.mavlink_urls:
             raise ValueError("--sitl starts its own autopilots: leave vehicles.mavlink_urls "
                              "empty (or drop --sitl to fly those)")
-
-
-def _die_with_parent() -> None:
-    """Runs in the child before exec: kill it when the launcher dies, however it dies.
-
-    SIGKILL, not SIGTERM: this fires only when the launcher could not stop its children itself
-    (kill -9, a crash), so nobody is left to escalate, and a child's graceful exit can stall
-    in zenoh's session close for seconds (seen after a kill -9 of a recording launcher: world
-    and agents all waited in close until a second signal).
-    """
-    with contextlib.suppress(OSError, AttributeError):
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(PR_SET_PDEATHSIG, signal.SIGKILL)
-
-
-def _die_with_parent_batch() -> None:
-    """``_die_with_parent``, and SCHED_BATCH (inherited by every thread the child starts).
-
-    For lockstep, where only throughput counts: a batch thread does not preempt the one
-    running when a message wakes it, so the eight processes of a swarm on a few cores switch
-    context a third less often and each runs longer with warm caches (Case 2 on 2 cores:
-    ~60 % of the context switches, ~5 % less CPU; the swarm's messages alone, without its
-    compute: 3.7 instead of 4.2 ms per step). Not for realtime, where a wake-up must run at
-    once.
-    """
-    _die_with_parent()
-    with contextlib.suppress(OSError, AttributeError):
-        os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))
 
 
 def _placement(drone: int | None) -> dict[str, int | bool]:
@@ -368,16 +340,27 @@ class SwarmLauncher:
     def _spawn(self, name: str, argv: list[str], drone: int | None = None) -> Child:
         log_path = self.log_dir / f"{name}.log"
         handle = log_path.open("wb")
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        # Spawned without preexec_fn (vfork: ~0.3 ms against 6-8 ms per fork of this
+        # process); the child binds its life to ours itself (swarm.children.follow_parent).
+        # SIGKILL when we die, not SIGTERM: it fires only when the launcher could not stop its
+        # children itself (kill -9, a crash), so nobody is left to escalate, and a child's
+        # graceful exit can stall in zenoh's session close for seconds (seen after a kill -9
+        # of a recording launcher: world and agents all waited in close until a second
+        # signal). SCHED_BATCH for lockstep, where only throughput counts: a batch thread
+        # does not preempt the one running when a message wakes it, so the eight processes of
+        # a swarm on a few cores switch context a third less often and each runs longer with
+        # warm caches (Case 2 on 2 cores: ~60 % of the context switches, ~5 % less CPU; the
+        # swarm's messages alone, without its compute: 3.7 instead of 4.2 ms per step). Not
+        # for realtime, where a wake-up must run at once.
+        env = child_environment(dict(os.environ, PYTHONUNBUFFERED="1"), parent_pid=os.getpid(),
+                                sched_batch=self.options.mode == "lockstep")
         # The step's matrices are 3x3..6x6: a BLAS thread pool per process only adds threads
         # that compete for the two cores. An explicit setting by the user wins.
         for variable in BLAS_THREAD_VARIABLES:
             env.setdefault(variable, "1")
         process = subprocess.Popen(
             argv, stdout=handle, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-            env=env, **_placement(drone),
-            preexec_fn=_die_with_parent_batch if self.options.mode == "lockstep"
-            else _die_with_parent)
+            env=env, **_placement(drone))
         handle.close()
         child = Child(name, process, log_path, drone)
         self.children.append(child)

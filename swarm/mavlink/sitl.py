@@ -42,7 +42,6 @@ the bands the stock boot meets in every CI run; so the stock boot it is).
 from __future__ import annotations
 
 import contextlib
-import ctypes
 import math
 import os
 import shutil
@@ -61,6 +60,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from swarm.children import die_with_parent
 from swarm.errors import UsageError, VigilError
 
 Kind = Literal["ardupilot", "px4"]
@@ -208,12 +208,6 @@ class SitlSpec:
             raise SitlError(f"boot speedup {self.boot_speedup} out of range 1..100")
 
 
-def _die_with_parent() -> None:
-    """Before exec: SIGKILL this autopilot when the process that started it dies."""
-    with contextlib.suppress(OSError, AttributeError):
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
-
-
 def free_udp_port() -> int:
     """A UDP port on 127.0.0.1 that nobody has bound now (the kernel's choice)."""
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
@@ -274,7 +268,7 @@ class SitlInstance:
                 self.process = subprocess.Popen(
                     argv, cwd=self.workdir, env=env, stdin=subprocess.DEVNULL, stdout=log,
                     stderr=subprocess.STDOUT, start_new_session=True,
-                    preexec_fn=_die_with_parent)
+                    preexec_fn=die_with_parent)
             except OSError as err:
                 self._remove_workdir()
                 raise SitlError(f"cannot start {spec.firmware.executable}: {err}") from None
