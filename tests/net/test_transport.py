@@ -27,6 +27,7 @@ import zenoh
 
 from swarm.messages.wire import WIRE_VERSION, BeaconWire, WireCodec
 from swarm.net.transport import (
+    ZENOH_RUNTIME_DEFAULT,
     FaultyPublisher,
     Keys,
     LatestValues,
@@ -858,3 +859,55 @@ def test_a_process_left_with_ring_subscriptions_exits_cleanly() -> None:
                               timeout=60, cwd=Path(__file__).resolve().parents[2])
         assert done.returncode == 0, done.stderr[-2000:]
         assert "FATAL" not in done.stderr
+
+
+# A router and a client in one fresh process exchange messages; then the zenoh threads alive
+# are listed by name (their pools: app, tx, rx, acc, net), numbers dropped.
+THREADS_SCRIPT = """
+import json, os, sys, time
+from swarm.net.transport import (RejectionCounter, declare_publisher, open_session, subscribe,
+                                 zenoh_config)
+endpoint = sys.argv[1]
+router = open_session(zenoh_config(mode="router", listen=[endpoint]))
+client = open_session(zenoh_config(mode="client", connect=[endpoint]))
+got = []
+sub = subscribe(client, "t/x", bytes, lambda _key, value, arrived_s=None: got.append(value),
+                RejectionCounter(), "t", direct=True)
+publisher = declare_publisher(router, "t/x")
+deadline = time.monotonic() + 10
+while not got and time.monotonic() < deadline:
+    publisher.put(b"x")
+    time.sleep(0.01)
+names = {open(f"/proc/self/task/{t}/comm").read().strip().rstrip("0123456789-")
+         for t in os.listdir("/proc/self/task")}
+print(json.dumps({"delivered": bool(got), "pools": sorted(names & {"app", "tx", "rx", "acc",
+                                                                     "net"}),
+                  "setting": os.environ.get("ZENOH_RUNTIME")}))
+"""
+
+
+def zenoh_pools(runtime: str | None) -> dict:
+    env = {k: v for k, v in os.environ.items() if k != "ZENOH_RUNTIME"}
+    if runtime is not None:
+        env["ZENOH_RUNTIME"] = runtime
+    done = subprocess.run([sys.executable, "-c", THREADS_SCRIPT, endpoint(free_tcp_port())],
+                          capture_output=True, text=True, timeout=60, env=env, cwd=ROOT)
+    assert done.returncode == 0, done.stderr[-2000:]
+    return json.loads(done.stdout)
+
+
+def test_zenoh_receives_on_its_app_thread_and_transmits_on_its_own() -> None:
+    """open_session's default thread pools (transport.ZENOH_RUNTIME_DEFAULT): receiving,
+    accepting and link management on zenoh's one app thread, transmission on a thread of its
+    own; messages still flow."""
+    report = zenoh_pools(None)
+    assert report["delivered"]
+    assert report["pools"] == ["app", "tx"]
+    assert report["setting"] == ZENOH_RUNTIME_DEFAULT
+
+
+def test_a_users_own_zenoh_runtime_setting_wins() -> None:
+    report = zenoh_pools("(rx: (worker_threads: 2))")
+    assert report["delivered"]
+    assert {"rx", "tx", "app"} <= set(report["pools"])
+    assert report["setting"] == "(rx: (worker_threads: 2))"
