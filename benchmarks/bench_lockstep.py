@@ -94,12 +94,13 @@ def tables(result: dict[str, Any]) -> list[Table]:
                       fmt(s["agent_hwm_mib_max"]["median"], 1), _violations(s))
     threads = new_table(
         "Where an agent's CPU goes in lockstep [ms per simulated step]",
-        ["N", "agent total", "Python main thread", "Zenoh rx threads (+ our callbacks)",
-         "other Zenoh threads", "agent step µs (compute)"],
+        ["N", "agent total", "Python main thread", "Zenoh receive thread (+ our callbacks)",
+         "other threads", "agent step µs (compute)"],
         caption=("median (min–max) over the runs of the median agent; main thread: the step, "
-                 "MAVLink, encoding and publishing, waiting for the GIL is not CPU;\nrx: "
-                 "Zenoh's receive path and our subscription callbacks (decode, validate, "
-                 "mailbox)"))
+                 "MAVLink, encoding and publishing, waiting for the GIL is not CPU;\nreceive: "
+                 "Zenoh's receive path (its app thread, transport.ZENOH_RUNTIME_DEFAULT, or "
+                 "rx threads) and our subscription callbacks (decode, validate, mailbox); "
+                 "other: Zenoh's transmit thread, and the rest"))
     for res in result["results"]:
         s = res["summary"]
         threads.add_row(str(res["n_drones"]), fmt_spread(s["agent_cpu_ms_per_step"], 2),

@@ -102,9 +102,11 @@ THREAD_GROUPS = ("python", "zenoh_rx", "zenoh_other")
 
 def read_thread_cpu(pid: int) -> tuple[float, float, float] | None:
     """CPU seconds of a live process by thread group: the Python main thread (tid = pid),
-    Zenoh's receive threads ("rx-*", which also run our subscription callbacks: decoding and
-    validation), and every other thread (Zenoh's tx/accept/app runtimes, pymavlink has none);
-    None once it is gone. Threads that ended earlier are not counted."""
+    Zenoh's receive threads (which also run our direct subscription callbacks: decoding and
+    validation): "app-*", where ``transport.ZENOH_RUNTIME_DEFAULT`` hands receiving over, or
+    "rx-*" with zenoh's own defaults; and every other thread (Zenoh's transmit thread, Python
+    callback threads; pymavlink has none). None once it is gone. Threads that ended earlier
+    are not counted."""
     groups = [0.0, 0.0, 0.0]
     try:
         tids = os.listdir(f"/proc/{pid}/task")
@@ -118,7 +120,7 @@ def read_thread_cpu(pid: int) -> tuple[float, float, float] | None:
         name = stat[stat.index("(") + 1:stat.rindex(")")]
         fields = stat.rsplit(")", 1)[1].split()
         cpu_s = (int(fields[11]) + int(fields[12])) / CLK_TCK
-        group = 0 if tid == str(pid) else 1 if name.startswith("rx-") else 2
+        group = 0 if tid == str(pid) else 1 if name.startswith(("rx-", "app-")) else 2
         groups[group] += cpu_s
     return groups[0], groups[1], groups[2]
 
