@@ -17,7 +17,7 @@ thing (``follow_parent``), from two environment variables the launcher sets
 
 Both variables are taken out of the child's environment, so nothing the child starts inherits
 them. A process started by hand (no variables) is left alone. No imports from the rest of the
-project: the agent calls this before its imports.
+project but ``swarm.errors``: the agent calls this before its imports.
 """
 
 from __future__ import annotations
@@ -29,10 +29,11 @@ import signal
 import sys
 from collections.abc import Mapping
 
+from swarm.errors import EXIT_FAILED
+
 PARENT_PID_VARIABLE = "VIGIL_PARENT_PID"
 SCHED_BATCH_VARIABLE = "VIGIL_SCHED_BATCH"
 PR_SET_PDEATHSIG = 1
-EXIT_PARENT_GONE = 1  # swarm.errors.EXIT_FAILED: the run failed (its launcher is gone)
 
 
 def die_with_parent() -> None:
@@ -55,7 +56,7 @@ def child_environment(base: Mapping[str, str], *, parent_pid: int,
 
 def follow_parent(prog: str) -> None:
     """In a child of the launcher: die with it, and run as SCHED_BATCH if asked (module
-    docstring); exits (``EXIT_PARENT_GONE``) if the launcher is already gone. A malformed
+    docstring); exits (``EXIT_FAILED``) if the launcher is already gone. A malformed
     parent pid is one line on stderr and an exit, never a child left unbound."""
     parent = os.environ.pop(PARENT_PID_VARIABLE, None)
     batch = os.environ.pop(SCHED_BATCH_VARIABLE, None) == "1"
@@ -63,11 +64,11 @@ def follow_parent(prog: str) -> None:
         return
     if not parent.isdigit():
         print(f"{prog}: {PARENT_PID_VARIABLE}={parent!r} is not a process id", file=sys.stderr)
-        sys.exit(EXIT_PARENT_GONE)
+        sys.exit(EXIT_FAILED)
     die_with_parent()
     if os.getppid() != int(parent):  # it died before the request: nobody would signal us
         print(f"{prog}: the launcher (pid {parent}) is gone; exiting", file=sys.stderr)
-        sys.exit(EXIT_PARENT_GONE)
+        sys.exit(EXIT_FAILED)
     if batch:
         with contextlib.suppress(OSError, AttributeError):
             os.sched_setscheduler(0, os.SCHED_BATCH, os.sched_param(0))

@@ -17,7 +17,7 @@ client's certificate common name to a role (zenoh ``access_control``, default de
 
 - drone i may publish only its own ``agent/i/{consensus,beacon,telemetry}`` and subscribe to
   its camera ``world/camera/i``, ``world/clock``, every beacon (each drone's, and the world's
-  realtime relay ``world/beacons``) and its graph neighbours' consensus, and is sent nothing
+  relay ``world/beacons``) and its graph neighbours' consensus, and is sent nothing
   else: never ``world/truth``;
 - the observer may subscribe to everything of the run and publishes nothing;
 - anyone else (a certificate of the CA with another common name) may do nothing.

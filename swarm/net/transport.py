@@ -68,8 +68,9 @@ TX_DATA_QUEUE_BATCHES: Final = 16  # per link and priority; zenoh allocates batc
 # message handed from one pool to another wakes a thread of the other: on this project's 2-core
 # VM, waking a thread costs the waker ~20 µs of CPU. Here receiving, accepting and link
 # management run on zenoh's one "app" thread; transmission keeps its own thread, so that a
-# put that waits for room in a full queue (congestion control "block", also from a callback
-# on the receiving thread) always has a thread left to empty it. Measured with the same code
+# put that waits for room in a full queue (congestion control "block": from a main thread, or
+# from a subscription's own Python thread as the world's lockstep relay) always has a thread
+# left to empty it. Measured with the same code
 # side by side (Case 2, lockstep, 20 s; voluntary context switches per simulated step): the
 # world 74 → 41, each agent 18 → 10; Case 2 scaled to N = 12 in realtime (20 s, two
 # interleaved rounds): 1.77 / 1.73 → 1.40 / 1.34 cores, late steps 11.7 / 9.5 → 0.4 / 0 %.
@@ -351,7 +352,7 @@ class Keys:
         self.prefix = f"{KEY_ROOT}/{run_id}"
         self.truth = f"{self.prefix}/world/truth"
         self.clock = f"{self.prefix}/world/clock"
-        # Realtime: every drone's newest beacon, relayed by the world at each tick.
+        # Every drone's beacon, relayed by the world (lockstep: step k's; realtime: the newest).
         self.beacon_relay = f"{self.prefix}/world/beacons"
         self.all_consensus = f"{self.prefix}/agent/*/consensus"
         self.all_beacons = f"{self.prefix}/agent/*/beacon"
