@@ -43,10 +43,10 @@ from swarm.messages.wire import (
 from swarm.net.rate import RateLimiter, freeze_heap
 from swarm.net.security import WORLD_ROLE, router_access_control
 from swarm.net.transport import (
+    DrainedSubscriber,
     Keys,
     LatestValues,
     RejectionCounter,
-    RingSubscriber,
     declare_publisher,
     open_session,
     put_stamped,
@@ -122,7 +122,7 @@ class World:
         self.fleet: VehicleFleet | None = None
         self._failsafes_reported = [0] * self.n
         self._subscribers: list = []
-        self._beacon_ring: RingSubscriber | None = None
+        self._beacon_ring: DrainedSubscriber | None = None
         # Lockstep: each step's beacons until every drone's is in, and the last step relayed.
         self._step_beacons: dict[int, dict[int, BeaconWire]] = {}
         self._relayed_step = -1
@@ -152,7 +152,7 @@ class World:
                 ring = subscribe(self.session, self.keys.all_beacons, self.codec.decode_beacon,
                                  self._on_beacon, self.rejections, "beacon",
                                  keep_latest=BEACON_RING_PERIODS * self.n)
-                assert isinstance(ring, RingSubscriber)
+                assert isinstance(ring, DrainedSubscriber)
                 self._beacon_ring = ring
                 self._subscribers.append(ring)
             else:

@@ -66,7 +66,7 @@ class Peers:
     camera_latest: LatestValues[CameraFrameWire]
     check_clock: Callable[[], None]
     log: Callable[[str], None]
-    # Take what waits in the subscriptions' rings (realtime: ``RingSubscriber.drain``).
+    # Take what waits in the subscriptions' rings (realtime: ``DrainedSubscriber.drain``).
     drain: Callable[[], None]
 
 

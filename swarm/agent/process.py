@@ -46,12 +46,12 @@ from swarm.messages.wire import (
 from swarm.net.rate import freeze_heap
 from swarm.net.security import agent_role
 from swarm.net.transport import (
+    DrainedSubscriber,
     FaultyPublisher,
     Keys,
     LatestValues,
     LinkFaults,
     RejectionCounter,
-    RingSubscriber,
     TransportError,
     declare_publisher,
     open_session,
@@ -139,7 +139,7 @@ class AgentProcess:
         self.watch = VehicleWatch(self.link.setpoint_mode)
         self.localization = LocalizationWatch(len(cfg.targets), cfg.gramian.epsilon,
                                               cfg.checks.lambda_tolerance)
-        self._rings: list[RingSubscriber] = []  # the realtime subscriptions, drained by the loop
+        self._rings: list[DrainedSubscriber] = []  # the realtime subscriptions, drained by the loop
         # Before the subscriptions: their callbacks store through it.
         self.exchange = exchange = exchange_for(options.mode, Peers(
             self.id, self.neighbours, self.others, cfg, self.agent, self.link,
@@ -170,7 +170,7 @@ class AgentProcess:
                            keep_latest=ring(rounds))
                  for j in sorted(self.neighbours)]
         self._subscribers = subs
-        self._rings = [sub for sub in subs if isinstance(sub, RingSubscriber)]
+        self._rings = [sub for sub in subs if isinstance(sub, DrainedSubscriber)]
         # Consensus: blocking or dropping, as the exchange says. Beacons and telemetry never
         # drop: the recorder keeps every one (in realtime, ~2-4 %
         # of the telemetry used to be dropped in zenoh's tx queues on a loaded machine), and

@@ -53,7 +53,7 @@ from swarm.messages.wire import (
     TruthWire,
 )
 from swarm.models import frames
-from swarm.net.observer import join_router, subscribe_observer
+from swarm.net.observer import ObserverFeed, join_router
 from swarm.net.security import OBSERVER_ROLE
 from swarm.net.transport import (
     Keys,
@@ -325,7 +325,7 @@ class SwarmLauncher:
         self.sitl_fleet: SitlFleet | None = None
         self._autopilot_seen: dict[int, tuple[str, bool]] = {}
         self.session: zenoh.Session | None = None
-        self._subscribers: list = []
+        self._feed: ObserverFeed | None = None
         self.recorder: Recorder | None = None
         self.live_view: LiveView | None = None
         self.recording_problem: str | None = None  # the recording is incomplete, and why
@@ -628,7 +628,7 @@ class SwarmLauncher:
             raise MissionError(f"cannot reach the world's Zenoh router at "
                                f"{self.endpoint}: {err}") from None
         recording = self.recorder is not None
-        self._subscribers = subscribe_observer(
+        self._feed = ObserverFeed(
             self.session, self.keys, self.codec, self.rejections,
             on_telemetry=self._on_telemetry, on_truth=self._on_truth, on_clock=self._on_clock,
             on_beacon=self._record if recording else None,
@@ -813,10 +813,9 @@ class SwarmLauncher:
         self._port_lock.close()  # the children that used the ports are gone
 
     def _leave_zenoh(self) -> None:
-        for sub in self._subscribers:
-            with contextlib.suppress(Exception):
-                sub.undeclare()
-        self._subscribers = []
+        feed, self._feed = self._feed, None
+        if feed is not None:
+            feed.close()  # what came before this is handed over; nothing after it
         if self.session is not None:
             with contextlib.suppress(Exception):
                 self.session.close()

@@ -23,10 +23,13 @@ zenoh-python 1.x runs Python callbacks on a dedicated Python thread per subscrib
 direct=True)`` runs them on zenoh's receiving thread instead (one thread hop and one
 wake-up fewer per message: what a lockstep step waits on). The queue in front of that
 Python thread has no bound: a consumer that falls behind (an overloaded machine) grows it
-without end and works through ever older data. ``subscribe(..., keep_latest=K)`` is for
-consumers that only want the newest data (realtime agents): a ring of K samples in front of
-a thread of our own, the oldest dropped when it is full. The stores here are what make
-those deliveries safe to read from the agent's own thread.
+without end and works through ever older data. Two bounded forms instead keep the samples
+inside zenoh until their owner takes them (``DrainedSubscriber.drain``, on its own thread,
+in batches): ``subscribe(..., keep_latest=K)`` for consumers that only want the newest data
+(realtime agents), a ring of K samples whose oldest is dropped when it is full; and
+``subscribe(..., backlog=K)`` for consumers that must see everything (the launcher's
+recorder), a FIFO of K samples on which zenoh's receiving waits when it is full. The stores
+here are what make those deliveries safe to read from the agent's own thread.
 """
 
 from __future__ import annotations
@@ -477,7 +480,7 @@ class LatestValues(Generic[T]):
             arrived_s: float | None = None) -> bool:
         """Store ``value`` as the newest from ``source``; False if refused (older, or full).
         ``arrived_s``: when it arrived on this store's clock, if before now (a sample taken
-        from a ring later, ``RingSubscriber.drain``); never later than now."""
+        from a ring later, ``DrainedSubscriber.drain``); never later than now."""
         with self._cond:
             now = self._clock() if arrived_s is None else min(arrived_s, self._clock())
             old = self._values.get(source)
@@ -659,7 +662,8 @@ def subscribe(
     remote_only: bool = False,
     on_sent_time: Callable[[T, float], None] | None = None,
     keep_latest: int | None = None,
-) -> zenoh.Subscriber | RingSubscriber:
+    backlog: int | None = None,
+) -> zenoh.Subscriber | DrainedSubscriber:
     """Declare a callback subscriber on ``key`` (wildcards allowed).
 
     Each sample's payload goes through ``decode`` (e.g. ``codec.decode_beacon``); a valid value
@@ -680,13 +684,19 @@ def subscribe(
     good as the clocks' synchronisation).
     ``keep_latest``: instead of zenoh's callback thread and its unbounded queue, a ring of
     this many samples that waits in zenoh (no Python, no GIL) until its owner calls
-    ``RingSubscriber.drain()``, which runs the callback on the owner's thread for every sample
-    waiting; when more arrive between two drains, the oldest are dropped. Memory and the age
-    of what is handled stay bounded on an overloaded machine, and receiving never preempts
-    the owner's computation. Only for consumers that want the newest value per source (size
-    the ring to hold at least one drain interval's worth of sources). ``on_value`` is then
-    called as ``on_value(key, value, arrived_s)`` with the sample's estimated arrival on
-    ``time.monotonic`` (``RingSubscriber.drain``).
+    ``DrainedSubscriber.drain()``, which runs the callback on the owner's thread for every
+    sample waiting; when more arrive between two drains, the oldest are dropped. Memory and
+    the age of what is handled stay bounded on an overloaded machine, and receiving never
+    preempts the owner's computation. Only for consumers that want the newest value per
+    source (size the ring to hold at least one drain interval's worth of sources).
+    ``on_value`` is then called as ``on_value(key, value, arrived_s)`` with the sample's
+    estimated arrival on ``time.monotonic`` (``DrainedSubscriber.drain``).
+    ``backlog``: the same, but a FIFO of this many samples from which nothing is dropped:
+    when it is full, zenoh's receiving thread waits until ``drain()`` makes room (and with
+    it every delivery of that session, and in the end the router's sends to it: back
+    pressure, where an unbounded queue would grow without end). For consumers that must see
+    every sample but can take them in batches (the launcher's collector and recorder: one
+    wake-up per drain instead of one per sample). ``on_value(key, value)`` as without it.
     """
 
     # Every reason names the key the payload came on (which drone, which stream): what an
@@ -719,64 +729,84 @@ def subscribe(
                                         f"{sample.key_expr}")
 
     origin = zenoh.Locality.REMOTE if remote_only else zenoh.Locality.ANY
-    if keep_latest is None:
+    if keep_latest is None and backlog is None:
         handler = zenoh.handlers.Callback(callback, indirect=not direct)
         return session.declare_subscriber(key, handler, allowed_origin=origin)
-    if direct or isinstance(keep_latest, bool) or not (isinstance(keep_latest, int)
-                                                       and keep_latest >= 1):
-        raise ValueError(f"keep_latest must be an integer >= 1 and excludes direct, got "
-                         f"{keep_latest!r}")
-    return RingSubscriber(session.declare_subscriber(
+    for name, size in (("keep_latest", keep_latest), ("backlog", backlog)):
+        if size is not None and (direct or isinstance(size, bool)
+                                 or not (isinstance(size, int) and size >= 1)):
+            raise ValueError(f"{name} must be an integer >= 1 and excludes direct, got "
+                             f"{size!r}")
+    if keep_latest is not None and backlog is not None:
+        raise ValueError("keep_latest (a ring) and backlog (a FIFO) exclude each other")
+    if backlog is not None:
+        return DrainedSubscriber(session.declare_subscriber(
+            key, zenoh.handlers.FifoChannel(backlog), allowed_origin=origin), callback,
+            arrival_times=False, max_per_drain=backlog)
+    return DrainedSubscriber(session.declare_subscriber(
         key, zenoh.handlers.RingChannel(keep_latest), allowed_origin=origin), callback)
 
 
-class RingSubscriber:
-    """A subscriber whose samples wait in a bounded ring (oldest dropped) until ``drain()``
-    (``subscribe(..., keep_latest=K)``).
+class DrainedSubscriber:
+    """A subscriber whose samples wait inside zenoh until ``drain()``: in a ring, the oldest
+    dropped when it is full (``subscribe(..., keep_latest=K)``), or in a FIFO on which
+    zenoh's receiving waits when it is full (``subscribe(..., backlog=K)``).
 
-    Measured against its previous form, a Python thread of ours per ring running the
-    callback as samples came, on Case 2 scaled to N = 12 in realtime (two 6 s runs each, side
+    The ring, measured against its previous form (a Python thread of ours per ring running the
+    callback as samples came) on Case 2 scaled to N = 12 in realtime (two 6 s runs each, side
     by side): 44.1 -> 7.4 % late steps, step time p99 26.3 -> 13.8 ms, neighbour age 9.4 ->
     6.0 ms. Every sample used to cost a thread wake-up and two GIL hand-overs, and preempted
     the agent's step when it came during one.
+
+    ``arrival_times``: pass each sample's estimated arrival to the callback (rings: the
+    realtime agent dates what it takes); without, the callback gets the sample alone.
+    ``max_per_drain``: a drain takes at most this many samples (a FIFO: one queue's worth),
+    so that it returns even while samples come faster than it takes them.
     """
 
     def __init__(self, subscriber: zenoh.Subscriber,
-                 callback: Callable[[zenoh.Sample, float], None]) -> None:
+                 callback: Callable[..., None], *, arrival_times: bool = True,
+                 max_per_drain: int | None = None) -> None:
         self._subscriber = subscriber
-        self._ring = subscriber.handler
+        self._queue = subscriber.handler
         self._callback = callback
+        self._arrival_times = arrival_times
+        self._max_per_drain = math.inf if max_per_drain is None else max_per_drain
         self._declared = True
         self._last_drain_s = -math.inf
 
     def drain(self) -> int:
-        """Run the callback on every sample waiting, in arrival order, on this thread; the
-        number taken.
+        """Run the callback on every sample waiting (up to ``max_per_drain``), in arrival
+        order, on this thread; the number taken.
 
-        Each sample's arrival (``time.monotonic``) is estimated from its Zenoh timestamp
-        (``put_stamped``: the sender's clock at the put) and bounded to the interval it can
-        have arrived in, after the previous drain began and before this one: exact on one
-        host, and off by at most that interval across hosts whatever their clocks say. A
-        sample without a timestamp counts as arrived now."""
+        With ``arrival_times``, each sample's arrival (``time.monotonic``) is estimated from
+        its Zenoh timestamp (``put_stamped``: the sender's clock at the put) and bounded to
+        the interval it can have arrived in, after the previous drain began and before this
+        one: exact on one host, and off by at most that interval across hosts whatever their
+        clocks say. A sample without a timestamp counts as arrived now."""
         if not self._declared:
             return 0
         now_s, now_unix = time.monotonic(), time.time()
         since_s, self._last_drain_s = self._last_drain_s, now_s
         taken = 0
-        while True:
+        while taken < self._max_per_drain:
             try:
-                sample = self._ring.try_recv()
+                sample = self._queue.try_recv()
             except zenoh.ZError:  # the session closed: nothing more will come
                 return taken
             if sample is None:
                 return taken
             taken += 1
+            if not self._arrival_times:
+                self._callback(sample)
+                continue
             arrived_s = now_s
             stamp = sample.timestamp
             if stamp is not None:
                 sent_ago_s = now_unix - stamp.get_time_as_ntp64().as_secs_f64()
                 arrived_s = min(now_s, max(since_s, now_s - sent_ago_s))
             self._callback(sample, arrived_s)
+        return taken
 
     def undeclare(self) -> None:
         if not self._declared:

@@ -66,7 +66,7 @@ def peers(link: AutopilotLink, *, ended: bool = False, drains: list[int] | None 
             raise Ended
 
     lines: list[str] = []
-    def drain() -> None:  # stands for the process's rings (RingSubscriber.drain)
+    def drain() -> None:  # stands for the process's rings (DrainedSubscriber.drain)
         if drains is not None:
             drains.append(1)
 

@@ -4,12 +4,22 @@ starts, and the subscriptions the launcher, the dashboard and a remote recorder 
 from __future__ import annotations
 
 import queue
+import threading
 import time
 
 import pytest
+from msgspec import structs
 
-from swarm.net.observer import join_router, subscribe_observer
-from swarm.net.transport import Keys, RejectionCounter, TransportError, open_session, zenoh_config
+from swarm.net.observer import ObserverFeed, join_router, subscribe_observer
+from swarm.net.transport import (
+    Keys,
+    LatestValues,
+    RejectionCounter,
+    TransportError,
+    open_session,
+    subscribe,
+    zenoh_config,
+)
 from tests.helpers.process_tools import free_tcp_port
 from tests.helpers.wire_samples import CODEC, MESSAGES, PAYLOADS
 
@@ -112,6 +122,54 @@ def test_an_observer_hears_what_it_asked_for_and_counts_what_it_rejects() -> Non
         for subs in held:
             for sub in subs:
                 sub.undeclare()
+        observer.close()
+    finally:
+        router.close()
+
+
+def test_the_feed_hands_over_in_batches_on_its_thread_and_loses_nothing_at_close() -> None:
+    """``ObserverFeed``: the callbacks run on the feed's one thread, every ``period_s``, not
+    on one thread per subscription; a feed that has not drained yet (a period longer than
+    the test) hands everything that came to its callbacks when it closes, in order."""
+    port = free_tcp_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    keys = Keys("feedtest")
+    telemetry = MESSAGES["telemetry"]
+    key = keys.telemetry(telemetry.drone)
+    router = open_session(zenoh_config(mode="router", listen=[endpoint]))
+    try:
+        observer = join_router([endpoint], DEADLINE_S)
+        seen = LatestValues()  # a plain subscriber of the observer: what has arrived
+        witness = subscribe(observer, keys.all_telemetry, CODEC.decode_telemetry,
+                            lambda _k, tel: seen.put(0, tel.step, seq=tel.step),
+                            RejectionCounter(), "telemetry")
+        fast: list[tuple[int, str]] = []
+        slow: list[tuple[int, str]] = []
+
+        def into(out: list[tuple[int, str]]):
+            return lambda _key, tel: out.append((tel.step, threading.current_thread().name))
+
+        feeds = [ObserverFeed(observer, keys, CODEC, RejectionCounter(), on_telemetry=into(out),
+                              on_clock=lambda _k, _c: None, period_s=period_s)
+                 for out, period_s in ((fast, 0.02), (slow, 600.0))]
+        deadline = time.monotonic() + DEADLINE_S
+        while not seen.wait_for([0], 0.05) and time.monotonic() < deadline:
+            router.put(key, CODEC.encode(structs.replace(telemetry, step=0)))  # until subscribed
+        for step in range(1, 101):
+            router.put(key, CODEC.encode(structs.replace(telemetry, step=step)))
+        assert seen.wait_for([0], DEADLINE_S, min_seq=100)
+        while not (fast and fast[-1][0] == 100) and time.monotonic() < deadline:
+            time.sleep(0.01)  # the feed's own thread hands them over
+        assert [step for step, _ in fast if step > 0] == list(range(1, 101))
+        assert {name for _, name in fast} == {"observer-feed"}
+        assert slow == []  # its first drain is ten minutes away
+        feeds[1].close()
+        assert [step for step, _ in slow if step > 0] == list(range(1, 101))
+        assert {name for _, name in slow} == {threading.current_thread().name}
+        feeds[1].close()  # twice is harmless
+        feeds[0].close()
+        assert not any(t.name == "observer-feed" for t in threading.enumerate())
+        witness.undeclare()
         observer.close()
     finally:
         router.close()

@@ -804,6 +804,57 @@ def test_a_ring_subscription_waits_for_its_drain_and_keeps_only_the_newest() -> 
                   keep_latest=0)
 
 
+def test_a_backlog_subscription_loses_nothing_and_makes_zenoh_wait_when_full() -> None:
+    """``backlog=K``: samples wait in a FIFO inside zenoh until ``drain()`` (the caller's
+    thread, at most K a drain); when it is full, the receiving session waits (a plain
+    subscriber beside it hears no more) instead of dropping: a burst of 200 comes out whole
+    and in order."""
+    port = free_tcp_port()
+    keys = Keys("fifo")
+    backlog = 4
+    taken: list[tuple[int, int]] = []  # (step, thread id)
+    seen = LatestValues()  # a plain subscriber of the same session, beside the FIFO
+
+    def on_value(_key: str, beacon) -> None:
+        taken.append((beacon.step, threading.get_ident()))
+
+    with session(zenoh_config(mode="peer", listen=[endpoint(port)])) as hub, \
+            session(zenoh_config(mode="peer", connect=[endpoint(port)])) as client:
+        fifo = subscribe(hub, keys.all_beacons, CODEC.decode_beacon, on_value,
+                         RejectionCounter(), "beacon", backlog=backlog)
+        subscribe(hub, keys.all_beacons, CODEC.decode_beacon,
+                  lambda _k, b: seen.put(0, b.step, seq=b.step), RejectionCounter(), "beacon")
+        publisher = declare_publisher(client, keys.beacon(2))
+
+        def put(step: int) -> None:
+            publisher.put(CODEC.encode(BeaconWire.build(2, step, 0.0, [0, 0, 1.0])))
+
+        repeat_until(lambda: put(0), lambda wait_s: seen.wait_for([0], wait_s))
+        while fifo.drain():
+            pass
+        taken.clear()
+        for step in range(1, 201):
+            put(step)
+        assert seen.wait_for([0], DEADLINE_S, min_seq=backlog)  # the FIFO has filled
+        time.sleep(0.3)  # nobody drains: the session's receiving waits for room
+        stalled_at = seen.get(0)[0]
+        assert stalled_at < 200, "a full FIFO let its session receive on"
+        assert fifo.drain() == backlog  # one queue's worth at most per drain
+        deadline = time.monotonic() + DEADLINE_S
+        while len(taken) < 200 and time.monotonic() < deadline:
+            fifo.drain()
+        assert [step for step, _ in taken] == list(range(1, 201))
+        assert {thread for _, thread in taken} == {threading.get_ident()}
+        assert seen.wait_for([0], DEADLINE_S, min_seq=200)  # and the session received on
+        fifo.undeclare()
+        assert fifo.drain() == 0
+    for wrong in ({"backlog": 0}, {"backlog": True}, {"backlog": 4, "direct": True},
+                  {"backlog": 4, "keep_latest": 4}):
+        with pytest.raises(ValueError, match=r"backlog|keep_latest"):
+            subscribe(hub, "x", CODEC.decode_beacon, on_value, RejectionCounter(), "beacon",
+                      **wrong)
+
+
 def test_a_ring_dates_a_stamped_sample_from_its_put_not_from_its_drain() -> None:
     """A sample taken from its ring 0.2 s after it came is dated from its Zenoh timestamp
     (the sender's put), bounded by the previous drain; an unstamped one from the drain."""
