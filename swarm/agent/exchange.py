@@ -5,8 +5,8 @@ the publishers, the checks on who sent what) and runs one step the same way in e
 (``AgentProcess.step``). What a mode decides is here, behind ``Exchange``:
 
 * how messages are received and kept (``direct``, ``ring``, ``sent_times``) and stored
-  (``put_camera``, ``put_consensus``, ``put_beacon``: each beacon of the world's relay,
-  ``world/beacons``, which carries every drone's in one message);
+  (``put_camera``, ``put_consensus``, ``put_beacons``: the beacons of the world's relay,
+  ``world/beacons``, which carries every drone's in one message, stored all at once);
 * what a step sees of its neighbours (``inbox``: the consensus messages of a round) and of
   every other drone (``beacons``: positions for the collision rows), and the swarm size N
   (``begin``);
@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from typing import Literal, Protocol
 
@@ -85,7 +85,7 @@ class Exchange(Protocol):
     def put_camera(self, frame: CameraFrameWire) -> None: ...
     def put_consensus(self, msg: ConsensusMessage, arrived_s: float | None = None) -> None: ...
     def consensus_sent(self, msg: ConsensusMessage, sent_unix_s: float) -> None: ...
-    def put_beacon(self, beacon: BeaconWire, arrived_s: float | None = None) -> None: ...
+    def put_beacons(self, beacons: Iterable[tuple[BeaconWire, float | None]]) -> None: ...
     def close(self) -> None: ...
     def announce(self) -> PositionSample | None: ...
     def wait_first_frame(self, timeout_s: float) -> None: ...
@@ -125,8 +125,8 @@ class LockstepExchange:
     def consensus_sent(self, msg: ConsensusMessage, sent_unix_s: float) -> None:
         return None
 
-    def put_beacon(self, beacon: BeaconWire, arrived_s: float | None = None) -> None:
-        self.beacon_steps.put(beacon.step, 0, beacon.sender, beacon)
+    def put_beacons(self, beacons: Iterable[tuple[BeaconWire, float | None]]) -> None:
+        self.beacon_steps.put_many((b.step, 0, b.sender, b) for b, _ in beacons)
 
     def close(self) -> None:
         for mailbox in (self.camera_steps, self.consensus_steps, self.beacon_steps):
@@ -223,8 +223,9 @@ class RealtimeExchange:
         if msg.sender in self.peers.neighbours:
             self._consensus_sent[(msg.sender, msg.round)] = sent_unix_s
 
-    def put_beacon(self, beacon: BeaconWire, arrived_s: float | None = None) -> None:
-        self.beacon_latest.put(beacon.sender, beacon, arrived_s=arrived_s)
+    def put_beacons(self, beacons: Iterable[tuple[BeaconWire, float | None]]) -> None:
+        """Each beacon with when it arrived (None: now)."""
+        self.beacon_latest.put_many((b.sender, b, None, arrived_s) for b, arrived_s in beacons)
 
     def close(self) -> None:
         return None  # nothing waits: the loop checks the clock every tick
@@ -307,14 +308,18 @@ class RealtimeExchange:
         vehicle flies the last setpoint until its failsafe holds it, so it is carried forward
         for at most that long and kept there: nobody flies into a hovering drone."""
         self.peers.drain()
+        latest = self.beacon_latest.fresh_with_ages(math.inf)
+        if not latest:
+            return {}
         hold_after = self.peers.config.vehicles.failsafe_timeout_s
-        own_shift = sample_age_s * flying
-        out: dict[int, np.ndarray] = {}
-        for j, (beacon, age) in self.beacon_latest.fresh_with_ages(math.inf).items():
-            lead = min(beacon.sample_age_s + age, hold_after)
-            out[j] = (np.asarray(beacon.position_m, dtype=float)
-                      + lead * np.asarray(beacon.velocity_m_s, dtype=float) - own_shift)
-        return out
+        # One array operation for all N − 1 (the same float64 operations, row by row, as
+        # p + lead·v − v_i·a_i for each).
+        held = latest.values()
+        lead_s = np.minimum([b.sample_age_s + age for b, age in held], hold_after)
+        positions = np.array([b.position_m for b, _ in held], dtype=float)
+        velocities = np.array([b.velocity_m_s for b, _ in held], dtype=float)
+        carried = positions + lead_s[:, None] * velocities - sample_age_s * flying
+        return dict(zip(latest, carried, strict=True))
 
     def setpoint_interval_s(self) -> float:
         """Measured: the wall time since the last setpoint (ΔT before the first)."""

@@ -251,9 +251,9 @@ class AgentProcess:
         """Every drone's beacon as the world relays it (the world checked that each came on
         its sender's key); each dated from its arrival at the world (realtime)."""
         now_s = time.monotonic() if arrived_s is None else arrived_s
-        for entry in relay.beacons:
-            if entry.beacon.sender != self.id:  # our own comes back with everyone's
-                self.exchange.put_beacon(entry.beacon, now_s - entry.held_s)
+        own = self.id  # our own comes back with everyone's
+        self.exchange.put_beacons([(entry.beacon, now_s - entry.held_s)
+                                   for entry in relay.beacons if entry.beacon.sender != own])
 
     # -- helpers ------------------------------------------------------------------------------
 

@@ -481,16 +481,27 @@ class LatestValues(Generic[T]):
         """Store ``value`` as the newest from ``source``; False if refused (older, or full).
         ``arrived_s``: when it arrived on this store's clock, if before now (a sample taken
         from a ring later, ``DrainedSubscriber.drain``); never later than now."""
+        return self.put_many(((source, value, seq, arrived_s),)) == 1
+
+    def put_many(self, items: Iterable[tuple[Hashable, T, int | None, float | None]]) -> int:
+        """``put(source, value, seq=seq, arrived_s=arrived_s)`` for each item, under one lock
+        and with one wake-up for all (e.g. every beacon of one relay); how many were stored."""
+        stored = 0
         with self._cond:
-            now = self._clock() if arrived_s is None else min(arrived_s, self._clock())
-            old = self._values.get(source)
-            if old is None and len(self._values) >= self._max_sources:
-                return False
-            if old is not None and seq is not None and old[2] is not None and seq < old[2]:
-                return False
-            self._values[source] = (value, now, seq)
-            self._cond.notify_all()
-            return True
+            clock_s = self._clock()
+            values = self._values
+            for source, value, seq, arrived_s in items:
+                old = values.get(source)
+                if old is None and len(values) >= self._max_sources:
+                    continue
+                if old is not None and seq is not None and old[2] is not None and seq < old[2]:
+                    continue
+                values[source] = (value, clock_s if arrived_s is None
+                                  else min(arrived_s, clock_s), seq)
+                stored += 1
+            if stored:
+                self._cond.notify_all()
+        return stored
 
     def get(self, source: Hashable) -> tuple[T, float] | None:
         """(value, age in seconds) or None if ``source`` never sent anything."""
@@ -578,19 +589,30 @@ class StepMailbox(Generic[T]):
 
     def put(self, step: int, round: int, sender: int, value: T) -> bool:
         """Store ``value``; False if it was a duplicate or refused (outside the window, full)."""
+        return self.put_many(((step, round, sender, value),)) == 1
+
+    def put_many(self, items: Iterable[tuple[int, int, int, T]]) -> int:
+        """``put(step, round, sender, value)`` for each item, under one lock, waking the
+        waiters once (e.g. every beacon of one relay); how many were stored."""
+        stored = 0
+        complete = False
         with self._cond:
-            if not self._in_window(step) or self._entries >= self.max_entries:
-                self.refused += 1
-                return False
-            box = self._boxes.setdefault((step, round), {})
-            if sender in box:
-                self.duplicates += 1
-                return False
-            box[sender] = value
-            self._entries += 1
-            if any(wanted <= box.keys() for wanted in self._waiters.get((step, round), ())):
+            for step, round, sender, value in items:
+                if not self._in_window(step) or self._entries >= self.max_entries:
+                    self.refused += 1
+                    continue
+                box = self._boxes.setdefault((step, round), {})
+                if sender in box:
+                    self.duplicates += 1
+                    continue
+                box[sender] = value
+                self._entries += 1
+                stored += 1
+                complete = complete or any(
+                    wanted <= box.keys() for wanted in self._waiters.get((step, round), ()))
+            if complete:
                 self._cond.notify_all()
-            return True
+        return stored
 
     def wait_for(self, step: int, round: int, senders: Iterable[int],
                  timeout_s: float) -> dict[int, T]:

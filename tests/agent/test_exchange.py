@@ -95,8 +95,8 @@ def test_lockstep_waits_for_every_neighbour_of_the_round(link: AutopilotLink) ->
 def test_lockstep_beacons_are_those_of_the_step_and_a_mission_end_ends_the_wait(
         link: AutopilotLink) -> None:
     exchange = LockstepExchange(peers(link))
-    for j in range(1, 6):
-        exchange.put_beacon(BeaconWire.build(j, 7, 0.14, (j, 0.0, 3.0), velocity_m_s=(1, 0, 0)))
+    exchange.put_beacons([(BeaconWire.build(j, 7, 0.14, (j, 0.0, 3.0), velocity_m_s=(1, 0, 0)),
+                           None) for j in range(1, 6)])
     beacons = exchange.beacons(7, 0.5, np.ones(3))
     assert {j: p.tolist() for j, p in beacons.items()} == {
         j: [float(j), 0.0, 3.0] for j in range(1, 6)}  # the step's positions, not carried on
@@ -124,15 +124,43 @@ def test_realtime_beacons_are_carried_forward_at_most_the_failsafe_time(
     exchange = RealtimeExchange(peers(link))
     exchange.beacon_latest = LatestValues(clock=(clock := Clock()))
     hold_s = load_config(CASE1).vehicles.failsafe_timeout_s
-    exchange.put_beacon(BeaconWire.build(2, 3, 0.06, (1.0, 2.0, 3.0), velocity_m_s=(1, 0, 0),
-                                         sample_age_s=0.01))
-    exchange.put_beacon(BeaconWire.build(4, 3, 0.06, (0.0, 0.0, 3.0), velocity_m_s=(0, 2, 0),
-                                         sample_age_s=hold_s))
+    exchange.put_beacons([
+        (BeaconWire.build(2, 3, 0.06, (1.0, 2.0, 3.0), velocity_m_s=(1, 0, 0),
+                          sample_age_s=0.01), None),
+        (BeaconWire.build(4, 3, 0.06, (0.0, 0.0, 3.0), velocity_m_s=(0, 2, 0),
+                          sample_age_s=hold_s), None)])
     clock.now += 0.03
     flying = np.array([0.0, 0.0, 1.0])
     beacons = exchange.beacons(5, 0.02, flying)
     np.testing.assert_allclose(beacons[2], [1.0 + 0.04, 2.0, 3.0 - 0.02])  # p + v·a − v_i·a_i
     np.testing.assert_allclose(beacons[4], [0.0, 2 * hold_s, 3.0 - 0.02])  # held after
+
+
+def test_realtime_beacons_are_each_beacons_formula_to_the_bit(link: AutopilotLink) -> None:
+    """``beacons`` carries all N − 1 forward in one array operation: each row equals
+    p_j + min(a_j + age_j, hold)·v_j − a_i·v_i computed for that beacon alone, bit for bit
+    (random swarms, ages on both sides of the failsafe hold)."""
+    rng = np.random.default_rng(7)
+    hold_s = load_config(CASE1).vehicles.failsafe_timeout_s
+    for _ in range(50):
+        exchange = RealtimeExchange(peers(link))
+        exchange.beacon_latest = LatestValues(clock=(clock := Clock()))
+        n = int(rng.integers(1, 30))
+        sent = [BeaconWire.build(j, 3, 0.06, tuple(rng.normal(0, 10, 3)),
+                                 velocity_m_s=tuple(rng.normal(0, 2, 3)),
+                                 sample_age_s=float(rng.uniform(0, 2 * hold_s)))
+                for j in range(1, n + 1)]
+        arrived = [clock.now - float(rng.uniform(0, hold_s)) for _ in sent]
+        exchange.put_beacons(list(zip(sent, arrived, strict=True)))
+        clock.now += float(rng.uniform(0, 0.1))
+        sample_age_s, flying = float(rng.uniform(0, 0.05)), rng.normal(0, 2, 3)
+        beacons = exchange.beacons(5, sample_age_s, flying)
+        assert sorted(beacons) == [b.sender for b in sent]
+        for b, arrived_s in zip(sent, arrived, strict=True):
+            lead = min(b.sample_age_s + (clock.now - arrived_s), hold_s)
+            alone = (np.asarray(b.position_m, dtype=float)
+                     + lead * np.asarray(b.velocity_m_s, dtype=float) - sample_age_s * flying)
+            assert beacons[b.sender].tolist() == alone.tolist()
 
 
 def test_realtime_reads_take_the_rings_first_and_date_beacons_from_their_arrival(
@@ -144,9 +172,10 @@ def test_realtime_reads_take_the_rings_first_and_date_beacons_from_their_arrival
     exchange = RealtimeExchange(peers(link, drains=drains))
     exchange.beacon_latest = LatestValues(clock=(clock := Clock()))
     clock.now = 10.0
-    exchange.put_beacon(BeaconWire.build(2, 3, 0.06, (1.0, 2.0, 3.0), velocity_m_s=(1, 0, 0)),
-                        arrived_s=clock.now - 0.015)
-    exchange.put_beacon(BeaconWire.build(3, 3, 0.06, (5.0, 2.0, 3.0), velocity_m_s=(1, 0, 0)))
+    exchange.put_beacons([
+        (BeaconWire.build(2, 3, 0.06, (1.0, 2.0, 3.0), velocity_m_s=(1, 0, 0)),
+         clock.now - 0.015),
+        (BeaconWire.build(3, 3, 0.06, (5.0, 2.0, 3.0), velocity_m_s=(1, 0, 0)), None)])
     clock.now += 0.005
     beacons = exchange.beacons(4, 0.0, np.zeros(3))
     np.testing.assert_allclose(beacons[2], [1.0 + 0.020, 2.0, 3.0])
@@ -155,8 +184,8 @@ def test_realtime_reads_take_the_rings_first_and_date_beacons_from_their_arrival
     exchange.inbox(4, 0)
     assert len(drains) == 2
     # An arrival stamped after now (a skewed clock) counts as now: no negative age.
-    exchange.put_beacon(BeaconWire.build(2, 4, 0.08, (1.0, 2.0, 3.0), velocity_m_s=(1, 0, 0)),
-                        arrived_s=clock.now + 1.0)
+    exchange.put_beacons([(BeaconWire.build(2, 4, 0.08, (1.0, 2.0, 3.0),
+                                            velocity_m_s=(1, 0, 0)), clock.now + 1.0)])
     np.testing.assert_allclose(exchange.beacons(5, 0.0, np.zeros(3))[2], [1.0, 2.0, 3.0])
 
 
@@ -164,13 +193,13 @@ def test_realtime_swarm_size_follows_the_drones_heard(link: AutopilotLink) -> No
     p = peers(link, member_timeout_s=1.0)
     exchange = RealtimeExchange(p)
     exchange.beacon_latest = LatestValues(clock=(clock := Clock()))
-    for j in range(1, 6):
-        exchange.put_beacon(BeaconWire.build(j, 0, 0.0, (j, 0.0, 3.0)))
+    exchange.put_beacons([(BeaconWire.build(j, 0, 0.0, (j, 0.0, 3.0)), None)
+                          for j in range(1, 6)])
     exchange.begin(0)
     assert exchange.members == frozenset(range(6)) and p.agent.swarm_size == 6
     clock.now += 0.5
-    for j in (1, 2, 3):
-        exchange.put_beacon(BeaconWire.build(j, 25, 0.5, (j, 0.0, 3.0)))
+    exchange.put_beacons([(BeaconWire.build(j, 25, 0.5, (j, 0.0, 3.0)), None)
+                          for j in (1, 2, 3)])
     clock.now += 0.7  # 4 and 5 last heard 1.2 s ago
     exchange.begin(60)
     assert exchange.members == frozenset({0, 1, 2, 3}) and p.agent.swarm_size == 4

@@ -24,6 +24,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zenoh
+from hypothesis import given
+from hypothesis import strategies as st
 
 from swarm.messages.wire import WIRE_VERSION, BeaconWire, WireCodec
 from swarm.net.transport import (
@@ -173,6 +175,48 @@ def test_latest_values_keep_only_the_latest() -> None:
     assert latest.ages() == {1: 0.25, 2: 0.0}
     small: LatestValues[int] = LatestValues(max_sources=2)
     assert small.put(0, 0) and small.put(1, 1) and not small.put(2, 2) and small.put(1, 5)
+
+
+_ITEMS = st.lists(st.tuples(st.integers(0, 4), st.integers(0, 99),
+                            st.none() | st.integers(0, 5),
+                            st.none() | st.floats(90.0, 110.0)), max_size=20)
+
+
+@given(_ITEMS, st.integers(1, 5))
+def test_latest_values_put_many_stores_what_puts_one_by_one_would(items, max_sources) -> None:
+    """One ``put_many`` (a relay's beacons under one lock) leaves the store as the same
+    ``put`` calls one by one would, and counts what they would have returned True for."""
+    one_by_one: LatestValues[int] = LatestValues(clock=FakeClock(), max_sources=max_sources)
+    batched: LatestValues[int] = LatestValues(clock=FakeClock(), max_sources=max_sources)
+    stored = sum(one_by_one.put(source, value, seq=seq, arrived_s=arrived_s)
+                 for source, value, seq, arrived_s in items)
+    assert batched.put_many(items) == stored
+    assert batched.fresh_with_ages(1e9) == one_by_one.fresh_with_ages(1e9)
+
+
+@given(st.lists(st.tuples(st.integers(0, 12), st.integers(0, 1), st.integers(0, 4),
+                          st.integers(0, 99)), max_size=30))
+def test_mailbox_put_many_stores_what_puts_one_by_one_would(items) -> None:
+    one_by_one: StepMailbox[int] = StepMailbox(max_entries=12)
+    batched: StepMailbox[int] = StepMailbox(max_entries=12)
+    for box in (one_by_one, batched):
+        box.wait_for(4, 0, set(), 0.0)  # step 4 is current: steps 2..8 are in the window
+    stored = sum(one_by_one.put(*item) for item in items)
+    assert batched.put_many(items) == stored
+    assert (batched.refused, batched.duplicates) == (one_by_one.refused, one_by_one.duplicates)
+    for step in range(13):
+        for rnd in (0, 1):
+            assert batched.get(step, rnd) == one_by_one.get(step, rnd)
+
+
+def test_a_mailbox_waiter_wakes_when_a_batch_completes_its_set() -> None:
+    box: StepMailbox[str] = StepMailbox()
+    threading.Timer(0.05, lambda: box.put_many(
+        [(3, 0, j, f"b{j}") for j in range(1, 6)])).start()
+    started = time.monotonic()
+    assert box.wait_for(3, 0, {1, 2, 3, 4, 5}, timeout_s=5.0) == {
+        j: f"b{j}" for j in range(1, 6)}
+    assert time.monotonic() - started < 2.0
 
 
 def test_latest_values_wait_for_wakes_on_put() -> None:
