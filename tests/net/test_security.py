@@ -368,7 +368,8 @@ def test_agents_exchange_consensus_and_beacons_only_under_their_own_keys(
         # Drone 1 reads its neighbours 0 and 2; drone 2 is no neighbour of drone 0.
         a1_consensus0, s1 = listen(a1, KEYS.consensus(0))
         a1_consensus2, s2 = listen(a1, KEYS.consensus(2))
-        a1_beacons, s3 = listen(a1, KEYS.all_beacons)
+        a1_beacons, s3 = listen(a1, KEYS.all_beacons)  # beacons reach agents in the relay
+        observer_beacons, s7 = listen(observer, KEYS.all_beacons)
         a2_consensus0, s4 = listen(a2, KEYS.consensus(0))
         a1_telemetry, s5 = listen(a1, KEYS.all_telemetry)
         observer_telemetry, s6 = listen(observer, KEYS.all_telemetry)
@@ -386,15 +387,16 @@ def test_agents_exchange_consensus_and_beacons_only_under_their_own_keys(
 
         publish_until(publish, lambda: a1_consensus0.count(payload=b"own") >= 5
                       and a1_consensus2.count(payload=b"own") >= 5
-                      and a1_beacons.count(KEYS.beacon(0), b"own") >= 5
-                      and a1_beacons.count(KEYS.beacon(2), b"own") >= 5
+                      and observer_beacons.count(KEYS.beacon(0), b"own") >= 5
+                      and observer_beacons.count(KEYS.beacon(2), b"own") >= 5
                       and observer_telemetry.count(payload=b"own") >= 5)
         assert a1_consensus0.count(payload=b"spoof") == 0
-        assert a1_beacons.count(payload=b"spoof") == 0
+        assert observer_beacons.count(payload=b"spoof") == 0
+        assert a1_beacons.count() == 0  # no agent reads another's beacon key
         assert observer_telemetry.count(payload=b"spoof") == 0
         assert a2_consensus0.count(payload=b"own") == 0  # not drone 0's neighbour
         assert a1_telemetry.count() == 0  # telemetry is for the observer
-        del s1, s2, s3, s4, s5, s6
+        del s1, s2, s3, s4, s5, s6, s7
 
 
 # -- the process swarm ---------------------------------------------------------------------------
@@ -411,7 +413,7 @@ def test_case1_lockstep_swarm_runs_over_tls_and_an_agent_certificate_gets_no_tru
                                            run_id="tlsrun"), log=lambda _line: None)
     assert launcher.endpoint.startswith("tls/127.0.0.1:")
     keys = Keys("tlsrun")
-    spy_truth, spy_beacons = Heard(), Heard()
+    spy_truth, spy_relay = Heard(), Heard()
     spy: list[zenoh.Session] = []
     spy_subscribers: list[zenoh.Subscriber] = []
     stop = threading.Event()
@@ -426,7 +428,7 @@ def test_case1_lockstep_swarm_runs_over_tls_and_an_agent_certificate_gets_no_tru
                 time.sleep(0.1)
                 continue
             spy_subscribers.extend([session.declare_subscriber(keys.truth, spy_truth),
-                                    session.declare_subscriber(keys.all_beacons, spy_beacons)])
+                                    session.declare_subscriber(keys.beacon_relay, spy_relay)])
             spy.append(session)
             return
 
@@ -440,7 +442,7 @@ def test_case1_lockstep_swarm_runs_over_tls_and_an_agent_certificate_gets_no_tru
     try:
         assert record.n_steps == config.n_steps == 75
         assert spy, "the spy never joined"
-        assert spy_beacons.count() > 0  # the spy was connected while the swarm flew
+        assert spy_relay.count() > 0  # the spy was connected while the swarm flew
         assert spy_truth.count() == 0
     finally:
         if spy:
