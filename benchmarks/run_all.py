@@ -176,7 +176,7 @@ def _load_line(clock: dict[str, Any]) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true", help="a few minutes instead of ~15")
+    parser.add_argument("--quick", action="store_true", help="a few minutes instead of ~9")
     parser.add_argument("--profile", choices=sorted(PROFILES), default=None,
                         help="run sizes: full (default), quick (= --quick), smoke (tests)")
     parser.add_argument("--only", default=",".join(SECTIONS),
