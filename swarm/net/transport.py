@@ -24,7 +24,7 @@ direct=True)`` runs them on zenoh's receiving thread instead (one thread hop and
 wake-up fewer per message: what a lockstep step waits on). The queue in front of that
 Python thread has no bound: a consumer that falls behind (an overloaded machine) grows it
 without end and works through ever older data. Two bounded forms instead keep the samples
-inside zenoh until their owner takes them (``DrainedSubscriber.drain``, on its own thread,
+inside zenoh until their owner takes them (``DrainedSubscriber.drain``, on the owner's thread,
 in batches): ``subscribe(..., keep_latest=K)`` for consumers that only want the newest data
 (realtime agents), a ring of K samples whose oldest is dropped when it is full; and
 ``subscribe(..., backlog=K)`` for consumers that must see everything (the launcher's
