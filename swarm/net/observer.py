@@ -84,12 +84,17 @@ def subscribe_observer(session: zenoh.Session, keys: Keys, codec: WireCodec,
             for key, decode, callback, kind in wanted if callback is not None]
 
 
-# How often the feed hands what came to its callbacks, and how many samples of each kind wait
-# for it at most: 3.4 s of telemetry at N = 48 and 50 Hz, against one step's worth per drain;
-# when a FIFO is full, zenoh's receiving waits (nothing is lost: the recorder keeps every
-# message).
+# How often the feed hands what came to its callbacks; how many samples of a kind it takes
+# before it turns to the next kind (so that the truth and the clock are never stuck behind
+# thousands of telemetry messages when the launcher is behind); and how many samples of a
+# kind may wait. That bound is not meant to be reached: a full FIFO stops the whole session's
+# receiving, and zenoh closes a link whose blocking messages wait for more than 5 s
+# (measured: Case 2 at N = 24 in realtime with a recording, on two cores, filled a FIFO of
+# 8192 camera frames in 12 s and the launcher lost the rest of the run). Memory is only taken
+# while samples wait (a FIFO allocates nothing up front), as zenoh's own callback queue did.
 FEED_PERIOD_S = 0.02
-FEED_BACKLOG = 8192
+FEED_PASS_SAMPLES = 256
+FEED_BACKLOG = 1 << 20
 
 
 class ObserverFeed:
@@ -100,8 +105,9 @@ class ObserverFeed:
     every sample: with a recording at N = 12 in realtime that was 36 wake-ups of the launcher
     per 20 ms step. Here a sample waits in zenoh (no Python, no GIL) until the next drain;
     what the callbacks see is up to ``period_s`` later, in arrival order within each kind.
-    ``close()`` stops the thread, hands over what is still waiting and undeclares: nothing
-    received before it is lost.
+    A drain takes the kinds in turn, ``pass_samples`` of each at a time, until none has more
+    waiting (``drain_in_turn``). ``close()`` stops the thread, hands over what is still
+    waiting and undeclares: nothing received before it is lost.
     """
 
     def __init__(self, session: zenoh.Session, keys: Keys, codec: WireCodec,
@@ -111,10 +117,12 @@ class ObserverFeed:
                  on_truth: Callable[[str, TruthWire], None] | None = None,
                  on_beacon: Callable[[str, BeaconWire], None] | None = None,
                  on_camera: Callable[[str, CameraFrameWire], None] | None = None,
-                 period_s: float = FEED_PERIOD_S, backlog: int = FEED_BACKLOG) -> None:
+                 period_s: float = FEED_PERIOD_S, backlog: int = FEED_BACKLOG,
+                 pass_samples: int = FEED_PASS_SAMPLES) -> None:
         if not period_s > 0:
             raise ValueError(f"ObserverFeed: period_s must be > 0, got {period_s!r}")
         self.period_s = period_s
+        self.pass_samples = pass_samples
         self._subscribers: list[DrainedSubscriber] = subscribe_observer(
             session, keys, codec, rejections, on_telemetry=on_telemetry, on_clock=on_clock,
             on_truth=on_truth, on_beacon=on_beacon, on_camera=on_camera, backlog=backlog)
@@ -124,8 +132,7 @@ class ObserverFeed:
 
     def _run(self) -> None:
         while not self._stop.wait(self.period_s):
-            for sub in self._subscribers:
-                sub.drain()
+            drain_in_turn(self._subscribers, self.pass_samples, self._stop.is_set)
 
     def close(self) -> None:
         """Stop draining, hand over what is still waiting, then undeclare; safe to call more
@@ -137,3 +144,15 @@ class ObserverFeed:
         for sub in subscribers:
             sub.drain()
             sub.undeclare()
+
+
+def drain_in_turn(subscribers: Sequence[DrainedSubscriber], pass_samples: int,
+                  stop: Callable[[], bool] = lambda: False) -> int:
+    """Drain ``subscribers`` in turn, at most ``pass_samples`` from each at a time, until a
+    round takes fewer than that from every one of them (or ``stop()``); how many in all."""
+    total = 0
+    while True:
+        taken = [sub.drain(pass_samples) for sub in subscribers]
+        total += sum(taken)
+        if max(taken, default=0) < pass_samples or stop():
+            return total

@@ -797,9 +797,9 @@ class DrainedSubscriber:
         self._declared = True
         self._last_drain_s = -math.inf
 
-    def drain(self) -> int:
-        """Run the callback on every sample waiting (up to ``max_per_drain``), in arrival
-        order, on this thread; the number taken.
+    def drain(self, max_samples: int | None = None) -> int:
+        """Run the callback on every sample waiting (up to ``max_per_drain``, and up to
+        ``max_samples`` if given), in arrival order, on this thread; the number taken.
 
         With ``arrival_times``, each sample's arrival (``time.monotonic``) is estimated from
         its Zenoh timestamp (``put_stamped``: the sender's clock at the put) and bounded to
@@ -811,7 +811,9 @@ class DrainedSubscriber:
         now_s, now_unix = time.monotonic(), time.time()
         since_s, self._last_drain_s = self._last_drain_s, now_s
         taken = 0
-        while taken < self._max_per_drain:
+        limit = self._max_per_drain if max_samples is None else min(max_samples,
+                                                                     self._max_per_drain)
+        while taken < limit:
             try:
                 sample = self._queue.try_recv()
             except zenoh.ZError:  # the session closed: nothing more will come

@@ -10,7 +10,7 @@ import time
 import pytest
 from msgspec import structs
 
-from swarm.net.observer import ObserverFeed, join_router, subscribe_observer
+from swarm.net.observer import ObserverFeed, drain_in_turn, join_router, subscribe_observer
 from swarm.net.transport import (
     Keys,
     LatestValues,
@@ -173,3 +173,74 @@ def test_the_feed_hands_over_in_batches_on_its_thread_and_loses_nothing_at_close
         observer.close()
     finally:
         router.close()
+
+
+
+def test_a_feed_far_behind_loses_nothing_and_holds_up_nobody() -> None:
+    """A launcher on an overloaded machine fell 12 s behind: 20 000 telemetry samples wait
+    for a feed that has not drained (far more than the 8192 a first version held, whose full
+    FIFO stopped the session's receiving until zenoh closed the link); the router's puts are
+    never held up, and close() hands over every sample, in order."""
+    port = free_tcp_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    keys = Keys("feedbehind")
+    telemetry = MESSAGES["telemetry"]
+    key = keys.telemetry(telemetry.drone)
+    count = 20_000
+    router = open_session(zenoh_config(mode="router", listen=[endpoint]))
+    try:
+        observer = join_router([endpoint], DEADLINE_S)
+        seen = LatestValues()
+        witness = subscribe(observer, keys.all_telemetry, CODEC.decode_telemetry,
+                            lambda _k, tel: seen.put(0, tel.step, seq=tel.step),
+                            RejectionCounter(), "telemetry")
+        got: list[int] = []
+        feed = ObserverFeed(observer, keys, CODEC, RejectionCounter(),
+                            on_telemetry=lambda _k, tel: got.append(tel.step),
+                            on_clock=lambda _k, _c: None, period_s=600.0)
+        deadline = time.monotonic() + DEADLINE_S
+        while not seen.wait_for([0], 0.05) and time.monotonic() < deadline:
+            router.put(key, CODEC.encode(structs.replace(telemetry, step=0)))
+        payloads = [CODEC.encode(structs.replace(telemetry, step=step))
+                    for step in range(1, count + 1)]
+        publisher = threading.Thread(target=lambda: [router.put(key, p) for p in payloads],
+                                     daemon=True)
+        publisher.start()
+        publisher.join(3 * DEADLINE_S)
+        assert not publisher.is_alive(), "the router's puts were held up by the feed"
+        assert seen.wait_for([0], 3 * DEADLINE_S, min_seq=count)  # the session received on
+        assert got == []
+        feed.close()
+        assert [step for step in got if step > 0] == list(range(1, count + 1))
+        witness.undeclare()
+        observer.close()
+    finally:
+        router.close()
+
+class Waiting:
+    """Stands for a drained subscription with ``count`` samples waiting; logs each take."""
+
+    def __init__(self, name: str, count: int, log: list[tuple[str, int]]) -> None:
+        self.name, self.count, self.log = name, count, log
+
+    def drain(self, max_samples: int | None = None) -> int:
+        taken = self.count if max_samples is None else min(self.count, max_samples)
+        self.count -= taken
+        self.log.append((self.name, taken))
+        return taken
+
+
+def test_a_drain_takes_the_kinds_in_turn_so_a_flood_of_one_holds_up_none_other() -> None:
+    """A launcher that fell behind has thousands of telemetry samples waiting: the truth
+    and the clock are taken after the first 256 of them, not after all."""
+    log: list[tuple[str, int]] = []
+    kinds = [Waiting("telemetry", 1000, log), Waiting("truth", 3, log),
+             Waiting("clock", 0, log), Waiting("camera", 300, log)]
+    assert drain_in_turn(kinds, 256) == 1303
+    assert [k.count for k in kinds] == [0, 0, 0, 0]
+    assert log[:4] == [("telemetry", 256), ("truth", 3), ("clock", 0), ("camera", 256)]
+    assert [taken for name, taken in log if name == "telemetry"] == [256, 256, 256, 232]
+    log.clear()
+    assert drain_in_turn(kinds, 256) == 0 and len(log) == 4  # one round when nothing waits
+    flood = [Waiting("telemetry", 10_000, log)]
+    assert drain_in_turn(flood, 256, stop=lambda: True) == 256  # told to stop: one round
