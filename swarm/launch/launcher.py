@@ -53,7 +53,7 @@ from swarm.messages.wire import (
     TruthWire,
 )
 from swarm.models import frames
-from swarm.net.observer import ObserverFeed, join_router
+from swarm.net.observer import FEED_BACKLOG, ObserverFeed, join_router, subscribe_observer
 from swarm.net.security import OBSERVER_ROLE
 from swarm.net.transport import (
     Keys,
@@ -628,11 +628,11 @@ class SwarmLauncher:
             raise MissionError(f"cannot reach the world's Zenoh router at "
                                f"{self.endpoint}: {err}") from None
         recording = self.recorder is not None
-        self._feed = ObserverFeed(
+        self._feed = ObserverFeed(subscribe_observer(
             self.session, self.keys, self.codec, self.rejections,
             on_telemetry=self._on_telemetry, on_truth=self._on_truth, on_clock=self._on_clock,
             on_beacon=self._record if recording else None,
-            on_camera=self._record if recording else None)
+            on_camera=self._record if recording else None, backlog=FEED_BACKLOG))
 
     def _on_clock(self, _key: str, clock: ClockWire) -> None:
         latest = self.clock.get(0)

@@ -4,8 +4,8 @@ the subscriptions an observer holds (the launcher, the dashboard, a remote recor
 ``join_router(endpoints, timeout_s, ...)`` retries while the world starts up;
 ``subscribe_observer(session, keys, codec, rejections, ...)`` subscribes to telemetry and the
 clock, and to the truth, the beacons and the camera frames for whoever passes a callback;
-``ObserverFeed`` holds the same subscriptions as FIFOs inside zenoh and hands their samples
-to the callbacks in batches, on one thread of its own (the launcher: nothing may be lost,
+``ObserverFeed`` takes the same subscriptions made as FIFOs inside zenoh and hands their
+samples to the callbacks in batches, on one thread of its own (the launcher: nothing may be lost,
 and a wake-up per message was most of what it cost).
 """
 
@@ -98,8 +98,9 @@ FEED_BACKLOG = 1 << 20
 
 
 class ObserverFeed:
-    """``subscribe_observer``'s subscriptions as FIFOs inside zenoh, drained every
-    ``period_s`` by one thread of the feed, which runs the callbacks a batch at a time.
+    """``subscribe_observer(..., backlog=FEED_BACKLOG)``'s subscriptions (FIFOs inside
+    zenoh), drained every ``period_s`` by one thread of the feed, which runs the callbacks a
+    batch at a time.
 
     Zenoh's default runs a subscription's callbacks on a Python thread of its own, woken at
     every sample: with a recording at N = 12 in realtime that was 36 wake-ups of the launcher
@@ -110,22 +111,17 @@ class ObserverFeed:
     waiting and undeclares: nothing received before it is lost.
     """
 
-    def __init__(self, session: zenoh.Session, keys: Keys, codec: WireCodec,
-                 rejections: RejectionCounter, *,
-                 on_telemetry: Callable[[str, TelemetryWire], None],
-                 on_clock: Callable[[str, ClockWire], None],
-                 on_truth: Callable[[str, TruthWire], None] | None = None,
-                 on_beacon: Callable[[str, BeaconWire], None] | None = None,
-                 on_camera: Callable[[str, CameraFrameWire], None] | None = None,
-                 period_s: float = FEED_PERIOD_S, backlog: int = FEED_BACKLOG,
+    def __init__(self, subscribers: Sequence[DrainedSubscriber], *,
+                 period_s: float = FEED_PERIOD_S,
                  pass_samples: int = FEED_PASS_SAMPLES) -> None:
         if not period_s > 0:
             raise ValueError(f"ObserverFeed: period_s must be > 0, got {period_s!r}")
+        if not all(isinstance(sub, DrainedSubscriber) for sub in subscribers):
+            raise ValueError("ObserverFeed drains subscriptions made with "
+                             "subscribe_observer(..., backlog=FEED_BACKLOG)")
         self.period_s = period_s
         self.pass_samples = pass_samples
-        self._subscribers: list[DrainedSubscriber] = subscribe_observer(
-            session, keys, codec, rejections, on_telemetry=on_telemetry, on_clock=on_clock,
-            on_truth=on_truth, on_beacon=on_beacon, on_camera=on_camera, backlog=backlog)
+        self._subscribers = list(subscribers)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="observer-feed", daemon=True)
         self._thread.start()

@@ -10,7 +10,13 @@ import time
 import pytest
 from msgspec import structs
 
-from swarm.net.observer import ObserverFeed, drain_in_turn, join_router, subscribe_observer
+from swarm.net.observer import (
+    FEED_BACKLOG,
+    ObserverFeed,
+    drain_in_turn,
+    join_router,
+    subscribe_observer,
+)
 from swarm.net.transport import (
     Keys,
     LatestValues,
@@ -149,8 +155,10 @@ def test_the_feed_hands_over_in_batches_on_its_thread_and_loses_nothing_at_close
         def into(out: list[tuple[int, str]]):
             return lambda _key, tel: out.append((tel.step, threading.current_thread().name))
 
-        feeds = [ObserverFeed(observer, keys, CODEC, RejectionCounter(), on_telemetry=into(out),
-                              on_clock=lambda _k, _c: None, period_s=period_s)
+        feeds = [ObserverFeed(subscribe_observer(observer, keys, CODEC, RejectionCounter(),
+                                                 on_telemetry=into(out),
+                                                 on_clock=lambda _k, _c: None,
+                                                 backlog=FEED_BACKLOG), period_s=period_s)
                  for out, period_s in ((fast, 0.02), (slow, 600.0))]
         deadline = time.monotonic() + DEADLINE_S
         while not seen.wait_for([0], 0.05) and time.monotonic() < deadline:
@@ -195,9 +203,10 @@ def test_a_feed_far_behind_loses_nothing_and_holds_up_nobody() -> None:
                             lambda _k, tel: seen.put(0, tel.step, seq=tel.step),
                             RejectionCounter(), "telemetry")
         got: list[int] = []
-        feed = ObserverFeed(observer, keys, CODEC, RejectionCounter(),
-                            on_telemetry=lambda _k, tel: got.append(tel.step),
-                            on_clock=lambda _k, _c: None, period_s=600.0)
+        feed = ObserverFeed(subscribe_observer(
+            observer, keys, CODEC, RejectionCounter(),
+            on_telemetry=lambda _k, tel: got.append(tel.step), on_clock=lambda _k, _c: None,
+            backlog=FEED_BACKLOG), period_s=600.0)
         deadline = time.monotonic() + DEADLINE_S
         while not seen.wait_for([0], 0.05) and time.monotonic() < deadline:
             router.put(key, CODEC.encode(structs.replace(telemetry, step=0)))

@@ -805,24 +805,17 @@ def test_a_slow_link_sends_each_message_k_steps_late_stamped_when_it_was_put() -
         assert released_s[step + 2] - put_s[step] >= 0.015
 
 
-def test_a_ring_subscription_waits_for_its_drain_and_keeps_only_the_newest() -> None:
-    """``keep_latest=K``: samples wait in zenoh until ``drain()``, which runs the callback on
-    the caller's thread (no thread of its own); a burst of 200 between two drains leaves the
-    newest K, in order."""
+@contextlib.contextmanager
+def beacons_to_a_hub(run_id: str) -> Iterator[tuple[zenoh.Session, Keys, LatestValues,
+                                                   Callable[[int], None]]]:
+    """A hub session; ``seen``, a plain subscriber of it keeping the newest beacon step
+    heard (what has arrived, beside the subscription under test); ``put(step)``, drone 2's
+    beacon of that step from a client session."""
     port = free_tcp_port()
-    keys = Keys("ring")
-    threads_before = threading.active_count()
-    taken: list[tuple[int, int]] = []  # (step, thread id)
-    seen = LatestValues()  # a plain subscriber beside the ring: the burst has arrived
-
-    def on_value(_key: str, beacon, arrived_s: float) -> None:
-        taken.append((beacon.step, threading.get_ident()))
-
+    keys = Keys(run_id)
+    seen = LatestValues()
     with session(zenoh_config(mode="peer", listen=[endpoint(port)])) as hub, \
             session(zenoh_config(mode="peer", connect=[endpoint(port)])) as client:
-        ring = subscribe(hub, keys.all_beacons, CODEC.decode_beacon, on_value,
-                         RejectionCounter(), "beacon", keep_latest=4)
-        assert threading.active_count() == threads_before  # no thread of ours
         subscribe(hub, keys.all_beacons, CODEC.decode_beacon,
                   lambda _k, b: seen.put(0, b.step, seq=b.step), RejectionCounter(), "beacon")
         publisher = declare_publisher(client, keys.beacon(2))
@@ -830,6 +823,23 @@ def test_a_ring_subscription_waits_for_its_drain_and_keeps_only_the_newest() -> 
         def put(step: int) -> None:
             publisher.put(CODEC.encode(BeaconWire.build(2, step, 0.0, [0, 0, 1.0])))
 
+        yield hub, keys, seen, put
+
+
+def test_a_ring_subscription_waits_for_its_drain_and_keeps_only_the_newest() -> None:
+    """``keep_latest=K``: samples wait in zenoh until ``drain()``, which runs the callback on
+    the caller's thread (no thread of its own); a burst of 200 between two drains leaves the
+    newest K, in order."""
+    taken: list[tuple[int, int]] = []  # (step, thread id)
+
+    def on_value(_key: str, beacon, arrived_s: float) -> None:
+        taken.append((beacon.step, threading.get_ident()))
+
+    with beacons_to_a_hub("ring") as (hub, keys, seen, put):
+        threads_before = threading.active_count()
+        ring = subscribe(hub, keys.all_beacons, CODEC.decode_beacon, on_value,
+                         RejectionCounter(), "beacon", keep_latest=4)
+        assert threading.active_count() == threads_before  # no thread of ours
         repeat_until(lambda: put(0), lambda wait_s: seen.wait_for([0], wait_s))
         assert ring.drain() >= 1 and taken and taken[-1][0] == 0
         taken.clear()
@@ -853,26 +863,15 @@ def test_a_backlog_subscription_loses_nothing_and_makes_zenoh_wait_when_full() -
     thread, at most K a drain); when it is full, the receiving session waits (a plain
     subscriber beside it hears no more) instead of dropping: a burst of 200 comes out whole
     and in order."""
-    port = free_tcp_port()
-    keys = Keys("fifo")
     backlog = 4
     taken: list[tuple[int, int]] = []  # (step, thread id)
-    seen = LatestValues()  # a plain subscriber of the same session, beside the FIFO
 
     def on_value(_key: str, beacon) -> None:
         taken.append((beacon.step, threading.get_ident()))
 
-    with session(zenoh_config(mode="peer", listen=[endpoint(port)])) as hub, \
-            session(zenoh_config(mode="peer", connect=[endpoint(port)])) as client:
+    with beacons_to_a_hub("fifo") as (hub, keys, seen, put):
         fifo = subscribe(hub, keys.all_beacons, CODEC.decode_beacon, on_value,
                          RejectionCounter(), "beacon", backlog=backlog)
-        subscribe(hub, keys.all_beacons, CODEC.decode_beacon,
-                  lambda _k, b: seen.put(0, b.step, seq=b.step), RejectionCounter(), "beacon")
-        publisher = declare_publisher(client, keys.beacon(2))
-
-        def put(step: int) -> None:
-            publisher.put(CODEC.encode(BeaconWire.build(2, step, 0.0, [0, 0, 1.0])))
-
         repeat_until(lambda: put(0), lambda wait_s: seen.wait_for([0], wait_s))
         while fifo.drain():
             pass
