@@ -18,6 +18,8 @@ import bench_startup  # noqa: E402
 import run_all  # noqa: E402
 import swarm_configs  # noqa: E402
 
+pytestmark = pytest.mark.wallclock
+
 
 def test_scaled_configs_are_generated_from_case2_and_valid() -> None:
     for n in swarm_configs.SCALED_SIZES:

@@ -214,6 +214,7 @@ def test_the_loops_spread_evenly_over_the_period_none_at_the_worlds_tick(
     assert np.allclose(np.diff(phases), gap)
 
 
+@pytest.mark.wallclock
 def test_realtime_loop_ticks_at_its_phase_after_the_first_frame_left_the_world(
         link: AutopilotLink) -> None:
     """The first step runs ``loop_phase_s`` after the first frame was put (its arrival, as

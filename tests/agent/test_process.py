@@ -115,6 +115,7 @@ def test_lockstep_beacons_of_step_k_come_in_the_worlds_relay_of_step_k() -> None
         assert agent.rejections.total() == 0
 
 
+@pytest.mark.wallclock
 def test_realtime_beacons_come_from_the_worlds_relay_dated_from_their_arrival_there() -> None:
     """A realtime agent takes the others' beacons from the world's relay (world/beacons),
     each dated from when it reached the world (the relay's arrival minus how long the world

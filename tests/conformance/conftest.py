@@ -54,7 +54,8 @@ class SitlFlights:
         self._flights: dict[Kind, Flight] = {}
 
     def _selected(self, kind: Kind) -> bool:
-        return any(item.nodeid.endswith(f"[{kind}-sitl]") for item in self._session.items)
+        # By name: xdist appends "@<group>" to the node ids of grouped tests.
+        return any(item.name.endswith(f"[{kind}-sitl]") for item in self._session.items)
 
     def start(self, kind: Kind, fly: Fly, *, beside: bool) -> None:
         """Boot ``kind``'s SITL and, in a thread, fly ``fly`` on it once it is ready: at once

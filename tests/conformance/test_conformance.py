@@ -29,6 +29,8 @@ from tests.conformance.emulated_target import running_emulator
 from tests.conformance.pilot import Pilot
 from tests.helpers.sitl_tools import DEFAULT_SETPOINT_TIMEOUT_S
 
+pytestmark = pytest.mark.wallclock
+
 DIALOGUES: dict[Flavour, Callable[[Pilot, Record], None]] = {
     "ardupilot": ardupilot_dialogue, "px4": px4_dialogue}
 # May the SITL dialogue fly while the emulator's runs? (conftest.py: PX4 SIH's figures move

@@ -25,6 +25,8 @@ from swarm.launch.launcher import LaunchOptions, SwarmLauncher
 from swarm.messages.wire import TelemetryWire
 from swarm.scenario.config import load_config
 
+pytestmark = pytest.mark.wallclock
+
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 KILL_AT_S = 12.0
 OUTAGE_S = 18.0  # restart delay: λ̄ must recover with the survivors alone first

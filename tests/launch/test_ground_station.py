@@ -19,6 +19,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 from pymavlink import mavutil
 
 from swarm.launch.launcher import LaunchOptions, SwarmLauncher
@@ -27,6 +28,8 @@ from swarm.runs.reference import run_reference
 from swarm.scenario.config import load_config
 from tests.helpers.geo_tools import haversine_m
 from tests.helpers.process_tools import free_udp_block, start_mavproxy
+
+pytestmark = pytest.mark.wallclock
 
 ROOT = Path(__file__).resolve().parents[2]
 CASE1 = ROOT / "configs" / "case1.toml"

@@ -21,6 +21,8 @@ import pytest
 
 from tests.helpers.process_tools import console_script, free_udp_block
 
+pytestmark = pytest.mark.wallclock
+
 ROOT = Path(__file__).resolve().parents[2]
 CONFIG = ROOT / "tests" / "configs" / "case1_three.toml"  # three px4 drones, end_action hold
 N_DRONES = 3

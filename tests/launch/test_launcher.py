@@ -22,6 +22,7 @@ from swarm.scenario.config import load_config
 CASE1 = Path(__file__).resolve().parents[2] / "configs" / "case1.toml"
 
 
+@pytest.mark.wallclock
 def test_the_world_has_a_session_of_its_own_and_the_agents_share_the_launchers(
         tmp_path: Path) -> None:
     config = load_config(CASE1).with_duration(2.0)

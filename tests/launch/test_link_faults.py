@@ -16,6 +16,8 @@ import pytest
 from swarm.launch.launcher import LaunchOptions, SwarmLauncher
 from swarm.scenario.config import load_config
 
+pytestmark = pytest.mark.wallclock
+
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 INJECTED = re.compile(r"injected consensus faults: (\d+) messages lost, (\d+) delayed (\d+) "
                       r"steps, of (\d+)")

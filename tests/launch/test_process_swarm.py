@@ -154,6 +154,7 @@ def assert_ports_free(zenoh_port: int, udp_ports: list[int]) -> None:
             udp.bind(("127.0.0.1", port))
 
 
+@pytest.mark.wallclock
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT])
 def test_a_signal_stops_every_child_within_5_s_and_frees_every_port(signum: int) -> None:
     run_id = f"stop{signum}x{os.getpid()}"
@@ -292,6 +293,7 @@ def test_an_agent_without_a_world_says_what_is_missing(tmp_path: Path) -> None:
     assert time.monotonic() - started < 30
 
 
+@pytest.mark.wallclock
 @pytest.mark.slow
 def test_external_vehicles_fly_against_virtual_targets() -> None:
     """sim-world --vehicles external takes positions from beacons; a separate sim-vehicles
@@ -317,6 +319,7 @@ def test_external_vehicles_need_realtime() -> None:
     assert "--mode realtime" in result.stderr and "Traceback" not in result.stderr
 
 
+@pytest.mark.wallclock
 def test_realtime_leaves_stale_neighbour_data_out_and_counts_it(tmp_path: Path) -> None:
     """With a stale timeout below one step, every neighbour message is too old by the time
     it is used: the agents leave them out of the consensus sums and count them."""

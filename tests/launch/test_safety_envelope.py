@@ -35,6 +35,7 @@ def test_lockstep_flies_the_envelope_scenario_as_the_in_process_run() -> None:
     assert counts["safety_conflicts"] == int(reference.safety_conflict.sum()) > 0
 
 
+@pytest.mark.wallclock
 @pytest.mark.slow
 def test_realtime_stays_inside_the_envelope() -> None:
     """30 s on the wall clock (the ceiling from t ≈ 24 s): every invariant holds, the

@@ -48,7 +48,7 @@ from swarm.observe.recording import AutopilotState, iter_messages, read_recordin
 from swarm.runs.checks import check_invariants
 from tests.helpers.sitl_tools import firmware_or_skip, sitl_processes
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.wallclock]
 
 ROOT = Path(__file__).resolve().parents[2]
 CASE1_THREE = ROOT / "tests" / "configs" / "case1_three.toml"

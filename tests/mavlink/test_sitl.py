@@ -30,6 +30,8 @@ from swarm.mavlink.sitl import (
     free_instances,
 )
 
+pytestmark = pytest.mark.wallclock
+
 ELF = b"\x7fELF" + bytes(60)
 
 

@@ -34,7 +34,7 @@ from swarm.models import frames
 from tests.helpers.process_tools import start_mavproxy
 from tests.helpers.sitl_tools import RunningSitl, firmware_or_skip, running_sitl, sitl_processes
 
-pytestmark = pytest.mark.slow
+pytestmark = [pytest.mark.slow, pytest.mark.wallclock]
 
 HANDSHAKE_TIMEOUT_S = 90.0  # PX4 can arm ~37 s after boot
 CLIMB_M = 3.0

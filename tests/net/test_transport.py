@@ -898,6 +898,7 @@ def test_a_backlog_subscription_loses_nothing_and_makes_zenoh_wait_when_full() -
                       **wrong)
 
 
+@pytest.mark.wallclock
 def test_a_ring_dates_a_stamped_sample_from_its_put_not_from_its_drain() -> None:
     """A sample taken from its ring 0.2 s after it came is dated from its Zenoh timestamp
     (the sender's put), bounded by the previous drain; an unstamped one from the drain."""

@@ -391,6 +391,7 @@ def test_the_launcher_passes_each_telemetry_message_to_its_listeners(
     assert launcher.collector.latest[1] is tel
 
 
+@pytest.mark.wallclock
 def test_watch_shows_a_swarm_running_elsewhere(
         config: ScenarioConfig, final_diagnostics: list[StepDiagnostics]) -> None:
     """A stand-in world (a Zenoh router publishing clock and telemetry) and ``watch``."""

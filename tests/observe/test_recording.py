@@ -420,6 +420,7 @@ def recording_launcher(tmp_path: Path, run_id: str):
             os.kill(pid, signal.SIGKILL)
 
 
+@pytest.mark.wallclock
 @pytest.mark.parametrize("signum", [signal.SIGKILL, signal.SIGTERM], ids=["kill-9", "sigterm"])
 def test_a_stopped_launcher_leaves_a_readable_recording(tmp_path: Path, signum: int) -> None:
     """kill -9: the file is cut short but holds everything up to at most 1 s before the kill.
@@ -444,6 +445,7 @@ def test_a_stopped_launcher_leaves_a_readable_recording(tmp_path: Path, signum: 
              on_timeout=lambda: describe(processes_of(run_id)))
 
 
+@pytest.mark.wallclock
 def test_a_killed_world_ends_the_mission_with_a_complete_recording(tmp_path: Path) -> None:
     """kill -9 of the world in the middle of a realtime run: the launcher says so (exit 1,
     the world's signal), finishes the file (not truncated), with the messages up to the kill

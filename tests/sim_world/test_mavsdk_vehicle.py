@@ -62,6 +62,8 @@ from mavsdk.asyncio.plugins.telemetry import (
 from swarm.launch.launcher import free_tcp_port
 from tests.helpers.process_tools import console_script, free_udp_block
 
+pytestmark = pytest.mark.wallclock
+
 ROOT = Path(__file__).resolve().parents[2]
 N_DRONES = 2
 COMMAND_NED = (0.5, -0.3, 0.0)  # north, east, down [m/s]: 0.58 m/s, well under u_max = 3

@@ -117,6 +117,7 @@ def test_the_clock_reports_every_input_the_world_rejected(world: World) -> None:
     assert clock.state == "running" and clock.rejected_inputs == total
 
 
+@pytest.mark.wallclock
 def test_an_external_vehicle_world_counts_bad_beacons_on_its_clock() -> None:
     """With external vehicles the world subscribes to the beacons: junk there is counted and
     shows on its clock, and only a valid beacon moves a drone; the frame rendered from it
@@ -155,6 +156,7 @@ def test_an_external_vehicle_world_counts_bad_beacons_on_its_clock() -> None:
         assert all(c.stamped == [True] for c in cameras)
 
 
+@pytest.mark.wallclock
 def test_a_stalled_realtime_tick_counts_queued_setpoints_before_the_failsafe(
         world: World) -> None:
     """The world's loop stalls (a loaded machine) while the agent keeps streaming: the next
@@ -202,6 +204,7 @@ def test_a_stalled_realtime_tick_counts_queued_setpoints_before_the_failsafe(
         link.close()
 
 
+@pytest.mark.wallclock
 def test_a_realtime_world_relays_every_drones_newest_beacon_and_how_long_it_held_it() -> None:
     """At each realtime tick the agents get one message (world/beacons, stamped) with every
     drone's newest beacon, each with how long the world has held it: N messages a period
