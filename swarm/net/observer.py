@@ -116,6 +116,11 @@ class ObserverFeed:
                  pass_samples: int = FEED_PASS_SAMPLES) -> None:
         if not period_s > 0:
             raise ValueError(f"ObserverFeed: period_s must be > 0, got {period_s!r}")
+        if isinstance(pass_samples, bool) or not (isinstance(pass_samples, int)
+                                                  and pass_samples >= 1):
+            # drain_in_turn stops after a round that took fewer: with 0 it never would
+            raise ValueError(f"ObserverFeed: pass_samples must be an integer >= 1, got "
+                             f"{pass_samples!r}")
         if not all(isinstance(sub, DrainedSubscriber) for sub in subscribers):
             raise ValueError("ObserverFeed drains subscriptions made with "
                              "subscribe_observer(..., backlog=FEED_BACKLOG)")

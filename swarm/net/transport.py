@@ -28,8 +28,9 @@ inside zenoh until their owner takes them (``DrainedSubscriber.drain``, on the o
 in batches): ``subscribe(..., keep_latest=K)`` for consumers that only want the newest data
 (realtime agents), a ring of K samples whose oldest is dropped when it is full; and
 ``subscribe(..., backlog=K)`` for consumers that must see everything (the launcher's
-recorder), a FIFO of K samples on which zenoh's receiving waits when it is full. The stores
-here are what make those deliveries safe to read from the agent's own thread.
+recorder), a FIFO of K samples on which zenoh's receiving waits when it is full (so sized
+never to fill). The stores here are what make those deliveries safe to read from the agent's
+own thread.
 """
 
 from __future__ import annotations
@@ -714,11 +715,13 @@ def subscribe(
     ``on_value`` is then called as ``on_value(key, value, arrived_s)`` with the sample's
     estimated arrival on ``time.monotonic`` (``DrainedSubscriber.drain``).
     ``backlog``: the same, but a FIFO of this many samples from which nothing is dropped:
-    when it is full, zenoh's receiving thread waits until ``drain()`` makes room (and with
-    it every delivery of that session, and in the end the router's sends to it: back
-    pressure, where an unbounded queue would grow without end). For consumers that must see
-    every sample but can take them in batches (the launcher's collector and recorder: one
-    wake-up per drain instead of one per sample). ``on_value(key, value)`` as without it.
+    when it is full, zenoh's receiving thread waits until ``drain()`` makes room, and with
+    it every delivery of that session. That is no back pressure across a router: its sends
+    to a session that stopped receiving block, and zenoh closes the link after ~5 s. Size it
+    never to fill (``swarm.net.observer.FEED_BACKLOG``: nothing is allocated up front). For
+    consumers that must see every sample but can take them in batches (the launcher's
+    collector and recorder: one wake-up per drain instead of one per sample).
+    ``on_value(key, value)`` as without it.
     """
 
     # Every reason names the key the payload came on (which drone, which stream): what an

@@ -260,3 +260,14 @@ def test_a_drain_takes_the_kinds_in_turn_so_a_flood_of_one_holds_up_none_other()
     assert drain_in_turn(kinds, 256) == 0 and len(log) == 4  # one round when nothing waits
     flood = [Waiting("telemetry", 10_000, log)]
     assert drain_in_turn(flood, 256, stop=lambda: True) == 256  # told to stop: one round
+
+
+@pytest.mark.parametrize(("options", "message"), [
+    ({"period_s": 0.0}, "period_s must be > 0"),
+    ({"pass_samples": 0}, "pass_samples must be an integer >= 1"),
+    ({"pass_samples": True}, "pass_samples must be an integer >= 1"),
+])
+def test_a_feed_refuses_a_period_or_pass_size_it_could_not_run_with(
+        options: dict, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        ObserverFeed([], **options)
