@@ -20,27 +20,18 @@ import math
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
-from swarm.core import _lapack, icf
-from swarm.core.barrier import (
-    BarrierScalars,
-    localization_barrier_scalars,
-    robust_lower_bound,
-)
+from swarm.core import icf, kernels
+from swarm.core.barrier import robust_lower_bound
 from swarm.core.consensus_layout import ConsensusLayout
 from swarm.core.formation import bearing_formation_scalars
 from swarm.core.gramian import initial_gramian
+from swarm.core.kernels import BarrierScalars, PerceptionScalars
 from swarm.core.params import ControlParams, EstimationParams, GramianParams, PerceptionParams
-from swarm.core.perception import (
-    PerceptionScalars,
-    perception_constants,
-    perception_scalars,
-    perception_terms,
-)
+from swarm.core.perception import perception_terms
 from swarm.core.qp import (
     FailedQp,
     LocalQpWorkspace,
@@ -192,14 +183,15 @@ class DroneAgent:
     """State and step of one drone (SPEC §3-§10).
 
     The step runs on stacks over the M targets and on plain floats for 3-vectors, because on
-    arrays this small each numpy call costs far more than its arithmetic: one LAPACK call per
-    routine for all targets (``icf.StackedFilter``, one ``eigh``), the neighbours' data of a
-    round gathered in one array with the own state as its first row, the consensus states
-    (SPEC §6) packed in one vector and advanced by one precomputed linear operator, the
-    barrier terms on floats (``localization_barrier_scalars``), the QP in preallocated
-    matrices (``LocalQpWorkspace``). The array functions of ``swarm.core`` compute the same
-    quantities up to round-off (the ICF consensus sums are even bit-identical to
-    ``consensus_iteration``: same terms, same order).
+    arrays this small each numpy call costs far more than its arithmetic: the ICF local steps
+    and the perception and barrier terms of all targets in one call each of the compiled
+    kernels (``swarm.core.kernels``: ``icf.StackedFilter``, ``perception_barrier``), the
+    neighbours' data of a round gathered in one array with the own state as its first row,
+    the consensus states (SPEC §6) packed in one vector and advanced by one precomputed linear
+    operator, the QP in preallocated matrices (``LocalQpWorkspace``). The array functions of
+    ``swarm.core`` compute the same quantities up to round-off (the ICF consensus sums are even
+    bit-identical to ``consensus_iteration``: same terms, same order; the perception terms bit
+    for bit too).
     """
 
     def __init__(self, setup: AgentSetup, initial_target_guesses: Array) -> None:
@@ -238,10 +230,7 @@ class DroneAgent:
                                              est.info_gain * setup.n_drones)
         self._neighbours = setup.neighbours
         self._weight_columns: dict[tuple[int, ...], Array] = {}
-        self._perception = perception_constants(setup.perception)
-        self._barrier_constants = _BarrierConstants(setup.n_drones, gram.forgetting,
-                                                    gram.epsilon, gram.smooth_min_exponent,
-                                                    est.info_gain)
+        self._barrier_constants = self._kernel_constants(setup.n_drones)
         self._single_integrator = est.model == "single_integrator"
         # Rows for the drones within R_ca only: the QP's size depends on them, not on N.
         self._qp_relaxed = LocalQpWorkspace(
@@ -313,7 +302,7 @@ class DroneAgent:
                                          setup.dt_s)
         self._operator = _consensus_operator(self._layout, setup.dt_s, gram,
                                              est.info_gain * n_live)
-        self._barrier_constants = self._barrier_constants._replace(n_agents=n_live)
+        self._barrier_constants = self._kernel_constants(n_live)
 
     def begin_step(
         self,
@@ -336,7 +325,7 @@ class DroneAgent:
         clock.begin()
         setup = self.setup
         m, n = setup.n_targets, self._n_state
-        position = np.asarray(position, dtype=float)
+        position = np.ascontiguousarray(position, dtype=float)
         if position.shape != (3,) or not _all_finite(own := position.tolist()):
             raise ValueError(f"drone {setup.drone_id}: own position must be 3 finite numbers, "
                              f"got {position!r}")
@@ -455,8 +444,8 @@ class DroneAgent:
         box = (rate_limited_box(self._last_command, self._max_change, ctrl.u_max_m_s)
                if self._max_change > 0.0 else None)
         if control_active:
-            u_rows, lower = self._qp_rows(barriers, terms, target_velocities, weight_sums, own,
-                                          clean_beacons)
+            u_rows, lower = self._qp_rows(barriers, terms, target_velocities.tolist(),
+                                          weight_sums, own, clean_beacons)
             clock.lap(BARRIER)
             solution, fallback, released = self._solve(nominal, u_rows, lower, weights, box)
             clock.lap(QP)
@@ -515,10 +504,10 @@ class DroneAgent:
         clock.lap(OTHER)
         return record(StepResult, {"velocity": velocity, "diagnostics": diagnostics})
 
-    def _estimate(self) -> tuple[list[list[float]], list[list[float]]]:
+    def _estimate(self) -> tuple[Array, Array]:
         """ICF posterior and prediction (2.8-2.11), all targets at once, from the consensus
-        result. Returns the posterior estimates and the targets' velocities the barrier uses
-        (estimated, communicated or zero), as lists of floats."""
+        result. Returns the posterior estimates (M, n) and the targets' velocities the barrier
+        uses (M, 3: estimated, communicated or zero)."""
         m, n = self.setup.n_targets, self._n_state
         packed = self._icf
         posterior_state, self._prior_state, self._prior_information, covariance = self._filter(
@@ -526,36 +515,30 @@ class DroneAgent:
             self._communicated_velocity if self._single_integrator else None)
         self._posterior_state = posterior_state
         self._position_covariance = covariance[:, :3, :3].copy()  # contiguous, as sent
-        estimates = posterior_state.tolist()
         if not self._single_integrator:
-            return estimates, [e[3:6] for e in estimates]
+            return posterior_state, np.ascontiguousarray(posterior_state[:, 3:6])
         if self._communicated_velocity is not None:
-            return estimates, self._communicated_velocity.tolist()
-        return estimates, [[0.0, 0.0, 0.0]] * m
+            return posterior_state, np.ascontiguousarray(self._communicated_velocity)
+        return posterior_state, np.zeros((m, 3))
 
-    def _barrier_terms(self, estimates: list[list[float]],
-                       target_velocities: list[list[float]]
+    def _barrier_terms(self, estimates: Array, target_velocities: Array
                        ) -> tuple[list[PerceptionScalars], list[BarrierScalars], list[float]]:
         """Perception weights and barrier terms from the estimates (SPEC §3, §8), one per
-        target, and the weight sums S_w = N · s_w of the consensus."""
-        m = self.setup.n_targets
-        constants = self._perception
-        own = self._own
-        terms = [perception_scalars(own, estimates[r], constants) for r in range(m)]
-        cons = self._cons
+        target, through the compiled kernel, and the weight sums S_w = N · s_w of the
+        consensus."""
         layout = self._layout
-        eigenvalues, eigenvectors = _lapack.eigh_lists(
-            self._cons_array[layout.gramian].reshape(m, 3, 3))
-        n_agents, forgetting, epsilon, exponent, info_gain = self._barrier_constants
-        barriers = [
-            localization_barrier_scalars(
-                eigenvalues[r], eigenvectors[r], cons[layout.target_projector_mean(r)], terms[r],
-                target_velocities[r], n_agents=n_agents, forgetting=forgetting,
-                epsilon=epsilon, exponent=exponent, info_gain=info_gain)
-            for r in range(m)
-        ]
-        weight_sums = [self._swarm_size * w for w in cons[layout.weight_mean]]  # S_w = N · s_w
+        cons_array = self._cons_array
+        terms, barriers = kernels.perception_barrier(
+            self._position, estimates, target_velocities, cons_array[layout.gramian],
+            cons_array[layout.projector_mean], self._barrier_constants)
+        weight_sums = [self._swarm_size * w for w in self._cons[layout.weight_mean]]
         return terms, barriers, weight_sums
+
+    def _kernel_constants(self, n_agents: int) -> Array:
+        est, gram = self.setup.estimation, self.setup.gramian
+        return kernels.barrier_constants(
+            self.setup.perception, n_agents=n_agents, forgetting=gram.forgetting,
+            epsilon=gram.epsilon, exponent=gram.smooth_min_exponent, info_gain=est.info_gain)
 
     # -- helpers ------------------------------------------------------------------------
 
@@ -777,16 +760,6 @@ class DroneAgent:
         self.qp_failures.append(FailedQp(
             self.setup.drone_id, self._step, attempt, workspace.current_qp(), solution.status,
             solution.iterations, solution.max_violation))
-
-
-class _BarrierConstants(NamedTuple):
-    """The scalars ``localization_barrier_scalars`` takes besides the state, looked up once."""
-
-    n_agents: int  # N, the swarm size the barrier is written for
-    forgetting: float  # ρ
-    epsilon: float  # ε
-    exponent: float  # p of λ̄
-    info_gain: float  # b
 
 
 _ZERO3 = (0.0, 0.0, 0.0)

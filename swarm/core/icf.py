@@ -13,7 +13,7 @@ from collections.abc import Iterable
 import numpy as np
 from numpy.typing import NDArray
 
-from swarm.core import _lapack
+from swarm.core import kernels
 from swarm.core.params import TargetModel
 
 Array = NDArray[np.float64]
@@ -121,45 +121,31 @@ class StackedFilter:
     """``posterior`` then ``predict`` for a stack of M targets, with the constants of one drone
     (N, A_d, Q, ΔT) prepared once (SPEC §5); also ``posterior_covariance``.
 
-    One inverse of V per target serves all three: pinv(W⁺) = pinv(N V) = pinv(V)/N, and
-    A pinv(W⁺) Aᵀ is one product with the precomputed (A ⊗ A)ᵀ/N on the row-major flattened
-    matrices, so the results equal the per-target calls up to round-off. The stack goes
-    through each LAPACK routine once; a Cholesky factorization first tests that every V is
-    positive definite, where the plain inverse is the pseudo-inverse. If one is not (or a
-    finite factor's sum overflows), every target takes the per-target path with its SVD
-    fallback.
+    The compiled kernel (``kernels.filter_stack``) takes the stack: one Cholesky factorization
+    per V tests that it is positive definite, where its inverse is the pseudo-inverse, and
+    serves all three results, pinv(W⁺) = pinv(N V) = pinv(V)/N. If one V is not (or a factor
+    is not finite), every target takes the per-target path with its SVD fallback.
     """
 
     def __init__(self, transition: Array, process_noise: float, n_agents: int,
                  dt_s: float = 0.0) -> None:
-        n = transition.shape[0]
-        self.transition, self.process_noise = transition, process_noise
-        self.n_agents, self.dt_s = n_agents, dt_s
-        self._transition_t = np.ascontiguousarray(transition.T)
-        self._kron_t = np.ascontiguousarray(np.kron(transition, transition).T) / n_agents
-        self._noise = (process_noise * np.eye(n)).ravel()  # x + 0 = x off the diagonal
-        self._n = n
+        self.transition = np.ascontiguousarray(transition, dtype=float)
+        self.process_noise, self.n_agents, self.dt_s = float(process_noise), n_agents, dt_s
 
     def __call__(
         self, information: Array, vector: Array, communicated_velocity: Array | None = None
     ) -> tuple[Array, Array, Array, Array]:
         """(x̂⁺, x̂⁻, W⁻, P⁺) of the stack (M, n, n), (M, n); ``communicated_velocity`` (M, 3)
         is the single-integrator input."""
-        if not _lapack.positive_definite(information):
+        result = kernels.filter_stack(information, vector, self.transition, self.process_noise,
+                                      self.n_agents)
+        if result is None:
             return _posterior_and_predict_each(
                 information, vector, self.n_agents, self.transition, self.process_noise,
                 communicated_velocity, self.dt_s)
-        m, n = information.shape[0], self._n
-        inverse = _lapack.inv_positive_definite(information)
-        posterior_state = np.matmul(inverse, vector[..., None])[..., 0]
-        posterior_cov = inverse / self.n_agents
-        covariance = np.matmul(inverse.reshape(m, n * n), self._kron_t)
-        covariance += self._noise
-        prior_information = _lapack.inv_positive_definite(covariance.reshape(m, n, n))
-        prior_information = 0.5 * (prior_information + np.swapaxes(prior_information, -1, -2))
-        prior_state = np.matmul(posterior_state, self._transition_t)
+        posterior_state, prior_state, prior_information, posterior_cov = result
         if communicated_velocity is not None:
-            prior_state = prior_state + self.dt_s * communicated_velocity
+            prior_state += self.dt_s * communicated_velocity
         return posterior_state, prior_state, prior_information, posterior_cov
 
 

@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -70,75 +69,6 @@ def perception_terms(
     w_b, dw_b = angle_weight(-float(unit[2]), params)
     grad = -(w_b * dw_d) * unit + (w_d * dw_b / distance) * proj[2]
     return PerceptionTerms(w_d * w_b, grad, unit, distance, proj)
-
-
-class PerceptionConstants(NamedTuple):
-    """The parameters ``perception_scalars`` needs, as plain floats, looked up once."""
-
-    d_min_th_m: float  # D_m^th
-    d_max_th_m: float  # D_M^th
-    sigma_dmin_sq_m2: float  # σ_Dm²
-    sigma_dmax_sq_m2: float  # σ_DM²
-    cos_alpha_th: float  # cos α_M^th
-    sigma_beta_sq: float  # σ_β²
-
-
-def perception_constants(params: PerceptionParams) -> PerceptionConstants:
-    """The parameters ``perception_scalars`` needs."""
-    return PerceptionConstants(params.d_min_th_m, params.d_max_th_m, params.sigma_dmin_sq_m2,
-                               params.sigma_dmax_sq_m2, params.cos_alpha_th,
-                               params.sigma_beta_sq)
-
-
-class PerceptionScalars(NamedTuple):
-    """What ``PerceptionTerms`` holds, as plain floats (Π̂ row-major)."""
-
-    weight: float  # w_ir
-    weight_grad_drone: tuple[float, float, float]  # ∂w/∂p_i
-    unit_bearing: tuple[float, float, float]  # β̂
-    distance_m: float  # d̂
-    projector: tuple[float, float, float, float, float, float, float, float, float]  # Π̂
-
-
-def perception_scalars(
-    drone: tuple[float, float, float],
-    target_estimate: tuple[float, float, float],
-    constants: PerceptionConstants,
-) -> PerceptionScalars:
-    """``perception_terms`` on plain floats, for the per-step fast path (same operations).
-
-    Three-vectors as Python floats cost a fraction of the numpy calls on arrays this small.
-    """
-    d_min, d_max, s_dmin, s_dmax, cos_th, s_beta = constants
-    rx = target_estimate[0] - drone[0]
-    ry = target_estimate[1] - drone[1]
-    rz = target_estimate[2] - drone[2]
-    distance = math.sqrt(rx * rx + ry * ry + rz * rz)
-    bx, by, bz = rx / distance, ry / distance, rz / distance
-    # Π̂ = I − β̂β̂ᵀ (symmetric: the products β_aβ_b and β_bβ_a are the same float).
-    pxy, pxz, pyz = 0.0 - bx * by, 0.0 - bx * bz, 0.0 - by * bz
-    proj = (1.0 - bx * bx, pxy, pxz, pxy, 1.0 - by * by, pyz, pxz, pyz, 1.0 - bz * bz)
-    if distance < d_min:
-        gap = distance - d_min
-        w_d = math.exp(-gap * gap / s_dmin)
-        dw_d = -2.0 * gap / s_dmin * w_d
-    elif distance > d_max:
-        gap = distance - d_max
-        w_d = math.exp(-gap * gap / s_dmax)
-        dw_d = -2.0 * gap / s_dmax * w_d
-    else:
-        w_d, dw_d = 1.0, 0.0
-    cos_off_axis = -bz
-    if cos_off_axis < cos_th:
-        gap = cos_off_axis - cos_th
-        w_b = math.exp(-gap * gap / s_beta)
-        dw_b = -2.0 * gap / s_beta * w_b
-    else:
-        w_b, dw_b = 1.0, 0.0
-    a = -(w_b * dw_d)
-    c = w_d * dw_b / distance
-    grad = (a * bx + c * pxz, a * by + c * pyz, a * bz + c * proj[8])
-    return PerceptionScalars(w_d * w_b, grad, (bx, by, bz), distance, proj)
 
 
 def perception_weight(

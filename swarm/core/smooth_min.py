@@ -71,40 +71,6 @@ def smooth_min_eigenvalue(gramian: Mat3, exponent: float) -> SmoothMin:
     return SmoothMin(value, lam, vectors, g, hessian, theta)
 
 
-# λ̄ with what its derivatives need, on plain floats: (λ̄, λ (clipped), g,
-# ∂²f/∂λ∂λ as (h00, h11, h22, h01, h02, h12), θ as (θ01, θ02, θ12)).
-SmoothMinScalars = tuple[float, tuple[float, float, float], tuple[float, float, float],
-                         tuple[float, float, float, float, float, float],
-                         tuple[float, float, float]]
-
-
-def smooth_min_scalars(raw_eigenvalues: tuple[float, float, float],
-                       exponent: float) -> SmoothMinScalars:
-    """``smooth_min_eigenvalue`` after the eigen-decomposition, on plain floats.
-
-    Same operations in the same order as the array version (the eigenvalues ascending, as
-    ``eigh`` returns them); for the per-step fast path, where numpy calls on 3-vectors cost
-    more than the arithmetic.
-    """
-    p = exponent
-    floor = EIGENVALUE_FLOOR
-    l0, l1, l2 = (max(raw_eigenvalues[0], floor), max(raw_eigenvalues[1], floor),
-                  max(raw_eigenvalues[2], floor))
-    value = l0 * ((l0 / l0) ** p + (l1 / l0) ** p + (l2 / l0) ** p) ** (1.0 / p)
-    pm1 = p - 1.0
-    g0, g1, g2 = (l0 / value) ** pm1, (l1 / value) ** pm1, (l2 / value) ** pm1
-    one_minus_p = 1.0 - p
-    hessian = (one_minus_p * (g0 * g0) / value + pm1 * g0 / l0,
-               one_minus_p * (g1 * g1) / value + pm1 * g1 / l1,
-               one_minus_p * (g2 * g2) / value + pm1 * g2 / l2,
-               one_minus_p * (g0 * g1) / value,
-               one_minus_p * (g0 * g2) / value,
-               one_minus_p * (g1 * g2) / value)
-    theta = (divided_difference(l0, l1, g0, g1, p), divided_difference(l0, l2, g0, g2, p),
-             divided_difference(l1, l2, g1, g2, p))
-    return value, (l0, l1, l2), (g0, g1, g2), hessian, theta
-
-
 def _divided_difference(lam: Vec3, g: Vec3, k: int, j: int, p: float) -> float:
     """θ_kj = (g_k − g_j)/(λ_k − λ_j), symmetric in k, j (see ``divided_difference``)."""
     return divided_difference(float(lam[k]), float(lam[j]), float(g[k]), float(g[j]), p)

@@ -1,0 +1,605 @@
+/* The per-step numerical kernels of DroneAgent, compiled (issue 16).
+ *
+ * Pure arithmetic on caller-owned float64 buffers: no state, no allocation, no I/O. Each
+ * function is the same formula as a readable numpy form in swarm.core, which the tests bind
+ * it to (tests/core/test_kernels.py: parity on random states in every regime, finite
+ * differences of the gradients, the singular fallback):
+ *
+ *   perception        perception.perception_terms                     SPEC §3, thesis 3.6-3.7
+ *   symmetric_eigen   np.linalg.eigh of a 3x3 (ascending, columns)
+ *   smooth_min        smooth_min.smooth_min_eigenvalue's coefficients SPEC §7
+ *   perception_barrier  the above, then barrier.localization_barrier   SPEC §8, 3.20-3.25, 3.32
+ *                     for M targets in one call (what the agent runs)
+ *   filter_stack      icf.posterior, posterior_covariance and predict  SPEC §5, 2.8-2.11
+ *                     for M targets (n = 3 or 6)
+ *
+ * Why hand-written Cholesky and Jacobi: LAPACK from C would have to come from scipy (its
+ * cython_lapack capsules), whose import costs each agent ~0.3 s of the 2 s launch budget, and
+ * numpy does not export its LAPACK. At these fixed sizes (3x3, 6x6) a Cholesky factorization
+ * and a cyclic Jacobi eigensolver are a few lines each, and the tests hold them to LAPACK's
+ * results (numpy) to round-off.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <math.h>
+#include <string.h>
+
+#define MAX_STATE 6
+
+/* -- perception (SPEC §3) ------------------------------------------------------------------ */
+
+/* Perception constants, in the order of perception.PerceptionConstants. */
+enum { K_DMIN, K_DMAX, K_SDMIN, K_SDMAX, K_COS, K_SBETA, N_PERCEPTION_CONSTANTS };
+
+/* Output of one drone-target pair: w, ∂w/∂p_i (3), β̂ (3), d̂, Π̂ row-major (9). */
+enum { P_WEIGHT = 0, P_GRAD = 1, P_UNIT = 4, P_DISTANCE = 7, P_PROJECTOR = 8, N_PERCEPTION = 17 };
+
+static void
+perception(const double drone[3], const double target[3], const double k[6], double out[17])
+{
+    double rx = target[0] - drone[0], ry = target[1] - drone[1], rz = target[2] - drone[2];
+    double distance = sqrt(rx * rx + ry * ry + rz * rz);
+    double bx = rx / distance, by = ry / distance, bz = rz / distance;
+    /* Π̂ = I − β̂β̂ᵀ, symmetric: 0.0 − x as the Python form (its sign of zero). */
+    double pxy = 0.0 - bx * by, pxz = 0.0 - bx * bz, pyz = 0.0 - by * bz;
+    double *proj = out + P_PROJECTOR;
+    proj[0] = 1.0 - bx * bx; proj[1] = pxy; proj[2] = pxz;
+    proj[3] = pxy; proj[4] = 1.0 - by * by; proj[5] = pyz;
+    proj[6] = pxz; proj[7] = pyz; proj[8] = 1.0 - bz * bz;
+    double w_d, dw_d, w_b, dw_b, gap;
+    if (distance < k[K_DMIN]) {
+        gap = distance - k[K_DMIN];
+        w_d = exp(-gap * gap / k[K_SDMIN]);
+        dw_d = -2.0 * gap / k[K_SDMIN] * w_d;
+    } else if (distance > k[K_DMAX]) {
+        gap = distance - k[K_DMAX];
+        w_d = exp(-gap * gap / k[K_SDMAX]);
+        dw_d = -2.0 * gap / k[K_SDMAX] * w_d;
+    } else {
+        w_d = 1.0; dw_d = 0.0;
+    }
+    double cos_off_axis = -bz;
+    if (cos_off_axis < k[K_COS]) {
+        gap = cos_off_axis - k[K_COS];
+        w_b = exp(-gap * gap / k[K_SBETA]);
+        dw_b = -2.0 * gap / k[K_SBETA] * w_b;
+    } else {
+        w_b = 1.0; dw_b = 0.0;
+    }
+    /* ∂w/∂p_i = −w_β w_D' β̂ + (w_D w_β'/d̂) Π̂ e_3 (∂d̂/∂p_i = −β̂ᵀ, ∂c/∂p_i = e_3ᵀΠ̂/d̂). */
+    double a = -(w_b * dw_d), c = w_d * dw_b / distance;
+    out[P_WEIGHT] = w_d * w_b;
+    out[P_GRAD] = a * bx + c * pxz;
+    out[P_GRAD + 1] = a * by + c * pyz;
+    out[P_GRAD + 2] = a * bz + c * proj[8];
+    out[P_UNIT] = bx; out[P_UNIT + 1] = by; out[P_UNIT + 2] = bz;
+    out[P_DISTANCE] = distance;
+}
+
+/* -- 3x3 symmetric eigen-decomposition ----------------------------------------------------- */
+
+/* Cyclic Jacobi: rotations zero each off-diagonal entry in turn until none is left above
+ * round-off of the diagonal. Eigenvalues ascending, eigenvectors as the columns of v
+ * (row-major), as np.linalg.eigh returns them. Returns 0, or -1 if an entry is not finite
+ * or the sweeps do not converge. */
+static int
+symmetric_eigen(const double matrix[9], double values[3], double v[9])
+{
+    double a[3][3];
+    for (int i = 0; i < 3; i++)
+        for (int j = 0; j < 3; j++) {
+            a[i][j] = matrix[3 * i + j];
+            if (!isfinite(a[i][j])) return -1;
+        }
+    double q[3][3] = {{1, 0, 0}, {0, 1, 0}, {0, 0, 1}};
+    static const int pairs[3][2] = {{0, 1}, {0, 2}, {1, 2}};
+    int converged = 0;
+    for (int sweep = 0; sweep < 50 && !converged; sweep++) {
+        converged = 1;
+        for (int t = 0; t < 3; t++) {
+            int p = pairs[t][0], r = pairs[t][1];
+            double apr = a[p][r];
+            if (apr == 0.0) continue;
+            /* Negligible against both diagonal entries: zero it (the classic test). */
+            if (fabs(apr) <= 1e-18 * fabs(a[p][p]) && fabs(apr) <= 1e-18 * fabs(a[r][r])) {
+                a[p][r] = a[r][p] = 0.0;
+                continue;
+            }
+            converged = 0;
+            double theta = (a[r][r] - a[p][p]) / (2.0 * apr);
+            double tan_ = (theta >= 0.0 ? 1.0 : -1.0) / (fabs(theta) + sqrt(theta * theta + 1.0));
+            double cos_ = 1.0 / sqrt(tan_ * tan_ + 1.0), sin_ = tan_ * cos_;
+            /* a ← Jᵀ a J with J the rotation in the (p, r) plane; q ← q J. */
+            for (int k = 0; k < 3; k++) {
+                double akp = a[k][p], akr = a[k][r];
+                a[k][p] = cos_ * akp - sin_ * akr;
+                a[k][r] = sin_ * akp + cos_ * akr;
+            }
+            for (int k = 0; k < 3; k++) {
+                double apk = a[p][k], ark = a[r][k];
+                a[p][k] = cos_ * apk - sin_ * ark;
+                a[r][k] = sin_ * apk + cos_ * ark;
+            }
+            a[p][r] = a[r][p] = 0.0;
+            for (int k = 0; k < 3; k++) {
+                double qkp = q[k][p], qkr = q[k][r];
+                q[k][p] = cos_ * qkp - sin_ * qkr;
+                q[k][r] = sin_ * qkp + cos_ * qkr;
+            }
+        }
+    }
+    if (!converged) return -1;
+    int order[3] = {0, 1, 2};
+    for (int i = 1; i < 3; i++)
+        for (int j = i; j > 0 && a[order[j]][order[j]] < a[order[j - 1]][order[j - 1]]; j--) {
+            int s = order[j]; order[j] = order[j - 1]; order[j - 1] = s;
+        }
+    for (int c = 0; c < 3; c++) {
+        values[c] = a[order[c]][order[c]];
+        for (int k = 0; k < 3; k++) v[3 * k + c] = q[k][order[c]];
+    }
+    return 0;
+}
+
+/* -- smooth minimum eigenvalue (SPEC §7) --------------------------------------------------- */
+
+typedef struct {
+    double floor;     /* smooth_min.EIGENVALUE_FLOOR */
+    double log_gap;   /* smooth_min.NEAR_REPEATED_LOG_GAP */
+} SmoothMinLimits;
+
+/* θ_kl = (g_k − g_l)/(λ_k − λ_l), or for nearly repeated eigenvalues
+ * g_l/λ_l · expm1((p−1)t)/expm1(t), t = log(λ_k/λ_l) (smooth_min.divided_difference). */
+static double
+divided_difference(double lam_k, double lam_l, double g_k, double g_l, double p, double log_gap)
+{
+    double t = log(lam_k / lam_l);
+    if (fabs(t) >= log_gap) return (g_k - g_l) / (lam_k - lam_l);
+    double ratio = t == 0.0 ? p - 1.0 : expm1((p - 1.0) * t) / expm1(t);
+    return g_l / lam_l * ratio;
+}
+
+/* Output: λ̄, λ clipped (3), g (3), ∂²f/∂λ∂λ as h00 h11 h22 h01 h02 h12, θ01 θ02 θ12. */
+enum { S_VALUE = 0, S_LAMBDA = 1, S_GRAD = 4, S_HESS = 7, S_THETA = 13, N_SMOOTH = 16 };
+
+static void
+smooth_min(const double raw[3], double p, SmoothMinLimits lim, double out[16])
+{
+    double l0 = raw[0] > lim.floor ? raw[0] : lim.floor;
+    double l1 = raw[1] > lim.floor ? raw[1] : lim.floor;
+    double l2 = raw[2] > lim.floor ? raw[2] : lim.floor;
+    double value = l0 * pow(pow(l0 / l0, p) + pow(l1 / l0, p) + pow(l2 / l0, p), 1.0 / p);
+    double pm1 = p - 1.0, one_minus_p = 1.0 - p;
+    double g0 = pow(l0 / value, pm1), g1 = pow(l1 / value, pm1), g2 = pow(l2 / value, pm1);
+    out[S_VALUE] = value;
+    out[S_LAMBDA] = l0; out[S_LAMBDA + 1] = l1; out[S_LAMBDA + 2] = l2;
+    out[S_GRAD] = g0; out[S_GRAD + 1] = g1; out[S_GRAD + 2] = g2;
+    out[S_HESS] = one_minus_p * (g0 * g0) / value + pm1 * g0 / l0;
+    out[S_HESS + 1] = one_minus_p * (g1 * g1) / value + pm1 * g1 / l1;
+    out[S_HESS + 2] = one_minus_p * (g2 * g2) / value + pm1 * g2 / l2;
+    out[S_HESS + 3] = one_minus_p * (g0 * g1) / value;
+    out[S_HESS + 4] = one_minus_p * (g0 * g2) / value;
+    out[S_HESS + 5] = one_minus_p * (g1 * g2) / value;
+    out[S_THETA] = divided_difference(l0, l1, g0, g1, p, lim.log_gap);
+    out[S_THETA + 1] = divided_difference(l0, l2, g0, g2, p, lim.log_gap);
+    out[S_THETA + 2] = divided_difference(l1, l2, g1, g2, p, lim.log_gap);
+}
+
+/* -- the localization barrier (SPEC §8) ---------------------------------------------------- */
+
+typedef struct {
+    double n_agents, forgetting, epsilon, exponent, info_gain;
+} BarrierConstants;
+
+/* Output: λ̄, ψ0, ψ1, L_gi ψ1 (3), lower bound −(c + ψ1)/N − d_i. */
+enum { B_LAMBDA = 0, B_PSI0 = 1, B_PSI1 = 2, B_LIE = 3, B_LOWER = 6, N_BARRIER = 7 };
+
+/* barrier.localization_barrier evaluated in the eigenbasis of G, where Γ = V diag(g) Vᵀ is
+ * never formed: H̃ = VᵀĠV = −ρ diag(λ) + bN VᵀsV, ⟨Γ, Ġ⟩ = Σ g_k H̃_kk, with c_k = v_k·β̂:
+ * ⟨Γ, Π̂⟩ = Σ g_k − β̂ᵀΓβ̂ and ⟨Γ, ∂Π̂/∂p_i,k⟩ = (2/d̂)(Π̂Γβ̂)_k (B.15). */
+static void
+localization_barrier(const double raw[3], const double v[9], const double s[9],
+                     const double terms[17], const double velocity[3], BarrierConstants b,
+                     SmoothMinLimits lim, double out[7])
+{
+    double sm[N_SMOOTH];
+    smooth_min(raw, b.exponent, lim, sm);
+    const double g0 = sm[S_GRAD], g1 = sm[S_GRAD + 1], g2 = sm[S_GRAD + 2];
+    /* q = s V (column l: s v_l), then the entries of H̃ with k ≤ l. */
+    double q[9];
+    for (int i = 0; i < 3; i++)
+        for (int l = 0; l < 3; l++)
+            q[3 * i + l] = s[3 * i] * v[l] + s[3 * i + 1] * v[3 + l] + s[3 * i + 2] * v[6 + l];
+#define VQ(k, l) (v[k] * q[l] + v[3 + k] * q[3 + l] + v[6 + k] * q[6 + l])
+    double neg_rho = -b.forgetting, bn = b.info_gain * b.n_agents;
+    double d0 = neg_rho * raw[0] + bn * VQ(0, 0);
+    double d1 = neg_rho * raw[1] + bn * VQ(1, 1);
+    double d2 = neg_rho * raw[2] + bn * VQ(2, 2);
+    double o01 = bn * VQ(0, 1), o02 = bn * VQ(0, 2), o12 = bn * VQ(1, 2);
+#undef VQ
+    double along_rate = g0 * d0 + g1 * d1 + g2 * d2;  /* ⟨Γ, Ġ⟩ */
+    double psi0 = sm[S_VALUE] - b.epsilon;
+    double psi1 = along_rate + psi0;
+    /* L_gi ψ1 = b[∂w/∂p_i,k ⟨Γ, Π̂⟩ + (2w/d̂)(Π̂Γβ̂)_k]. */
+    double weight = terms[P_WEIGHT], distance = terms[P_DISTANCE];
+    const double *grad = terms + P_GRAD, *unit = terms + P_UNIT;
+    double c0 = v[0] * unit[0] + v[3] * unit[1] + v[6] * unit[2];
+    double c1 = v[1] * unit[0] + v[4] * unit[1] + v[7] * unit[2];
+    double c2 = v[2] * unit[0] + v[5] * unit[1] + v[8] * unit[2];
+    double gc0 = g0 * c0, gc1 = g1 * c1, gc2 = g2 * c2;
+    double beta_gamma_beta = gc0 * c0 + gc1 * c1 + gc2 * c2;
+    double gamma_proj = (g0 + g1 + g2) - beta_gamma_beta;
+    double scale = 2.0 * weight / distance;
+    double lie[3];
+    for (int k = 0; k < 3; k++)
+        lie[k] = b.info_gain * (grad[k] * gamma_proj
+                                + scale * (v[3 * k] * gc0 + v[3 * k + 1] * gc1
+                                           + v[3 * k + 2] * gc2 - unit[k] * beta_gamma_beta));
+    double drift = -(lie[0] * velocity[0] + lie[1] * velocity[1] + lie[2] * velocity[2]);
+    /* D²λ̄[Ġ, Ġ] (SPEC §7). */
+    const double *h = sm + S_HESS, *theta = sm + S_THETA;
+    double second = (h[0] * d0 * d0 + h[1] * d1 * d1 + h[2] * d2 * d2
+                     + 2.0 * (h[3] * d0 * d1 + h[4] * d0 * d2 + h[5] * d1 * d2)
+                     + 2.0 * (theta[0] * o01 * o01 + theta[1] * o02 * o02
+                              + theta[2] * o12 * o12));
+    double coupling = second + (1.0 - b.forgetting) * along_rate;
+    out[B_LAMBDA] = sm[S_VALUE];
+    out[B_PSI0] = psi0;
+    out[B_PSI1] = psi1;
+    out[B_LIE] = lie[0]; out[B_LIE + 1] = lie[1]; out[B_LIE + 2] = lie[2];
+    out[B_LOWER] = -(coupling + psi1) / b.n_agents - drift;
+}
+
+/* -- the ICF's local steps (SPEC §5) ------------------------------------------------------- */
+
+/* Lower Cholesky factor of the n×n row-major a into l; 0 if every pivot is positive and every
+ * entry finite (np.linalg.cholesky succeeds), -1 otherwise. */
+static int
+cholesky(const double *a, int n, double *l)
+{
+    for (int i = 0; i < n; i++) {
+        for (int j = 0; j <= i; j++) {
+            double sum = a[n * i + j];
+            for (int k = 0; k < j; k++) sum -= l[n * i + k] * l[n * j + k];
+            if (i == j) {
+                if (!(sum > 0.0) || !isfinite(sum)) return -1;
+                l[n * i + i] = sqrt(sum);
+            } else {
+                l[n * i + j] = sum / l[n * j + j];
+                if (!isfinite(l[n * i + j])) return -1;
+            }
+        }
+        for (int j = i + 1; j < n; j++) l[n * i + j] = 0.0;
+    }
+    return 0;
+}
+
+/* a⁻¹ = L⁻ᵀL⁻¹ from the Cholesky factor l, symmetric exactly (one triangle mirrored). */
+static void
+inverse_from_cholesky(const double *l, int n, double *inv)
+{
+    double li[MAX_STATE * MAX_STATE] = {0};  /* L⁻¹, lower triangular */
+    for (int j = 0; j < n; j++) {
+        li[n * j + j] = 1.0 / l[n * j + j];
+        for (int i = j + 1; i < n; i++) {
+            double sum = 0.0;
+            for (int k = j; k < i; k++) sum -= l[n * i + k] * li[n * k + j];
+            li[n * i + j] = sum / l[n * i + i];
+        }
+    }
+    for (int i = 0; i < n; i++)
+        for (int j = 0; j <= i; j++) {
+            double sum = 0.0;
+            for (int k = i; k < n; k++) sum += li[n * k + i] * li[n * k + j];
+            inv[n * i + j] = inv[n * j + i] = sum;
+        }
+}
+
+/* x̂⁺ = V⁻¹v, P⁺ = V⁻¹/N (= pinv(W⁺), W⁺ = NV), W⁻ = (A P⁺ Aᵀ + qI)⁻¹, x̂⁻ = A x̂⁺ (2.8-2.11)
+ * for each of the m targets. Returns 0, or -1 if some V or A P⁺ Aᵀ + qI is not positive
+ * definite (the caller then takes the pseudo-inverse path). */
+static int
+filter_stack(const double *information, const double *vector, const double *transition,
+             int m, int n, double process_noise, double n_agents, double *posterior_state,
+             double *prior_state, double *prior_information, double *posterior_covariance)
+{
+    double factor[MAX_STATE * MAX_STATE], inv[MAX_STATE * MAX_STATE];
+    double ap[MAX_STATE * MAX_STATE], cov[MAX_STATE * MAX_STATE];
+    const double *a = transition;
+    for (int r = 0; r < m; r++) {
+        const double *info = information + (size_t)r * n * n, *vec = vector + (size_t)r * n;
+        if (cholesky(info, n, factor) != 0) return -1;
+        inverse_from_cholesky(factor, n, inv);
+        double *x = posterior_state + (size_t)r * n, *pc = posterior_covariance + (size_t)r * n * n;
+        for (int i = 0; i < n; i++) {
+            double sum = 0.0;
+            for (int k = 0; k < n; k++) sum += inv[n * i + k] * vec[k];
+            x[i] = sum;
+        }
+        for (int i = 0; i < n * n; i++) pc[i] = inv[i] / n_agents;
+        for (int i = 0; i < n; i++)          /* A P⁺ */
+            for (int j = 0; j < n; j++) {
+                double sum = 0.0;
+                for (int k = 0; k < n; k++) sum += a[n * i + k] * pc[n * k + j];
+                ap[n * i + j] = sum;
+            }
+        for (int i = 0; i < n; i++)          /* (A P⁺) Aᵀ + qI, one triangle mirrored */
+            for (int j = 0; j <= i; j++) {
+                double sum = 0.0;
+                for (int k = 0; k < n; k++) sum += ap[n * i + k] * a[n * j + k];
+                cov[n * i + j] = cov[n * j + i] = sum;
+            }
+        for (int i = 0; i < n; i++) cov[n * i + i] += process_noise;
+        if (cholesky(cov, n, factor) != 0) return -1;
+        inverse_from_cholesky(factor, n, prior_information + (size_t)r * n * n);
+        double *xp = prior_state + (size_t)r * n;
+        for (int i = 0; i < n; i++) {
+            double sum = 0.0;
+            for (int k = 0; k < n; k++) sum += a[n * i + k] * x[k];
+            xp[i] = sum;
+        }
+    }
+    return 0;
+}
+
+/* -- Python glue --------------------------------------------------------------------------- */
+
+/* A C-contiguous float64 buffer of exactly `length` items (`length` < 0: any, returned in
+ * *found), writable if asked. Sets a one-line ValueError/TypeError naming `what` otherwise. */
+static int
+float64_buffer(PyObject *obj, Py_buffer *view, int writable, Py_ssize_t length,
+               const char *what)
+{
+    int flags = PyBUF_FORMAT | PyBUF_C_CONTIGUOUS | (writable ? PyBUF_WRITABLE : 0);
+    if (PyObject_GetBuffer(obj, view, flags) != 0) {
+        PyErr_Clear();
+        PyErr_Format(PyExc_TypeError, "%s: expected a %sC-contiguous float64 array, got %s",
+                     what, writable ? "writable " : "", Py_TYPE(obj)->tp_name);
+        return -1;
+    }
+    const char *format = view->format ? view->format : "B";
+    if (view->itemsize != 8 || !(strcmp(format, "d") == 0 || strcmp(format, "<d") == 0
+                                 || strcmp(format, "=d") == 0)) {
+        PyErr_Format(PyExc_TypeError, "%s: expected float64 items, got format '%s'", what,
+                     format);
+        PyBuffer_Release(view);
+        return -1;
+    }
+    Py_ssize_t items = view->len / 8;
+    if (length >= 0 && items != length) {
+        PyErr_Format(PyExc_ValueError, "%s: expected %zd float64 values, got %zd", what,
+                     length, items);
+        PyBuffer_Release(view);
+        return -1;
+    }
+    return 0;
+}
+
+static void
+release(Py_buffer *views, int count)
+{
+    for (int i = 0; i < count; i++) PyBuffer_Release(&views[i]);
+}
+
+/* One argument of a kernel: which of the call's arguments, its name, its length in float64
+ * items (-1: any) and whether the kernel writes it. */
+typedef struct {
+    int arg;
+    const char *name;
+    Py_ssize_t length;
+    int writable;
+} BufferSpec;
+
+/* The buffers of `count` specs into views; on failure none is held and the error is set. */
+static int
+acquire(PyObject *const *args, const BufferSpec *specs, int count, Py_buffer *views)
+{
+    for (int i = 0; i < count; i++)
+        if (float64_buffer(args[specs[i].arg], &views[i], specs[i].writable, specs[i].length,
+                           specs[i].name)) {
+            release(views, i);
+            return -1;
+        }
+    return 0;
+}
+
+static int
+check_nargs(Py_ssize_t nargs, Py_ssize_t expected, const char *name)
+{
+    if (nargs != expected) {
+        PyErr_Format(PyExc_TypeError, "%s() takes %zd arguments (%zd given)", name, expected,
+                     nargs);
+        return -1;
+    }
+    return 0;
+}
+
+PyDoc_STRVAR(perception_doc,
+"perception(drone, target, constants, out)\n--\n\n"
+"w, dw/dp_i (3), unit bearing (3), distance, projector row-major (9) of one drone-target\n"
+"pair into out (17): perception.perception_terms. constants: PerceptionConstants (6).");
+
+static PyObject *
+py_perception(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    static const BufferSpec specs[4] = {{0, "drone", 3, 0}, {1, "target", 3, 0},
+                                        {2, "constants", N_PERCEPTION_CONSTANTS, 0},
+                                        {3, "out", N_PERCEPTION, 1}};
+    Py_buffer v[4];
+    if (check_nargs(nargs, 4, "perception") || acquire(args, specs, 4, v)) return NULL;
+    perception(v[0].buf, v[1].buf, v[2].buf, v[3].buf);
+    release(v, 4);
+    Py_RETURN_NONE;
+}
+
+PyDoc_STRVAR(symmetric_eigen_doc,
+"symmetric_eigen(matrix, values, vectors) -> bool\n--\n\n"
+"Eigenvalues (ascending, into values (3)) and eigenvectors (columns of the row-major\n"
+"vectors (9)) of the symmetric 3x3 matrix (9, row-major), as np.linalg.eigh returns them.\n"
+"False if an entry is not finite.");
+
+static PyObject *
+py_symmetric_eigen(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    static const BufferSpec specs[3] = {{0, "matrix", 9, 0}, {1, "values", 3, 1},
+                                        {2, "vectors", 9, 1}};
+    Py_buffer v[3];
+    if (check_nargs(nargs, 3, "symmetric_eigen") || acquire(args, specs, 3, v)) return NULL;
+    int status = symmetric_eigen(v[0].buf, v[1].buf, v[2].buf);
+    release(v, 3);
+    return PyBool_FromLong(status == 0);
+}
+
+PyDoc_STRVAR(smooth_min_doc,
+"smooth_min(eigenvalues, exponent, floor, log_gap, out)\n--\n\n"
+"lambda-bar, the clipped eigenvalues (3), g (3), the eigen-Hessian h00 h11 h22 h01 h02 h12\n"
+"and the divided differences t01 t02 t12 into out (16), from ascending eigenvalues (3):\n"
+"smooth_min.smooth_min_eigenvalue's coefficients.");
+
+static PyObject *
+py_smooth_min(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    static const BufferSpec specs[2] = {{0, "eigenvalues", 3, 0}, {4, "out", N_SMOOTH, 1}};
+    Py_buffer v[2];
+    if (check_nargs(nargs, 5, "smooth_min")) return NULL;
+    double p = PyFloat_AsDouble(args[1]);
+    SmoothMinLimits lim = {PyFloat_AsDouble(args[2]), PyFloat_AsDouble(args[3])};
+    if (PyErr_Occurred() || acquire(args, specs, 2, v)) return NULL;
+    smooth_min(v[0].buf, p, lim, v[1].buf);
+    release(v, 2);
+    Py_RETURN_NONE;
+}
+
+PyDoc_STRVAR(perception_barrier_doc,
+"perception_barrier(drone, estimates, velocities, gramians, projector_means, constants, out)"
+" -> bool\n--\n\n"
+"Per target r of M: the perception terms of the drone (3) and estimates[r, :3]\n"
+"(estimates: M x n), then the barrier of its Gramian copy gramians[r] (M x 9) and consensus\n"
+"mean s = projector_means[r] (M x 9) with the target velocity velocities[r] (M x 3), into\n"
+"out[r] (M x 24): perception (17: w, dw/dp_i, unit bearing, distance, projector), then\n"
+"lambda-bar, psi0, psi1, L_g psi1 (3), lower bound. constants (13): PerceptionConstants (6),\n"
+"N, rho, epsilon, p, b, EIGENVALUE_FLOOR, NEAR_REPEATED_LOG_GAP. False if a Gramian copy\n"
+"has a non-finite entry (out is then incomplete).");
+
+enum { C_N = N_PERCEPTION_CONSTANTS, C_RHO, C_EPS, C_P, C_B, C_FLOOR, C_GAP, N_CONSTANTS };
+#define N_ROW (N_PERCEPTION + N_BARRIER)
+
+static PyObject *
+py_perception_barrier(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer v[7];
+    if (check_nargs(nargs, 7, "perception_barrier")) return NULL;
+    if (float64_buffer(args[1], &v[1], 0, -1, "estimates")) return NULL;
+    if (float64_buffer(args[3], &v[3], 0, -1, "gramians")) { release(v + 1, 1); return NULL; }
+    Py_ssize_t m = v[3].len / 8 / 9;
+    if (m < 1 || v[3].len / 8 != 9 * m || v[1].len / 8 % m != 0
+            || v[1].len / 8 / m < 3 || v[1].len / 8 / m > MAX_STATE) {
+        PyErr_Format(PyExc_ValueError, "perception_barrier: gramians (%zd values) and "
+                     "estimates (%zd) are not M x 9 and M x n (3 <= n <= 6)",
+                     v[3].len / 8, v[1].len / 8);
+        release(v + 1, 1); release(v + 3, 1);
+        return NULL;
+    }
+    int n = (int)(v[1].len / 8 / m);
+    const BufferSpec specs[7] = {{0, "drone", 3, 0}, {1, "estimates", n * m, 0},
+                                 {2, "velocities", 3 * m, 0}, {3, "gramians", 9 * m, 0},
+                                 {4, "projector_means", 9 * m, 0},
+                                 {5, "constants", N_CONSTANTS, 0}, {6, "out", N_ROW * m, 1}};
+    PyBuffer_Release(&v[1]); PyBuffer_Release(&v[3]);
+    if (acquire(args, specs, 7, v)) return NULL;
+    const double *drone = v[0].buf, *estimates = v[1].buf, *velocities = v[2].buf;
+    const double *gramians = v[3].buf, *means = v[4].buf, *k = v[5].buf;
+    double *out = v[6].buf;
+    BarrierConstants b = {k[C_N], k[C_RHO], k[C_EPS], k[C_P], k[C_B]};
+    SmoothMinLimits lim = {k[C_FLOOR], k[C_GAP]};
+    int ok = 1;
+    for (Py_ssize_t r = 0; r < m && ok; r++) {
+        double *row = out + N_ROW * r, values[3], vectors[9];
+        perception(drone, estimates + n * r, k, row);
+        if (symmetric_eigen(gramians + 9 * r, values, vectors) != 0) { ok = 0; break; }
+        localization_barrier(values, vectors, means + 9 * r, row, velocities + 3 * r, b, lim,
+                             row + N_PERCEPTION);
+    }
+    release(v, 7);
+    return PyBool_FromLong(ok);
+}
+
+PyDoc_STRVAR(filter_stack_doc,
+"filter_stack(information, vector, transition, process_noise, n_agents, posterior_state,"
+" prior_state, prior_information, posterior_covariance) -> bool\n--\n\n"
+"icf.posterior, posterior_covariance and predict (without the communicated velocity) for\n"
+"M targets: information (M x n x n), vector (M x n), transition A (n x n), into the four\n"
+"outputs (M x n, M x n, M x n x n, M x n x n). False if some V or A P A' + qI is not\n"
+"positive definite (the outputs are then incomplete: take the pseudo-inverse path).");
+
+static PyObject *
+py_filter_stack(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    Py_buffer v[7];
+    if (check_nargs(nargs, 9, "filter_stack")) return NULL;
+    double process_noise = PyFloat_AsDouble(args[3]);
+    double n_agents = PyFloat_AsDouble(args[4]);
+    if (PyErr_Occurred()) return NULL;
+    if (float64_buffer(args[2], &v[2], 0, -1, "transition")) return NULL;
+    Py_ssize_t nn = v[2].len / 8;
+    int n = (int)lround(sqrt((double)nn));
+    PyBuffer_Release(&v[2]);
+    if (n < 1 || n > MAX_STATE || (Py_ssize_t)n * n != nn) {
+        PyErr_Format(PyExc_ValueError, "filter_stack: transition must be n x n with n <= %d, "
+                     "got %zd values", MAX_STATE, nn);
+        return NULL;
+    }
+    if (float64_buffer(args[1], &v[1], 0, -1, "vector")) return NULL;
+    Py_ssize_t m = v[1].len / 8 / n;
+    int bad = m < 1 || v[1].len / 8 != m * n;
+    PyBuffer_Release(&v[1]);
+    if (bad) {
+        PyErr_Format(PyExc_ValueError, "filter_stack: vector must be M x %d", n);
+        return NULL;
+    }
+    const BufferSpec specs[7] = {
+        {0, "information", m * n * n, 0}, {1, "vector", m * n, 0}, {2, "transition", n * n, 0},
+        {5, "posterior_state", m * n, 1}, {6, "prior_state", m * n, 1},
+        {7, "prior_information", m * n * n, 1}, {8, "posterior_covariance", m * n * n, 1}};
+    if (acquire(args, specs, 7, v)) return NULL;
+    int status = filter_stack(v[0].buf, v[1].buf, v[2].buf, (int)m, n, process_noise,
+                              n_agents, v[3].buf, v[4].buf, v[5].buf, v[6].buf);
+    release(v, 7);
+    return PyBool_FromLong(status == 0);
+}
+
+static PyMethodDef methods[] = {
+    {"perception", (PyCFunction)(void (*)(void))py_perception, METH_FASTCALL, perception_doc},
+    {"symmetric_eigen", (PyCFunction)(void (*)(void))py_symmetric_eigen, METH_FASTCALL,
+     symmetric_eigen_doc},
+    {"smooth_min", (PyCFunction)(void (*)(void))py_smooth_min, METH_FASTCALL, smooth_min_doc},
+    {"perception_barrier", (PyCFunction)(void (*)(void))py_perception_barrier, METH_FASTCALL,
+     perception_barrier_doc},
+    {"filter_stack", (PyCFunction)(void (*)(void))py_filter_stack, METH_FASTCALL,
+     filter_stack_doc},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {
+    PyModuleDef_HEAD_INIT,
+    .m_name = "swarm.core._kernels",
+    .m_doc = "The per-step numerical kernels of DroneAgent, compiled (see the source's header).",
+    .m_size = -1,
+    .m_methods = methods,
+};
+
+PyMODINIT_FUNC
+PyInit__kernels(void)
+{
+    PyObject *mod = PyModule_Create(&module);
+    if (mod == NULL) return NULL;
+    if (PyModule_AddIntConstant(mod, "PERCEPTION_SIZE", N_PERCEPTION) < 0
+            || PyModule_AddIntConstant(mod, "BARRIER_SIZE", N_BARRIER) < 0
+            || PyModule_AddIntConstant(mod, "SMOOTH_MIN_SIZE", N_SMOOTH) < 0
+            || PyModule_AddIntConstant(mod, "CONSTANTS_SIZE", N_CONSTANTS) < 0
+            || PyModule_AddIntConstant(mod, "MAX_STATE", MAX_STATE) < 0) {
+        Py_DECREF(mod);
+        return NULL;
+    }
+    return mod;
+}

@@ -1,0 +1,426 @@
+"""The compiled kernels the agent's step runs (``swarm.core.kernels``) against the readable
+forms the finite-difference tests check, and their own derivatives by central differences
+(issue 16: the compiled form is parity-tested against its formula):
+
+- ``perception`` ↔ ``perception_terms`` (SPEC §3), in every regime, at each threshold and
+  right beside it;
+- ``symmetric_eigen`` ↔ LAPACK's ``np.linalg.eigh``; ``smooth_min`` ↔ ``smooth_min_eigenvalue``
+  (SPEC §7) for eigenvalues far apart, nearly repeated (relative gaps down to 1e-12) and
+  below the clipping floor;
+- ``perception_barrier`` ↔ ``perception_terms`` then ``localization_barrier`` (SPEC §8), one
+  target and a stack;
+- ``icf.StackedFilter`` (``filter_stack``) ↔ ``posterior``, ``posterior_covariance`` and
+  ``predict`` per target (SPEC §5, 2.8-2.11, 2.21-2.22), and its pseudo-inverse fallback;
+- bad buffers are refused with a one-line error.
+
+Tolerance: the forms evaluate the same formulas in a different order (the barrier in the
+eigenbasis of G, where Γ is never formed; Jacobi rotations against LAPACK's tridiagonal
+method; inverses from a Cholesky factor against LU), so they agree to round-off: 1e-9 of each
+quantity's scale. Measured over these examples: bit for bit for the perception terms,
+~1e-14 for the barrier. The filter's bound scales with the condition number of V.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
+from scipy.stats import special_ortho_group
+
+from swarm.core import icf, kernels
+from swarm.core.barrier import localization_barrier
+from swarm.core.params import PerceptionParams
+from swarm.core.perception import perception_terms
+from swarm.core.smooth_min import EIGENVALUE_FLOOR, smooth_min_eigenvalue
+
+from .finite_difference import REGIMES, central_gradient, drone_at, random_drone_in_regime
+
+PARAMS = PerceptionParams()
+RTOL = 1e-9
+EXAMPLES = settings(max_examples=300, deadline=None)
+
+# Distances and off-axis cosines in every regime of w, at the thresholds and just beside them.
+DISTANCES = st.one_of(
+    st.floats(0.3, 9.0),
+    st.sampled_from([PARAMS.d_min_th_m, PARAMS.d_max_th_m]),
+    st.sampled_from([PARAMS.d_min_th_m, PARAMS.d_max_th_m]).flatmap(
+        lambda d: st.floats(d - 1e-6, d + 1e-6)))
+COSINES = st.one_of(
+    st.floats(-0.9, 0.999),
+    st.just(PARAMS.cos_alpha_th),
+    st.floats(PARAMS.cos_alpha_th - 1e-7, PARAMS.cos_alpha_th + 1e-7))
+ANGLES = st.floats(0.0, 2.0 * math.pi)
+COORDS = st.floats(-5.0, 5.0)
+
+# Eigenvalues: spread out, nearly repeated (relative gap down to 1e-12) or below the floor.
+SPREAD = st.lists(st.floats(1e-3, 5.0), min_size=3, max_size=3)
+NEAR_REPEATED = st.tuples(st.floats(1e-2, 3.0), st.sampled_from([1e-12, 1e-9, 1e-6, 1e-3]),
+                          st.floats(1e-2, 3.0)).map(
+    lambda t: [t[0], t[0] * (1.0 + t[1]), t[0] + t[2]])
+CLIPPED = st.tuples(st.floats(-1e-6, EIGENVALUE_FLOOR), st.floats(1e-3, 2.0),
+                    st.floats(1e-3, 2.0)).map(list)
+EIGENVALUES = st.one_of(SPREAD, NEAR_REPEATED, CLIPPED)
+ROTATIONS = st.tuples(ANGLES, ANGLES, ANGLES)
+EXPONENTS = st.sampled_from([-10.0, -5.0, -2.0])
+
+
+def _close(fast, readable, scale: float | None = None) -> None:
+    fast, readable = np.asarray(fast, dtype=float), np.asarray(readable, dtype=float)
+    size = max(float(np.max(np.abs(readable))), 1e-300) if scale is None else scale
+    np.testing.assert_allclose(fast, readable, rtol=0.0, atol=RTOL * size)
+
+
+def _pair(target, distance, cosine, azimuth):
+    target = np.array(target)
+    return drone_at(target, distance, cosine, azimuth), target
+
+
+def _gramian(eigenvalues, angles) -> np.ndarray:
+    """V diag(λ) Vᵀ with V a rotation from three angles."""
+    a, b, c = angles
+    rz = np.array([[math.cos(a), -math.sin(a), 0], [math.sin(a), math.cos(a), 0], [0, 0, 1]])
+    ry = np.array([[math.cos(b), 0, math.sin(b)], [0, 1, 0], [-math.sin(b), 0, math.cos(b)]])
+    rx = np.array([[1, 0, 0], [0, math.cos(c), -math.sin(c)], [0, math.sin(c), math.cos(c)]])
+    v = rz @ ry @ rx
+    g = v @ np.diag(eigenvalues) @ v.T
+    return 0.5 * (g + g.T)
+
+
+# -- perception (SPEC §3) ----------------------------------------------------------------------
+
+
+@EXAMPLES
+@given(st.tuples(COORDS, COORDS, COORDS), DISTANCES, COSINES, ANGLES)
+# At the angular threshold the smooth step is flat: the readable gradient is exactly 0 and the
+# fast one 2e-15 (found by a CI run).
+@example(target=(0.0, 0.0, 0.0), distance=3.0, cosine=PARAMS.cos_alpha_th,
+         azimuth=1.3455147415689412)
+def test_perception_equals_perception_terms(target, distance, cosine, azimuth) -> None:
+    drone, target = _pair(target, distance, cosine, azimuth)
+    readable = perception_terms(drone, target, PARAMS)
+    weight, grad, unit, dist, proj = kernels.perception(drone, target, PARAMS)
+    _close(weight, readable.weight, 1.0)
+    # ∂w/∂p is a sum of products of factors in [0, 1] and derivatives of order 1/d, so its
+    # round-off scales with 1/d even where the gradient itself vanishes.
+    grad_scale = max(float(np.max(np.abs(readable.weight_grad_drone))),
+                     1.0 / readable.distance_m)
+    _close(grad, readable.weight_grad_drone, grad_scale)
+    _close(unit, readable.unit_bearing, 1.0)
+    _close(dist, readable.distance_m)
+    _close(np.reshape(proj, (3, 3)), readable.projector, 1.0)
+
+
+# -- eigen-decomposition and smooth minimum (SPEC §7) ---------------------------------------------
+
+
+@EXAMPLES
+@given(EIGENVALUES, ROTATIONS)
+def test_symmetric_eigen_is_an_eigendecomposition_as_lapack_gives(eigenvalues, angles) -> None:
+    """Eigenvalues ascending as LAPACK's to round-off of the largest, eigenvectors orthonormal
+    and reproducing G; where eigenvalues are apart, each eigenvector LAPACK's up to sign."""
+    gramian = _gramian(eigenvalues, angles)
+    values, vectors = kernels.symmetric_eigen(gramian)
+    lapack_values, lapack_vectors = np.linalg.eigh(gramian)
+    scale = max(float(np.max(np.abs(lapack_values))), 1e-300)
+    _close(values, lapack_values, scale)
+    assert np.all(np.diff(values) >= 0.0)
+    _close(vectors.T @ vectors, np.eye(3), 1.0)
+    _close(vectors @ np.diag(values) @ vectors.T, gramian, scale)
+    for k in range(3):
+        gap = min(abs(lapack_values[k] - lapack_values[j]) for j in range(3) if j != k)
+        if gap > 1e-3 * scale:  # a well-defined direction: round-off / gap of it
+            sign = math.copysign(1.0, float(vectors[:, k] @ lapack_vectors[:, k]))
+            _close(sign * vectors[:, k], lapack_vectors[:, k], 1e3 * scale / gap)
+
+
+def test_symmetric_eigen_refuses_a_non_finite_matrix() -> None:
+    for bad in (math.nan, math.inf):
+        gramian = np.eye(3)
+        gramian[0, 1] = gramian[1, 0] = bad
+        with pytest.raises(np.linalg.LinAlgError):
+            kernels.symmetric_eigen(gramian)
+
+
+@EXAMPLES
+@given(EIGENVALUES, ROTATIONS, EXPONENTS)
+@example(eigenvalues=[4.0, 4.0, 0.75], angles=(0.0, 0.0, 0.0), p=-10.0)  # found by a run
+def test_smooth_min_equals_smooth_min_eigenvalue(eigenvalues, angles, p) -> None:
+    gramian = _gramian(eigenvalues, angles)
+    readable = smooth_min_eigenvalue(gramian, p)
+    # The readable form's own eigenvalues (the eigensolvers agree to round-off of the largest
+    # eigenvalue, not of the smallest: test_symmetric_eigen_...).
+    raw, _ = np.linalg.eigh(gramian)
+    value, lam, g, hess, theta = kernels.smooth_min(raw, p)
+    _close(value, readable.value)
+    _close(lam, readable.eigenvalues)
+    _close(g, readable.eigen_gradient, 1.0)  # weights in [0, 1] summing to 1
+    # Second derivatives are sums of terms of order f/λ_min² that may cancel (with p = −10
+    # and λ = 4, 4, 0.75, h_00 is 1.6e-6 from terms near 1.3; the fast form's round-off was
+    # 1.8e-15): judged against that natural size, not against what is left after the sum.
+    natural = abs(float(readable.value)) / float(np.min(readable.eigenvalues)) ** 2  # floored
+    h = readable.eigen_hessian
+    _close(hess, [h[0, 0], h[1, 1], h[2, 2], h[0, 1], h[0, 2], h[1, 2]],
+           max(float(np.abs(h).max()), natural))
+    t = readable.divided_differences
+    _close(theta, [t[0, 1], t[0, 2], t[1, 2]], max(float(np.abs(t).max()), natural))
+
+
+# -- the localization barrier (SPEC §8) ---------------------------------------------------------
+
+
+def _constants(n_agents, forgetting, epsilon, p, info_gain) -> np.ndarray:
+    return kernels.barrier_constants(PARAMS, n_agents=n_agents, forgetting=forgetting,
+                                     epsilon=epsilon, exponent=p, info_gain=info_gain)
+
+
+@EXAMPLES
+@given(EIGENVALUES, ROTATIONS, EXPONENTS, st.tuples(COORDS, COORDS, COORDS), DISTANCES,
+       COSINES, ANGLES, st.lists(st.tuples(DISTANCES, COSINES, ANGLES), min_size=1,
+                                 max_size=5),
+       st.tuples(st.floats(-1, 1), st.floats(-1, 1), st.floats(-1, 1)), st.integers(1, 8),
+       st.floats(0.1, 1.0), st.floats(0.01, 0.2), st.floats(0.1, 5.0))
+# An eigenvalue at the clipping floor beside a repeated pair (found by a run: the eigensolvers
+# put it on either side of the floor).
+@example(eigenvalues=[1e-9, 1.0, 1.0], angles=(0.0, 1.0, 0.0), p=-10.0, target=(0.0, 0.0, 0.0),
+         distance=1.0, cosine=PARAMS.cos_alpha_th, azimuth=0.0, others=[(3.0, 0.9, 0.5)],
+         velocity=(0.9, -0.2, 0.0), n_agents=4, forgetting=0.5, epsilon=0.04, info_gain=3.0)
+def test_perception_barrier_equals_localization_barrier(
+        eigenvalues, angles, p, target, distance, cosine, azimuth, others, velocity, n_agents,
+        forgetting, epsilon, info_gain) -> None:
+    gramian = _gramian(eigenvalues, angles)
+    drone, target = _pair(target, distance, cosine, azimuth)
+    terms = perception_terms(drone, target, PARAMS)
+    # The consensus mean of wΠ̂ over a few drones, as the agent holds it.
+    views = [perception_terms(drone_at(target, *o), target, PARAMS) for o in others]
+    projector_mean = np.mean([v.weight * v.projector for v in [terms, *views]], axis=0)
+    readable = localization_barrier(gramian, projector_mean, terms, np.array(velocity),
+                                    n_agents=n_agents, forgetting=forgetting, epsilon=epsilon,
+                                    exponent=p, info_gain=info_gain)
+    # The estimate as the agent holds it: [p̂; v̂] (the velocity part is not read here).
+    estimate = np.concatenate((target, [9.0, 9.0, 9.0]))
+    fast_terms, (value, psi0, psi1, lie_g, lower) = kernels.barrier(
+        drone, estimate, np.array(velocity), gramian, projector_mean,
+        _constants(n_agents, forgetting, epsilon, p, info_gain))
+    assert fast_terms == kernels.perception(drone, target, PARAMS)
+    # Two backward-stable eigensolvers (Jacobi here, LAPACK in the readable form) agree on
+    # each eigenvalue to a few ulps of the largest, not of the smallest: with λ = 1e-9, 1, 1
+    # they differ by 5e-17 (found by a run; Jacobi's is the closer one).
+    eigen_round_off = 16.0 * np.finfo(float).eps * max(abs(x) for x in eigenvalues)
+    _close(value, readable.lambda_bar, max(readable.lambda_bar, eigen_round_off / RTOL))
+    scale = max(abs(readable.psi1), abs(readable.psi0), readable.lambda_bar,
+                eigen_round_off / RTOL)
+    _close(psi0, readable.psi0, scale)
+    _close(psi1, readable.psi1, scale)
+    # L_gi ψ1 = b[∇w ⟨Γ, Π̂⟩ + (2w/d̂)Π̂Γβ̂]: its size is that of b Σ g_k (‖∇w‖ + 2w/d̂), even
+    # where the two parts cancel (a drone that does not see the target: ~1e-27).
+    g_sum = float(np.sum(readable.smooth_min.eigen_gradient))
+    lie_scale = info_gain * g_sum * (float(np.linalg.norm(terms.weight_grad_drone))
+                                     + 2.0 * terms.weight / terms.distance_m)
+    _close(lie_g, readable.lie_g, max(lie_scale, 1e-300))
+    speed = float(np.linalg.norm(velocity))
+    _close(lower, readable.lower_bound, max(abs(readable.lower_bound),
+                                            abs(readable.coupling) / n_agents,
+                                            lie_scale * speed, scale / n_agents))
+
+
+@settings(max_examples=50, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), m=st.integers(1, 4), n=st.sampled_from([3, 6]))
+def test_perception_barrier_of_a_stack_is_each_target_alone(seed, m, n) -> None:
+    """The agent's call for M targets = M one-target calls, bit for bit (no state between
+    targets, each row from its own inputs)."""
+    rng = np.random.default_rng(seed)
+    drone = rng.normal(size=3) + np.array([0.0, 0.0, 3.0])
+    estimates = rng.normal(size=(m, n))
+    velocities = rng.normal(size=(m, 3))
+    gramians = np.array([_gramian(rng.uniform(0.01, 3.0, 3), rng.uniform(0, 6, 3))
+                         for _ in range(m)])
+    means = np.array([_gramian(rng.uniform(0.0, 1.0, 3), rng.uniform(0, 6, 3))
+                      for _ in range(m)])
+    constants = _constants(4, 0.5, 0.05, -10.0, 1.3)
+    terms, barriers = kernels.perception_barrier(drone, estimates, velocities,
+                                                 gramians.reshape(-1), means.reshape(-1),
+                                                 constants)
+    for r in range(m):
+        alone = kernels.barrier(drone, estimates[r], velocities[r], gramians[r], means[r],
+                                constants)
+        assert (terms[r], barriers[r]) == alone
+
+
+def test_perception_barrier_refuses_a_non_finite_gramian() -> None:
+    gramians = np.tile(np.eye(3).reshape(-1), 2)
+    gramians[13] = math.nan  # target 1
+    with pytest.raises(np.linalg.LinAlgError, match="non-finite"):
+        kernels.perception_barrier(np.zeros(3), np.ones((2, 6)), np.zeros((2, 3)), gramians,
+                                   np.zeros(18), _constants(4, 0.5, 0.05, -10.0, 1.3))
+
+
+# -- derivatives on the agent's path ------------------------------------------------------------
+
+FD_STEP_M = 1e-6
+FD_ATOL = 1e-8  # the budget of test_barrier.py / test_perception.py (finite_difference)
+
+
+@pytest.mark.parametrize(("distance_regime", "cosine_regime"), REGIMES)
+def test_the_weight_gradient_the_agent_uses_is_the_weights_derivative(
+        distance_regime: str, cosine_regime: str) -> None:
+    """∂w/∂p_i of the kernel = central differences of the kernel's own w."""
+    rng = np.random.default_rng(700 + REGIMES.index((distance_regime, cosine_regime)))
+    for _ in range(5):
+        target = rng.uniform(-1.0, 1.0, 3)
+        drone = random_drone_in_regime(rng, target, distance_regime, cosine_regime)
+        numeric = central_gradient(
+            lambda p, t=target: kernels.perception(p, t, PARAMS).weight, drone, FD_STEP_M)
+        np.testing.assert_allclose(kernels.perception(drone, target, PARAMS).weight_grad_drone,
+                                   numeric, rtol=0, atol=FD_ATOL)
+
+
+@pytest.mark.parametrize("exponent", [-4.0, -10.0, -30.0])
+@pytest.mark.parametrize(("distance_regime", "cosine_regime"), REGIMES)
+def test_the_barrier_gradient_the_agent_uses_is_the_derivative_of_psi1(
+        distance_regime: str, cosine_regime: str, exponent: float) -> None:
+    """L_gi ψ1 of the kernel = ∂ψ1/∂p_i at a fixed Gramian, where the drone's own term
+    w(p_i)Π̂(p_i) enters the mean s = (wΠ̂ + Σ others)/N of the Gramian's model rate,
+    ψ1 = ⟨Γ, −ρG + bNs⟩ + λ̄ − ε: so ∂ψ1/∂p_i = b∂⟨Γ, wΠ̂⟩/∂p_i, the row the QP gets. ψ1 itself
+    is the kernel's at every probe."""
+    rng = np.random.default_rng(800 + 10 * REGIMES.index((distance_regime, cosine_regime))
+                                - int(exponent))
+    n_agents, forgetting, epsilon, info_gain = 4, 0.5, 0.05, 1.3
+    constants = _constants(n_agents, forgetting, epsilon, exponent, info_gain)
+    for _ in range(3):
+        target = rng.uniform(-1.0, 1.0, 3)
+        drone = random_drone_in_regime(rng, target, distance_regime, cosine_regime)
+        rotation = special_ortho_group.rvs(3, random_state=rng)
+        gramian = rotation @ np.diag(rng.uniform(0.05, 3.0, 3)) @ rotation.T
+        others = sum(t.weight * np.reshape(t.projector, (3, 3)) for t in (
+            kernels.perception(random_drone_in_regime(rng, target, "nominal", "on_axis"),
+                               target, PARAMS)
+            for _ in range(n_agents - 1)))
+
+        def barrier_at(p: np.ndarray, t=target, rest=others, g=gramian):
+            own = kernels.perception(p, t, PARAMS)
+            mean = (own.weight * np.reshape(own.projector, (3, 3)) + rest) / n_agents
+            return kernels.barrier(p, t, np.zeros(3), g, mean, constants)[1]
+
+        numeric = central_gradient(lambda p: barrier_at(p).psi1, drone, FD_STEP_M)
+        np.testing.assert_allclose(barrier_at(drone).lie_g, numeric, rtol=0, atol=FD_ATOL)
+
+
+# -- the ICF's local steps (SPEC §5) ----------------------------------------------------------
+
+
+def _spd_stack(rng: np.random.Generator, m: int, n: int, condition: float) -> np.ndarray:
+    """M symmetric positive-definite n×n matrices with eigenvalues spread over ``condition``."""
+    stack = np.empty((m, n, n))
+    for r in range(m):
+        q, _ = np.linalg.qr(rng.normal(size=(n, n)))
+        eigenvalues = np.geomspace(1.0, condition, n) * rng.uniform(0.5, 20.0)
+        stack[r] = (q * eigenvalues) @ q.T
+        stack[r] = 0.5 * (stack[r] + stack[r].T)
+    return stack
+
+
+@settings(max_examples=150, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), m=st.integers(1, 3),
+       model=st.sampled_from(["double_integrator", "single_integrator"]),
+       n_agents=st.integers(2, 12), dt=st.floats(0.005, 0.1),
+       noise=st.floats(1e-4, 1.0), condition=st.sampled_from([1.0, 10.0, 1e3, 1e5]))
+def test_stacked_filter_equals_posterior_then_predict_per_target(
+        seed, m, model, n_agents, dt, noise, condition) -> None:
+    """``icf.StackedFilter`` (the kernel: pinv(W⁺) = V⁻¹/N from one Cholesky factor) against
+    ``posterior``, ``posterior_covariance`` and ``predict`` (2.8-2.11, 2.21-2.22) target by
+    target, with and without the communicated velocity; W⁻ symmetric exactly."""
+    rng = np.random.default_rng(seed)
+    n = icf.state_dimension(model)
+    information = _spd_stack(rng, m, n, condition)
+    vector = rng.normal(size=(m, n)) * 10.0
+    velocity = rng.normal(size=(m, 3)) if model == "single_integrator" else None
+    transition = icf.transition_matrix(model, dt)
+    fast = icf.StackedFilter(transition, noise, n_agents, dt)(information, vector, velocity)
+    for r in range(m):
+        state, info = icf.posterior(information[r], vector[r], n_agents)
+        prior_state, prior_info = icf.predict(
+            state, info, transition, noise,
+            communicated_velocity=None if velocity is None else velocity[r], dt_s=dt)
+        scale = condition * max(1.0, float(np.max(np.abs(state))))
+        _close(fast[0][r], state, scale)
+        _close(fast[1][r], prior_state, scale)
+        _close(fast[2][r], prior_info, condition * float(np.max(np.abs(prior_info))))
+        assert np.array_equal(fast[2][r], fast[2][r].T)
+        covariance = icf.posterior_covariance(info)
+        _close(fast[3][r], covariance, condition * float(np.max(np.abs(covariance))))
+
+
+@pytest.mark.parametrize("bad", [np.diag([1.0, 2.0, 3.0, 0.0, 0.0, 0.0]),  # velocity never seen
+                                 np.diag([1.0, 2.0, 3.0, 4.0, 5.0, -1e-9]),
+                                 np.full((6, 6), math.nan)])
+def test_stacked_filter_takes_the_readable_path_for_an_information_not_positive_definite(
+        bad) -> None:
+    """One V not positive definite (or not finite): every target goes through
+    ``posterior``/``predict`` with the SVD pseudo-inverse, so the result is theirs exactly."""
+    rng = np.random.default_rng(5)
+    information = _spd_stack(rng, 2, 6, 10.0)
+    information[1] = bad
+    vector = rng.normal(size=(2, 6))
+    transition = icf.transition_matrix("double_integrator", 0.02)
+    assert kernels.filter_stack(information, vector, transition, 0.01, 3) is None
+    if np.isnan(bad).any():
+        return  # the readable path's SVD does not converge on NaN: nothing to compare
+    fast = icf.StackedFilter(transition, 0.01, 3, 0.02)(information, vector)
+    for r in range(2):
+        state, info = icf.posterior(information[r], vector[r], 3)
+        prior_state, prior_info = icf.predict(state, info, transition, 0.01)
+        assert np.array_equal(fast[0][r], state) and np.array_equal(fast[1][r], prior_state)
+        assert np.array_equal(fast[2][r], prior_info)
+        assert np.array_equal(fast[3][r], icf.posterior_covariance(info))
+
+
+# -- what the kernels refuse --------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("args", "error", "message"), [
+    ((np.zeros(3, dtype=np.float32), np.ones(3)), TypeError, "drone: expected float64"),
+    ((np.zeros(4), np.ones(3)), ValueError, "drone: expected 3 float64 values, got 4"),
+    ((np.zeros(6)[::2], np.ones(3)), TypeError, "drone: expected a C-contiguous"),
+    ((np.zeros(3), [1.0, 2.0, 3.0]), TypeError, "target: expected a C-contiguous float64"),
+])
+def test_a_bad_buffer_gets_a_one_line_error(args, error, message) -> None:
+    constants = np.array(kernels.perception_constants(PARAMS))
+    with pytest.raises(error, match=message):
+        kernels._kernels.perception(*args, constants, np.empty(kernels.PERCEPTION_SIZE))
+    with pytest.raises(TypeError, match="out: expected a writable"):
+        out = np.empty(kernels.PERCEPTION_SIZE)
+        out.flags.writeable = False
+        kernels._kernels.perception(np.zeros(3), np.ones(3), constants, out)
+
+
+def test_the_filter_refuses_mismatched_stacks() -> None:
+    transition = icf.transition_matrix("double_integrator", 0.02)
+    outputs = (np.empty((2, 6)), np.empty((2, 6)), np.empty((2, 6, 6)), np.empty((2, 6, 6)))
+    with pytest.raises(ValueError, match="information: expected 72 float64 values, got 36"):
+        kernels._kernels.filter_stack(np.eye(6), np.ones((2, 6)), transition, 0.01, 3.0,
+                                      *outputs)
+    with pytest.raises(ValueError, match="transition must be n x n"):
+        kernels._kernels.filter_stack(np.eye(6), np.ones(6), np.ones(5), 0.01, 3.0, *outputs)
+
+
+def test_a_kernel_binary_older_than_its_source_is_refused(tmp_path) -> None:
+    """An edit of _kernels.c not yet compiled stops the import with what to run."""
+    import os
+
+    from swarm.errors import VigilError
+
+    binary, source = tmp_path / "_kernels.so", tmp_path / "_kernels.c"
+    binary.write_bytes(b"")
+    source.write_text("")
+    os.utime(binary, (1_000, 1_000))
+    os.utime(source, (2_000, 2_000))
+    with pytest.raises(VigilError, match=r"_kernels.so is older than _kernels.c: rebuild it "
+                                         r"with `pip install -e .`"):
+        kernels._check_built_from_current_source(binary, source)
+    os.utime(binary, (3_000, 3_000))
+    kernels._check_built_from_current_source(binary, source)  # up to date: nothing said
+    source.unlink()
+    kernels._check_built_from_current_source(binary, source)  # an installed wheel: no source
