@@ -344,6 +344,29 @@ filter_stack(const double *information, const double *vector, const double *tran
 
 /* -- Python glue --------------------------------------------------------------------------- */
 
+static void
+length_error(const Py_buffer *view, Py_ssize_t length, const char *what)
+{
+    PyErr_Format(PyExc_ValueError, "%s: expected %zd float64 values, got %zd", what, length,
+                 view->len / 8);
+}
+
+static void
+release(Py_buffer *views, int count)
+{
+    for (int i = 0; i < count; i++) PyBuffer_Release(&views[i]);
+}
+
+/* One argument of a kernel: which of the call's arguments, its name, its length in float64
+ * items (-1: any, checked by the caller once the sizes are known) and whether the kernel
+ * writes it. */
+typedef struct {
+    int arg;
+    const char *name;
+    Py_ssize_t length;
+    int writable;
+} BufferSpec;
+
 /* A C-contiguous float64 buffer of exactly `length` items (`length` < 0: any, returned in
  * *found), writable if asked. Sets a one-line ValueError/TypeError naming `what` otherwise. */
 static int
@@ -365,30 +388,27 @@ float64_buffer(PyObject *obj, Py_buffer *view, int writable, Py_ssize_t length,
         PyBuffer_Release(view);
         return -1;
     }
-    Py_ssize_t items = view->len / 8;
-    if (length >= 0 && items != length) {
-        PyErr_Format(PyExc_ValueError, "%s: expected %zd float64 values, got %zd", what,
-                     length, items);
+    if (length >= 0 && view->len / 8 != length) {
+        length_error(view, length, what);
         PyBuffer_Release(view);
         return -1;
     }
     return 0;
 }
 
-static void
-release(Py_buffer *views, int count)
+/* Whether each of the `count` acquired views holds its expected number of float64 items;
+ * if not, the error names the first that does not, and every view is released. */
+static int
+check_lengths(Py_buffer *views, const BufferSpec *specs, const Py_ssize_t *lengths, int count)
 {
-    for (int i = 0; i < count; i++) PyBuffer_Release(&views[i]);
+    for (int i = 0; i < count; i++)
+        if (views[i].len / 8 != lengths[i]) {
+            length_error(&views[i], lengths[i], specs[i].name);
+            release(views, count);
+            return -1;
+        }
+    return 0;
 }
-
-/* One argument of a kernel: which of the call's arguments, its name, its length in float64
- * items (-1: any) and whether the kernel writes it. */
-typedef struct {
-    int arg;
-    const char *name;
-    Py_ssize_t length;
-    int writable;
-} BufferSpec;
 
 /* The buffers of `count` specs into views; on failure none is held and the error is set. */
 static int
@@ -487,26 +507,22 @@ enum { C_N = N_PERCEPTION_CONSTANTS, C_RHO, C_EPS, C_P, C_B, C_FLOOR, C_GAP, N_C
 static PyObject *
 py_perception_barrier(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
+    static const BufferSpec specs[7] = {
+        {0, "drone", 3, 0}, {1, "estimates", -1, 0}, {2, "velocities", -1, 0},
+        {3, "gramians", -1, 0}, {4, "projector_means", -1, 0}, {5, "constants", N_CONSTANTS, 0},
+        {6, "out", -1, 1}};
     Py_buffer v[7];
-    if (check_nargs(nargs, 7, "perception_barrier")) return NULL;
-    if (float64_buffer(args[1], &v[1], 0, -1, "estimates")) return NULL;
-    if (float64_buffer(args[3], &v[3], 0, -1, "gramians")) { release(v + 1, 1); return NULL; }
-    Py_ssize_t m = v[3].len / 8 / 9;
-    if (m < 1 || v[3].len / 8 != 9 * m || v[1].len / 8 % m != 0
-            || v[1].len / 8 / m < 3 || v[1].len / 8 / m > MAX_STATE) {
+    if (check_nargs(nargs, 7, "perception_barrier") || acquire(args, specs, 7, v)) return NULL;
+    Py_ssize_t m = v[3].len / 8 / 9, n = m > 0 ? v[1].len / 8 / m : 0;
+    if (m < 1 || n < 3 || n > MAX_STATE) {
         PyErr_Format(PyExc_ValueError, "perception_barrier: gramians (%zd values) and "
                      "estimates (%zd) are not M x 9 and M x n (3 <= n <= 6)",
                      v[3].len / 8, v[1].len / 8);
-        release(v + 1, 1); release(v + 3, 1);
+        release(v, 7);
         return NULL;
     }
-    int n = (int)(v[1].len / 8 / m);
-    const BufferSpec specs[7] = {{0, "drone", 3, 0}, {1, "estimates", n * m, 0},
-                                 {2, "velocities", 3 * m, 0}, {3, "gramians", 9 * m, 0},
-                                 {4, "projector_means", 9 * m, 0},
-                                 {5, "constants", N_CONSTANTS, 0}, {6, "out", N_ROW * m, 1}};
-    PyBuffer_Release(&v[1]); PyBuffer_Release(&v[3]);
-    if (acquire(args, specs, 7, v)) return NULL;
+    const Py_ssize_t lengths[7] = {3, n * m, 3 * m, 9 * m, 9 * m, N_CONSTANTS, N_ROW * m};
+    if (check_lengths(v, specs, lengths, 7)) return NULL;
     const double *drone = v[0].buf, *estimates = v[1].buf, *velocities = v[2].buf;
     const double *gramians = v[3].buf, *means = v[4].buf, *k = v[5].buf;
     double *out = v[6].buf;
@@ -535,34 +551,26 @@ PyDoc_STRVAR(filter_stack_doc,
 static PyObject *
 py_filter_stack(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
+    static const BufferSpec specs[7] = {
+        {0, "information", -1, 0}, {1, "vector", -1, 0}, {2, "transition", -1, 0},
+        {5, "posterior_state", -1, 1}, {6, "prior_state", -1, 1},
+        {7, "prior_information", -1, 1}, {8, "posterior_covariance", -1, 1}};
     Py_buffer v[7];
     if (check_nargs(nargs, 9, "filter_stack")) return NULL;
     double process_noise = PyFloat_AsDouble(args[3]);
     double n_agents = PyFloat_AsDouble(args[4]);
-    if (PyErr_Occurred()) return NULL;
-    if (float64_buffer(args[2], &v[2], 0, -1, "transition")) return NULL;
-    Py_ssize_t nn = v[2].len / 8;
-    int n = (int)lround(sqrt((double)nn));
-    PyBuffer_Release(&v[2]);
-    if (n < 1 || n > MAX_STATE || (Py_ssize_t)n * n != nn) {
-        PyErr_Format(PyExc_ValueError, "filter_stack: transition must be n x n with n <= %d, "
-                     "got %zd values", MAX_STATE, nn);
+    if (PyErr_Occurred() || acquire(args, specs, 7, v)) return NULL;
+    Py_ssize_t nn = v[2].len / 8, n = (Py_ssize_t)lround(sqrt((double)nn));
+    Py_ssize_t m = n > 0 ? v[1].len / 8 / n : 0;
+    if (n < 1 || n > MAX_STATE || n * n != nn || m < 1) {
+        PyErr_Format(PyExc_ValueError, "filter_stack: transition must be n x n with n <= %d "
+                     "and vector M x n, got %zd and %zd values", MAX_STATE, nn, v[1].len / 8);
+        release(v, 7);
         return NULL;
     }
-    if (float64_buffer(args[1], &v[1], 0, -1, "vector")) return NULL;
-    Py_ssize_t m = v[1].len / 8 / n;
-    int bad = m < 1 || v[1].len / 8 != m * n;
-    PyBuffer_Release(&v[1]);
-    if (bad) {
-        PyErr_Format(PyExc_ValueError, "filter_stack: vector must be M x %d", n);
-        return NULL;
-    }
-    const BufferSpec specs[7] = {
-        {0, "information", m * n * n, 0}, {1, "vector", m * n, 0}, {2, "transition", n * n, 0},
-        {5, "posterior_state", m * n, 1}, {6, "prior_state", m * n, 1},
-        {7, "prior_information", m * n * n, 1}, {8, "posterior_covariance", m * n * n, 1}};
-    if (acquire(args, specs, 7, v)) return NULL;
-    int status = filter_stack(v[0].buf, v[1].buf, v[2].buf, (int)m, n, process_noise,
+    const Py_ssize_t lengths[7] = {m * n * n, m * n, n * n, m * n, m * n, m * n * n, m * n * n};
+    if (check_lengths(v, specs, lengths, 7)) return NULL;
+    int status = filter_stack(v[0].buf, v[1].buf, v[2].buf, (int)m, (int)n, process_noise,
                               n_agents, v[3].buf, v[4].buf, v[5].buf, v[6].buf);
     release(v, 7);
     return PyBool_FromLong(status == 0);
