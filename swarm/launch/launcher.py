@@ -220,6 +220,11 @@ def choose_mavlink_base(requested: int, count: int,
     raise MissionError("no free block of UDP ports for the MAVLink links")
 
 
+def mavlink_lock_path(base: int) -> Path:
+    """The file a launcher holds locked while it uses the MAVLink block from ``base``."""
+    return Path(tempfile.gettempdir()) / f"vigil-mavlink-{base}.lock"
+
+
 def reserve_mavlink_base(requested: int, count: int, skip: frozenset[int] = frozenset()
                          ) -> tuple[int, IO[bytes]]:
     """``choose_mavlink_base``, plus an exclusive lock on the block until the returned file
@@ -230,13 +235,12 @@ def reserve_mavlink_base(requested: int, count: int, skip: frozenset[int] = froz
     second one take the next block, or fail at once if that base was requested. A block that
     receives datagrams (``TRAFFIC_LISTEN_S``) is passed over: something sends there.
     """
-    lock_dir = Path(tempfile.gettempdir())
     base = requested
     candidates = [requested] if requested else _candidate_bases(count)
     for base in candidates:
         if not requested and not udp_ports_free(base, count):
             continue
-        handle = open(lock_dir / f"vigil-mavlink-{base}.lock", "ab")  # noqa: SIM115 - held
+        handle = open(mavlink_lock_path(base), "ab")  # noqa: SIM115 - held
         try:
             fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:

@@ -8,7 +8,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import fcntl
 import os
 import re
 import signal
@@ -17,6 +19,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -141,6 +144,28 @@ def ports_from(lines: list[str]) -> tuple[int, list[int]]:
     return zenoh_port, list(range(first, last + 1))
 
 
+@contextlib.contextmanager
+def no_other_launcher_on(base: int, timeout_s: float = 120.0) -> Iterator[None]:
+    """Hold the launchers' lock on the MAVLink block from ``base`` (``mavlink_lock_path``).
+
+    Once our launcher has stopped, a launcher of another test (the CPU-bound xdist worker
+    runs swarms too) may take the freed block at once and bind its ports: found by a CI run.
+    Launchers skip a locked block, so while this lock is held a bound port can only be ours.
+    Waits for a launcher that holds the block to finish its mission."""
+    with open(launcher_module.mavlink_lock_path(base), "ab") as handle:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() > deadline:
+                    pytest.fail(f"the MAVLink block from {base} stayed reserved for "
+                                f"{timeout_s:g} s")
+                time.sleep(0.1)  # another test's swarm flies on these ports: wait for it
+        yield
+
+
 def assert_ports_free(zenoh_port: int, udp_ports: list[int]) -> None:
     """Nobody listens on the router port and nobody holds the MAVLink ports. (SO_REUSEADDR
     lets the bind ignore connections in TIME_WAIT, which the kernel keeps after any close,
@@ -149,9 +174,10 @@ def assert_ports_free(zenoh_port: int, udp_ports: list[int]) -> None:
         tcp.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         tcp.bind(("127.0.0.1", zenoh_port))
         tcp.listen()
-    for port in udp_ports:
-        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
-            udp.bind(("127.0.0.1", port))
+    with no_other_launcher_on(udp_ports[0]):
+        for port in udp_ports:
+            with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
+                udp.bind(("127.0.0.1", port))
 
 
 @pytest.mark.wallclock
