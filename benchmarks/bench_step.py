@@ -22,10 +22,12 @@ Per sample, wall clock (``time.perf_counter``):
 - encode: what ``swarm.agent.process`` encodes for that step with ``swarm.messages.wire.WireCodec``:
   the consensus message of every round, the beacon and the telemetry (``encode_consensus``,
   ``encode_beacon``, ``encode_telemetry``: built from the core's types and checked);
-- decode: what it decodes for that step: the camera frame (and its detections), every
-  neighbour's consensus message of every round and the world's relay of every drone's beacon
-  (``decode_beacon_relay``; the world's own work is not timed). The agent runs
-  on the decoded messages (bit-exact), as in the process swarm;
+- decode: what it decodes for that step, as a lockstep agent does: the camera frame (its
+  detections and every drone's reported position, ``CameraFrameWire.drone_positions``),
+  every neighbour's consensus message of every round, and the others' positions taken from
+  the frame ("drone positions"; the world's own work is not timed). The agent runs on the
+  decoded messages (bit-exact), as in the process swarm. (A realtime agent decodes the
+  world's relay of beacons instead of the positions: ~9 µs at N = 6.)
 - total = core + encode + decode ("everything included"); cpu = thread CPU time of the same
   work (leaves out waiting for a CPU on a loaded machine).
 
@@ -62,13 +64,13 @@ from rich.text import Text
 
 import swarm.runs.reference as reference
 from swarm.core.agent import ConsensusMessage, Detection, DroneAgent, StepResult
-from swarm.messages.wire import BeaconRelayWire, CameraFrameWire, RelayedBeacon, WireCodec
+from swarm.messages.wire import CameraFrameWire, WireCodec
 from swarm.scenario.config import ScenarioConfig, TargetSection, load_config
 
 CORE_SECTIONS = ("estimation", "consensus", "barrier", "qp", "other")
 # The wire work of one drone step, by message (all rounds, all neighbours, all beacons).
 WIRE_KINDS = ("encode consensus", "encode beacon", "encode telemetry", "decode camera",
-              "decode consensus", "decode beacons")
+              "decode consensus", "drone positions")
 SECTIONS = (*CORE_SECTIONS, "encode", "decode")
 CVXPY_LABEL = "case2, QP rebuilt in CVXPY"
 
@@ -107,21 +109,24 @@ def scenarios(profile: Profile) -> list[Scenario]:
 
 
 class WireBus:
-    """The payloads of the current step, as the process swarm would have them on Zenoh."""
+    """The payloads of the current step, as the process swarm would have them on Zenoh, and
+    every drone's reported position of the step (``reference.position_over_link``'s N
+    results, which come before any drone's step begins), as the world's frames carry them."""
 
-    def __init__(self, codec: WireCodec) -> None:
-        self.codec = codec
+    def __init__(self, codec: WireCodec, n_drones: int) -> None:
+        self.codec, self.n_drones = codec, n_drones
         self.consensus: dict[tuple[int, int], bytes] = {}  # (round, sender) → payload
         self.beacons: dict[int, bytes] = {}  # sender → payload
-        self._relay: tuple[int, bytes] | None = None
+        self._reported: list[np.ndarray] = []
 
-    def relay(self, step: int) -> bytes:
-        """The world's relay of every drone's beacon of ``step`` (its work, not timed)."""
-        if self._relay is None or self._relay[0] != step:
-            beacons = (self.codec.decode_beacon(self.beacons[j]) for j in sorted(self.beacons))
-            self._relay = (step, self.codec.encode(BeaconRelayWire(
-                step=step, beacons=tuple(RelayedBeacon(b, 0.0) for b in beacons))))
-        return self._relay[1]
+    def report(self, position: np.ndarray) -> None:
+        if len(self._reported) == self.n_drones:  # the first of the next step
+            self._reported = []
+        self._reported.append(position)
+
+    def reported_positions(self) -> np.ndarray:
+        assert len(self._reported) == self.n_drones, "a step's positions are not all in"
+        return np.array(self._reported)
 
 
 class StepProbe:
@@ -145,6 +150,7 @@ class StepProbe:
         self.wire_s = dict.fromkeys(WIRE_KINDS, 0.0)
         self._current_round = 0
         self._step = 0
+        self._frame: CameraFrameWire | None = None
         self._position = np.zeros(3)
         self._flying = np.zeros(3)
 
@@ -181,10 +187,11 @@ class StepProbe:
         # The world's side (not timed): the camera frame of this drone.
         frame = self.codec.encode(CameraFrameWire.build(
             drone=self.drone, step=step, time_s=step * dt, vehicle_time_ms=round(step * dt * 1e3),
-            detections=detections, target_velocities=communicated))
+            detections=detections, target_velocities=communicated,
+            drone_positions=self.bus.reported_positions()))
 
         def decode_frame() -> tuple[list[Detection], np.ndarray | None]:
-            wire = self.codec.decode_camera(frame)
+            wire = self._frame = self.codec.decode_camera(frame)
             return wire.detection_list(), wire.target_velocity_array()
 
         detections, communicated = self._timed("decode camera", decode_frame)
@@ -205,11 +212,15 @@ class StepProbe:
         return message
 
     def finish_step(self, _beacons: dict[int, np.ndarray]) -> StepResult:
-        relay = self.bus.relay(self._step)
-        decoded = self._timed("decode beacons", lambda: {
-            e.beacon.sender: np.asarray(e.beacon.position_m, dtype=float)
-            for e in self.codec.decode_beacon_relay(relay).beacons
-            if e.beacon.sender != self.drone})
+        frame = self._frame
+        assert frame is not None
+
+        def others() -> dict[int, np.ndarray]:  # as LockstepExchange.beacons takes them
+            positions = frame.drone_position_array()
+            assert positions is not None
+            return {j: positions[j] for j in range(len(positions)) if j != self.drone}
+
+        decoded = self._timed("drone positions", others)
         result: StepResult = self._core(self._finish, decoded)
         agent = self.agent
         self._timed("encode telemetry", lambda: self.codec.encode_telemetry(
@@ -252,8 +263,8 @@ def warm_up_cvxpy() -> None:
 def probed_agents(config: ScenarioConfig) -> Iterator[list[StepProbe]]:
     """The agents ``run_reference`` builds, each wrapped in a ``StepProbe``."""
     probes: list[StepProbe] = []
-    bus = WireBus(config.wire_codec())
-    original = reference.build_agent
+    bus = WireBus(config.wire_codec(), config.swarm.n_drones)
+    original, over_link = reference.build_agent, reference.position_over_link
 
     def build(*args: Any, **kwargs: Any) -> DroneAgent:
         agent = original(*args, **kwargs)
@@ -261,11 +272,16 @@ def probed_agents(config: ScenarioConfig) -> Iterator[list[StepProbe]]:
         probes.append(StepProbe(agent, codec, bus, config))
         return agent
 
-    reference.build_agent = build
+    def reported(position: np.ndarray, origin: np.ndarray) -> np.ndarray:
+        seen = over_link(position, origin)
+        bus.report(seen)
+        return seen
+
+    reference.build_agent, reference.position_over_link = build, reported
     try:
         yield probes
     finally:
-        reference.build_agent = original
+        reference.build_agent, reference.position_over_link = original, over_link
 
 
 def run_once(scenario: Scenario) -> dict[str, Any]:
@@ -406,8 +422,8 @@ def tables(result: dict[str, Any]) -> list[Table]:
         "Wire work of one drone step [µs], by message (medians; M = number of targets)",
         ["scenario", "M", *WIRE_KINDS],
         caption=("consensus: every round's message (sent once, decoded once per neighbour); "
-                 "beacons: the world's relay of every drone's; camera: the frame and its "
-                 "detections"))
+                 "camera: the frame, its detections and every drone's position; drone "
+                 "positions: the others' taken from it"))
     for res in result["results"]:
         s = res["summary"]
         wire.add_row(res["scenario"], str(res["m_targets"]),

@@ -125,6 +125,10 @@ class VehicleFleet:
     def positions_w(self) -> Array:
         return np.array([v.position_w for v in self.vehicles])
 
+    def reported_positions_w(self) -> Array:
+        """(N, 3): each vehicle's position as its agent reads it from LOCAL_POSITION_NED."""
+        return np.array([v.reported_position_w for v in self.vehicles])
+
     def service(self, timeout_s: float) -> None:
         """Handle every datagram that arrives within ``timeout_s``; heartbeats at 1 Hz."""
         now = self.clock()

@@ -103,7 +103,8 @@ datagram_framing=True, signing_key=None, signing_clock=time.time)``
     longer than the call period means every call) and, ardupilot only, REQUEST_DATA_STREAM
     for messages without an explicit interval.
 Read-only state: ``drone_id``, ``system_id``, ``flavour``, ``position_w`` (float64 truth,
-a copy), ``origin_w``, ``ground_z_m``, ``velocity_w`` (last integrated), ``armed``, ``mode``
+a copy), ``reported_position_w`` (what LOCAL_POSITION_NED tells the agent, in W),
+``origin_w``, ``ground_z_m``, ``velocity_w`` (last integrated), ``armed``, ``mode``
 (pymavlink's name of the current mode, e.g. "OFFBOARD", "LOITER", "TAKEOFF", "LAND", "RTL",
 "GUIDED", "BRAKE"), ``custom_mode``, ``landed_state`` (MAV_LANDED_STATE_*), ``in_setpoint_mode``,
 ``airborne``, ``failsafe_active``, ``accepting_setpoints``, ``awaited_stamp``, ``response``,
@@ -631,6 +632,13 @@ class EmulatedVehicle:
     @property
     def position_w(self) -> Array:
         return self._position.copy()
+
+    @property
+    def reported_position_w(self) -> Array:
+        """The W-position an agent reads from this vehicle's LOCAL_POSITION_NED now: its
+        position as the float32 local NED the stream carries (``_local_position_fields``),
+        converted back (``frames.position_over_link``)."""
+        return frames.position_over_link(self._position, self._origin)
 
     @property
     def origin_w(self) -> Array:

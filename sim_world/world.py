@@ -10,10 +10,16 @@ clock. Two time modes:
 - ``realtime``: a 50 Hz wall-clock loop integrates each vehicle with its latest setpoint under
   the flavour's failsafe rules; nothing waits.
 
-In both, the agents get the others' beacons from the world in one message (``world/beacons``,
-``BeaconRelayWire``): N messages a step through the router instead of N(N − 1). Lockstep: step
-k's relay leaves as soon as every drone's beacon of step k is in. Realtime: at each tick, every
-drone's newest beacon with how long the world has held it.
+What an agent knows of the other drones' positions (collision rows, formation bearings) comes
+from the world in one message per agent and step, not from each other drone:
+
+- lockstep: in the camera frame of step k (``CameraFrameWire.drone_positions``), every drone's
+  position as its vehicle reports it at step k (LOCAL_POSITION_NED, float32 local NED, as its
+  agent reads it: ``frames.position_over_link``) — exactly what the drones' beacons of step k
+  carry, known here before any of them is sent, so no relay waits for N beacons and the
+  world takes no beacon at all (the in-process reference does the same);
+- realtime: at each tick, every drone's newest beacon with how long the world has held it
+  (``world/beacons``, ``BeaconRelayWire``): N messages a tick instead of N(N − 1).
 
 With ``vehicles = "external"`` it serves no vehicles: each drone's position is taken from its
 beacon, so the agents can fly real autopilots against virtual targets.
@@ -21,13 +27,13 @@ beacon, so the agents can fly real autopilots against virtual targets.
 
 from __future__ import annotations
 
-import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
+from numpy.typing import NDArray
 
 from sim_world.fleet import VehicleFleet
 from swarm.errors import EXIT_FAILED, EXIT_OK, VigilError
@@ -37,6 +43,7 @@ from swarm.messages.wire import (
     BeaconWire,
     CameraFrameWire,
     ClockWire,
+    F64Array,
     RelayedBeacon,
     TruthWire,
 )
@@ -60,15 +67,13 @@ from swarm.scenario.setup import initial_drone_positions
 
 Mode = Literal["lockstep", "realtime"]
 VehicleSource = Literal["sim", "external"]
+Array = NDArray[np.float64]
 PRE_MISSION_PERIOD_S = 0.02  # telemetry and vehicle motion before the mission starts
 # "running" on world/clock is repeated this often (wall), not every step: readers only act on
 # state changes (start, done, aborted), and a message per step cost every agent a wake-up.
 CLOCK_PERIOD_S = 0.25
 # The beacon ring holds this many periods of every drone's beacons (drained at each tick).
 BEACON_RING_PERIODS = 4
-# Lockstep: beacons of a step this far past the last one relayed are refused (bounded memory;
-# a drone cannot be more than one step ahead).
-RELAY_AHEAD_STEPS = 4
 MISSION_TIME_OFFSET_MS = 1000  # mission stamps start this far past every pre-mission stamp
 DONE_LINGER_S = 10.0  # the world stays up this long after the mission unless stopped
 
@@ -123,10 +128,6 @@ class World:
         self._failsafes_reported = [0] * self.n
         self._subscribers: list = []
         self._beacon_ring: DrainedSubscriber | None = None
-        # Lockstep: each step's beacons until every drone's is in, and the last step relayed.
-        self._step_beacons: dict[int, dict[int, BeaconWire]] = {}
-        self._relayed_step = -1
-        self._relay_lock = threading.Lock()
         security = cfg.security
         self.session = open_session(zenoh_config(
             mode="router", listen=options.listen, connect=options.connect,
@@ -148,20 +149,14 @@ class World:
                 # Every drone's beacon, to relay (and, with external vehicles, where the drones
                 # are). A ring taken at each tick: no Python thread, and the router's threads
                 # (this process hosts the router) never wait for the GIL. External vehicles
-                # are realtime only (realtime_only_reason).
+                # are realtime only (realtime_only_reason). Lockstep takes no beacon: the
+                # camera frames carry the positions (module docstring).
                 ring = subscribe(self.session, self.keys.all_beacons, self.codec.decode_beacon,
                                  self._on_beacon, self.rejections, "beacon",
                                  keep_latest=BEACON_RING_PERIODS * self.n)
                 assert isinstance(ring, DrainedSubscriber)
                 self._beacon_ring = ring
                 self._subscribers.append(ring)
-            else:
-                # Not direct (this process hosts the router): the subscription's own Python
-                # thread relays step k as soon as its last beacon is in, while the main thread
-                # waits for the setpoints.
-                self._subscribers.append(subscribe(
-                    self.session, self.keys.all_beacons, self.codec.decode_beacon,
-                    self._on_step_beacon, self.rejections, "beacon"))
         except Exception:
             self.session.close()
             raise
@@ -172,10 +167,9 @@ class World:
                             for i in range(self.n)]
         self._pub_truth = declare_publisher(self.session, self.keys.truth, block=True)
         self._pub_clock = declare_publisher(self.session, self.keys.clock, block=True)
-        # Realtime, the relay drops rather than waits: the next tick brings the newest beacons
-        # anyway. Lockstep, every agent waits for it.
-        self._pub_relay = declare_publisher(self.session, self.keys.beacon_relay,
-                                            block=self._beacon_ring is None)
+        # Realtime only; it drops rather than waits: the next tick brings the newest beacons.
+        self._pub_relay = (declare_publisher(self.session, self.keys.beacon_relay, block=False)
+                           if self._beacon_ring is not None else None)
 
     # -- plumbing ---------------------------------------------------------------------------
 
@@ -206,16 +200,20 @@ class World:
         if step == 0 or time.monotonic() - self._last_clock_s >= CLOCK_PERIOD_S:
             self.publish_clock(step, "running")
 
-    def publish_step(self, step: int, vehicle_times_ms: Sequence[int]) -> None:
+    def publish_step(self, step: int, vehicle_times_ms: Sequence[int],
+                     drone_positions: Array | None = None) -> None:
         """Camera frames for every drone and the ground truth of step k; drone i's frame is
         stamped ``vehicle_times_ms[i]``, the time_boot_ms of the vehicle sample its camera
-        was placed at (how an agent pairs the frame with that pose)."""
+        was placed at (how an agent pairs the frame with that pose). ``drone_positions``
+        (lockstep): every drone's reported position (N, 3), carried by every frame."""
         view = self.scene.at(step, self.positions)
+        positions = None if drone_positions is None else F64Array.from_array(drone_positions)
         for i in range(self.n):
             frame = self.codec.encode(CameraFrameWire.build(
                 drone=i, step=step, time_s=view.time_s, vehicle_time_ms=vehicle_times_ms[i],
                 detections=view.detections[i],
-                target_velocities=view.communicated_velocities_m_s))
+                target_velocities=view.communicated_velocities_m_s,
+                drone_positions=positions))
             # Stamped: a realtime agent sets the phase of its loop from when frames leave.
             put_stamped(self.session, self._pub_camera[i], frame)
         self._pub_truth.put(self.codec.encode(TruthWire.build(
@@ -240,33 +238,10 @@ class World:
         if self._beacon_ring is not None:
             self._beacon_ring.drain()
 
-    def _on_step_beacon(self, key: str, beacon: BeaconWire) -> None:
-        """Lockstep: keep drone j's beacon of step k (the first one: a repeat changes nothing);
-        once every drone's of step k is in, relay them. Held 0 s: the mission's clock stands
-        still while the world waits, and every beacon of step k is of the same instant."""
-        if not self._from_its_drone(key, beacon):
-            return
-        step = beacon.step
-        with self._relay_lock:
-            if not self._relayed_step < step <= self._relayed_step + RELAY_AHEAD_STEPS:
-                self.rejections.reject("beacon", f"step {step} from drone {beacon.sender}: "
-                                       f"step {self._relayed_step} was relayed last")
-                return
-            got = self._step_beacons.setdefault(step, {})
-            got.setdefault(beacon.sender, beacon)
-            if len(got) < self.n:
-                return
-            self._relayed_step = step
-            for old in [s for s in self._step_beacons if s <= step]:
-                del self._step_beacons[old]
-            relay = BeaconRelayWire(step=step, beacons=tuple(
-                RelayedBeacon(got[i], 0.0) for i in range(self.n)))
-            self._pub_relay.put(self.codec.encode(relay))
-
     def relay_beacons(self, step: int) -> None:
         """Realtime: every drone's newest beacon to the agents in one message, each with how
         long the world has held it, so that an agent dates it from its arrival here."""
-        if self._beacon_ring is None:
+        if self._beacon_ring is None or self._pub_relay is None:
             return
         relayed = []
         for i in range(self.n):
@@ -345,7 +320,7 @@ class World:
             for vehicle in fleet.vehicles:
                 vehicle.begin_step(stamp)
             fleet.send_telemetry(stamp)
-            self.publish_step(k, [stamp] * self.n)
+            self.publish_step(k, [stamp] * self.n, fleet.reported_positions_w())
             self.publish_running(k)
             deadline = time.monotonic() + timeout
             velocities: list[np.ndarray | None] = [None] * self.n

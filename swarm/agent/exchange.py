@@ -5,8 +5,9 @@ the publishers, the checks on who sent what) and runs one step the same way in e
 (``AgentProcess.step``). What a mode decides is here, behind ``Exchange``:
 
 * how messages are received and kept (``direct``, ``ring``, ``sent_times``) and stored
-  (``put_camera``, ``put_consensus``, ``put_beacons``: the beacons of the world's relay,
-  ``world/beacons``, which carries every drone's in one message, stored all at once);
+  (``put_camera``, ``put_consensus``, and with ``relayed_beacons`` ``put_beacons``: the
+  beacons of the world's relay, ``world/beacons``, which carries every drone's in one
+  message, stored all at once);
 * what a step sees of its neighbours (``inbox``: the consensus messages of a round) and of
   every other drone (``beacons``: positions for the collision rows), and the swarm size N
   (``begin``);
@@ -14,9 +15,10 @@ the publishers, the checks on who sent what) and runs one step the same way in e
   starts (``announce``) and the loop that paces the steps (``run``).
 
 ``LockstepExchange``: step k waits for the camera frame of step k, the position sample
-stamped with that frame's ``vehicle_time_ms``, every neighbour's round messages and every
-beacon of step k (the world's relay of step k): deterministic (equal to the in-process
-reference bit for bit).
+stamped with that frame's ``vehicle_time_ms`` and every neighbour's round messages; the other
+drones' positions of step k come with the frame (``CameraFrameWire.drone_positions``: what
+their vehicles report, as their beacons would carry them): deterministic (equal to the
+in-process reference bit for bit).
 ``RealtimeExchange``: a loop on the wall clock with the newest of everything, each drone's
 at its own phase after the world's tick (``loop_phase_s``); neighbour data older than
 ``runtime.stale_timeout_s`` is left out and counted; N follows the drones heard within
@@ -74,6 +76,7 @@ class Exchange(Protocol):
     """The mode of an agent's exchange (module docstring)."""
 
     direct: bool  # subscription callbacks on zenoh's thread (True) or a thread of their own
+    relayed_beacons: bool  # the others' positions come in the world's relay (put_beacons)
     block_consensus: bool  # a consensus put waits for room (True) or drops (False)
     sent_times: bool  # read each consensus message's Zenoh timestamp (neighbour age)
     late_steps: int
@@ -102,6 +105,7 @@ class LockstepExchange:
 
     # Direct callbacks: every step waits on them, and each only decodes and stores.
     direct = True
+    relayed_beacons = False  # the camera frame of step k carries every drone's position
     block_consensus = True  # peers wait for every message
     sent_times = False  # lockstep reports no neighbour age: its hot path skips them
 
@@ -109,7 +113,6 @@ class LockstepExchange:
         self.peers = peers
         self.camera_steps: StepMailbox[CameraFrameWire] = StepMailbox()
         self.consensus_steps: StepMailbox[ConsensusMessage] = StepMailbox()
-        self.beacon_steps: StepMailbox[BeaconWire] = StepMailbox()
         self.late_steps = self.unpaired_frames = self.stale_messages = 0
         self.neighbour_age_ms = math.nan
 
@@ -126,10 +129,11 @@ class LockstepExchange:
         return None
 
     def put_beacons(self, beacons: Iterable[tuple[BeaconWire, float | None]]) -> None:
-        self.beacon_steps.put_many((b.step, 0, b.sender, b) for b, _ in beacons)
+        raise ExchangeError("a lockstep agent takes the other drones' positions from its "
+                            "camera frame, not from a relay of beacons")
 
     def close(self) -> None:
-        for mailbox in (self.camera_steps, self.consensus_steps, self.beacon_steps):
+        for mailbox in (self.camera_steps, self.consensus_steps):
             mailbox.close()
 
     def announce(self) -> PositionSample | None:
@@ -147,9 +151,14 @@ class LockstepExchange:
 
     def beacons(self, step: int, sample_age_s: float,
                 flying: np.ndarray) -> dict[int, np.ndarray]:
-        """Every other drone's position at step k: all of the same instant."""
-        got = self._wait(self.beacon_steps, step, 0, self.peers.others, "beacon")
-        return {j: np.asarray(b.position_m, dtype=float) for j, b in got.items()}
+        """Every other drone's position at step k, all of the same instant: those the camera
+        frame of step k carries (its vehicle's report, as its beacon of step k would say)."""
+        frame = self._wait(self.camera_steps, step, 0, {0}, "camera frame")[0]
+        positions = frame.drone_position_array()
+        if positions is None:
+            raise LinkError(f"drone {self.peers.drone_id}: step {step}: the camera frame "
+                            "carries no drone positions (a lockstep world sends them)")
+        return {j: positions[j] for j in self.peers.others}
 
     def setpoint_interval_s(self) -> float:
         return self.peers.config.scenario.dt_s
@@ -191,6 +200,7 @@ class RealtimeExchange:
     # grew by ~300 kB/s per agent on an overloaded machine (Case 2 at N = 24) while the
     # agents fell ever further behind.
     direct = False
+    relayed_beacons = True
     block_consensus = False  # the newest message is what counts: drop when the queue is full
     sent_times = True
 
@@ -389,7 +399,8 @@ EXCHANGES: dict[Mode, type[LockstepExchange] | type[RealtimeExchange]] = {
 
 
 class ExchangeError(UsageError, ValueError):
-    """An exchange mode that does not exist."""
+    """An exchange asked for what it does not do: a mode that does not exist, a relay of
+    beacons in lockstep."""
 
 
 def exchange_for(mode: str, peers: Peers) -> Exchange:

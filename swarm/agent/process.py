@@ -156,13 +156,15 @@ class AgentProcess:
             subscribe(self.session, self.keys.camera(self.id), self.codec.decode_camera,
                       self._on_camera, self.rejections, "camera", direct=direct,
                       keep_latest=ring(1)),
-            subscribe(self.session, self.keys.beacon_relay, self.codec.decode_beacon_relay,
-                      self._on_beacon_relay, self.rejections, "beacon relay", direct=direct,
-                      keep_latest=ring(1)),
             subscribe(self.session, self.keys.clock, self.codec.decode_clock,
                       self._on_clock, self.rejections, "clock", direct=direct,
                       keep_latest=ring(1)),
         ]
+        if exchange.relayed_beacons:
+            subs.append(subscribe(
+                self.session, self.keys.beacon_relay, self.codec.decode_beacon_relay,
+                self._on_beacon_relay, self.rejections, "beacon relay", direct=direct,
+                keep_latest=ring(1)))
         subs += [subscribe(self.session, self.keys.consensus(j), self.codec.decode_consensus,
                            self._on_consensus, self.rejections, "consensus", direct=direct,
                            on_sent_time=exchange.consensus_sent if exchange.sent_times
@@ -228,10 +230,10 @@ class AgentProcess:
         if clock.state in ("done", "aborted"):  # whatever the loop waits for is not coming
             self.exchange.close()
 
-    def _on_camera(self, _key: str, frame: CameraFrameWire,
+    def _on_camera(self, key: str, frame: CameraFrameWire,
                    arrived_s: float | None = None) -> None:
         if frame.drone != self.id:
-            self.rejections.reject("camera", f"frame for drone {frame.drone} on drone {self.id}")
+            self.rejections.reject("camera", f"frame for drone {frame.drone} on {key}")
             return
         self.exchange.put_camera(frame)
         self.camera_latest.put(0, frame, arrived_s=arrived_s)  # every mode: start() waits

@@ -66,7 +66,10 @@ _W = TypeVar("_W")
 # 4: telemetry carries the position covariance of each estimate (estimate_covariance).
 # 5: the world relays every drone's beacon to the agents (BeaconRelayWire): an agent of an
 #    older build would wait for beacons that no longer come to it.
-WIRE_VERSION: Final = 5
+# 6: lockstep camera frames carry every drone's reported position (drone_positions) in place
+#    of the relay of the drones' beacons: a lockstep agent of an older build would wait for a
+#    relay that no longer comes.
+WIRE_VERSION: Final = 6
 
 MAX_DRONES: Final = 1024  # codec limits: a swarm larger than this is a configuration error
 MAX_TARGETS: Final = 1024
@@ -269,6 +272,10 @@ class CameraFrameWire(_Wire, tag="camera", kw_only=True):
 
     ``vehicle_time_ms`` is the MAVLink ``time_boot_ms`` of the vehicle position sample that
     belongs to this step (how an agent pairs its LOCAL_POSITION_NED with the frame).
+    ``drone_positions`` (lockstep only): every drone's position at this step as its vehicle
+    reports it, i.e. what that drone's agent reads from LOCAL_POSITION_NED, in W (N, 3): the
+    positions the drones' beacons of this step would carry, in this one message instead of a
+    relay that waits for all of them (``sim_world.world``).
     """
 
     drone: DroneId
@@ -279,6 +286,7 @@ class CameraFrameWire(_Wire, tag="camera", kw_only=True):
         max_length=MAX_TARGETS, extra={"max_items": "targets", "distinct": "target"})] = ()
     # (M, 3), single-integrator model only
     target_velocities: _shaped("targets", 3) | None = None
+    drone_positions: _shaped("drones", 3) | None = None  # (N, 3), lockstep only
 
     @classmethod
     def build(
@@ -289,14 +297,20 @@ class CameraFrameWire(_Wire, tag="camera", kw_only=True):
         vehicle_time_ms: int,
         detections: Sequence[Detection],
         target_velocities: ArrayLike | None = None,
+        drone_positions: ArrayLike | F64Array | None = None,
     ) -> CameraFrameWire:
+        """The frame; ``drone_positions`` may come as an ``F64Array`` already (the world
+        converts a step's positions once for all N frames)."""
         dets = []
         for d in detections:
             point = np.asarray(d.image_point, dtype=np.float64).reshape(2)
             dets.append(DetectionWire(int(d.target), float(point[0]), float(point[1])))
+        positions = (drone_positions if isinstance(drone_positions, F64Array)
+                     else _array_or_none(drone_positions))
         return cls(drone=int(drone), step=int(step), time_s=float(time_s),
                    vehicle_time_ms=int(vehicle_time_ms), detections=tuple(dets),
-                   target_velocities=_array_or_none(target_velocities))
+                   target_velocities=_array_or_none(target_velocities),
+                   drone_positions=positions)
 
     def detection_list(self) -> list[Detection]:
         out = []
@@ -307,6 +321,10 @@ class CameraFrameWire(_Wire, tag="camera", kw_only=True):
 
     def target_velocity_array(self) -> Array | None:
         return None if self.target_velocities is None else self.target_velocities.to_array()
+
+    def drone_position_array(self) -> Array | None:
+        """``drone_positions`` as a new (N, 3) float64 array, None when the frame has none."""
+        return None if self.drone_positions is None else self.drone_positions.to_array()
 
 
 class TruthWire(_Wire, tag="truth", kw_only=True):

@@ -92,14 +92,28 @@ def test_lockstep_waits_for_every_neighbour_of_the_round(link: AutopilotLink) ->
         exchange.inbox(5, 0)
 
 
-def test_lockstep_beacons_are_those_of_the_step_and_a_mission_end_ends_the_wait(
+def frame(step: int, positions: np.ndarray | None) -> CameraFrameWire:
+    return CameraFrameWire.build(0, step, 0.02 * step, 1000 + 20 * step, [],
+                                 drone_positions=positions)
+
+
+def test_lockstep_beacons_are_the_frames_positions_and_a_mission_end_ends_the_wait(
         link: AutopilotLink) -> None:
-    exchange = LockstepExchange(peers(link))
-    exchange.put_beacons([(BeaconWire.build(j, 7, 0.14, (j, 0.0, 3.0), velocity_m_s=(1, 0, 0)),
-                           None) for j in range(1, 6)])
+    exchange = LockstepExchange(peers(link, lockstep_timeout_s=0.3))
+    positions = np.array([[float(j), 0.0, 3.0] for j in range(6)])
+    exchange.put_camera(frame(7, positions))
+    exchange.put_camera(frame(8, positions + 1.0))  # the next step's: not these
     beacons = exchange.beacons(7, 0.5, np.ones(3))
     assert {j: p.tolist() for j, p in beacons.items()} == {
         j: [float(j), 0.0, 3.0] for j in range(1, 6)}  # the step's positions, not carried on
+    exchange.put_camera(frame(9, None))
+    with pytest.raises(LinkError, match=r"drone 0: step 9: the camera frame carries no drone "
+                                        r"positions"):
+        exchange.beacons(9, 0.0, np.ones(3))
+    with pytest.raises(LinkError, match=r"step 10: no camera frame from \[0\] within 0.3 s"):
+        exchange.beacons(10, 0.0, np.ones(3))
+    with pytest.raises(ExchangeError, match="from its camera frame, not from a relay"):
+        exchange.put_beacons([(BeaconWire.build(1, 7, 0.14, (1.0, 0.0, 3.0)), None)])
     assert exchange.setpoint_interval_s() == 0.02 == exchange.setpoint_interval_s()
     ended = LockstepExchange(peers(link, ended=True))
     with pytest.raises(Ended):

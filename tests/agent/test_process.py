@@ -19,7 +19,7 @@ import pytest
 
 from swarm.agent.process import AgentOptions, AgentProcess
 from swarm.core.agent import ConsensusMessage
-from swarm.messages.wire import BeaconRelayWire, BeaconWire, RelayedBeacon
+from swarm.messages.wire import BeaconRelayWire, BeaconWire, CameraFrameWire, RelayedBeacon
 from swarm.net.transport import Keys, open_session, zenoh_config
 from swarm.scenario.config import load_config
 from tests.helpers.process_tools import free_tcp_port
@@ -89,30 +89,36 @@ def test_messages_on_another_drones_key_are_counted_and_dropped() -> None:
         assert set(agent.exchange.consensus_latest.ages()) == {(1, 1)}
 
 
-def test_lockstep_beacons_of_step_k_come_in_the_worlds_relay_of_step_k() -> None:
-    """A lockstep agent waits for every other drone's beacon of step k, which the world relays
-    in one message once they are all in: the relay fills its step-k mailbox, its own beacon
-    left out, and a drone's own beacon key is not listened to."""
+def test_lockstep_positions_of_step_k_come_with_the_camera_frame_of_step_k() -> None:
+    """A lockstep agent takes every other drone's position of step k from its camera frame of
+    step k (what their vehicles report) and listens to no beacon: neither the world's relay
+    nor any drone's beacon key."""
     with agent_on_a_router("lockstep", "lockrelay") as (agent, router):
         keys, codec = Keys("lockrelay"), agent.codec
         forged = codec.encode(BeaconWire.build(4, 1, 0.02, (9.0, 0.0, 3.0)))
         relay = codec.encode(BeaconRelayWire(step=1, beacons=tuple(
-            RelayedBeacon(BeaconWire.build(j, 1, 0.02, (float(j), 0.0, 3.0)), 0.0)
+            RelayedBeacon(BeaconWire.build(j, 1, 0.02, (9.0, 0.0, 3.0)), 0.0)
             for j in range(6))))
-        mailbox = agent.exchange.beacon_steps
+        positions = np.array([[float(j), 0.5 * j, 3.0] for j in range(6)])
+        frame = codec.encode(CameraFrameWire.build(0, 1, 0.02, 1020, [],
+                                                   drone_positions=positions))
+        mailbox = agent.exchange.camera_steps
 
-        # Each relay leaves after a beacon on drone 4's own key, on the same link: had the
-        # agent listened to that key, the mailbox would keep that beacon (the first one).
+        # Each frame leaves after a beacon on drone 4's key and a relay, on the same link:
+        # had the agent listened to either, it would have them (and a relay in lockstep is
+        # refused, which would count).
         def delivered() -> bool:
             router.put(keys.beacon(4), forged)
             router.put(keys.beacon_relay, relay)
-            return len(mailbox.wait_for(1, 0, set(range(1, 6)), 0.01)) == 5
+            router.put(keys.camera(0), frame)
+            return len(mailbox.wait_for(1, 0, {0}, 0.01)) == 1
 
         assert wait_until(delivered)
-        got = mailbox.wait_for(1, 0, set(range(6)), 0.01)
-        assert set(got) == {1, 2, 3, 4, 5}  # not our own
-        assert got[4].position_m == (4.0, 0.0, 3.0)
+        got = agent.exchange.beacons(1, 0.0, np.zeros(3))
+        assert {j: p.tolist() for j, p in got.items()} == {
+            j: positions[j].tolist() for j in range(1, 6)}  # not our own
         assert agent.rejections.total() == 0
+        assert not agent.exchange.relayed_beacons
 
 
 @pytest.mark.wallclock

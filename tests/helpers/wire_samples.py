@@ -92,6 +92,8 @@ def valid_messages() -> dict[str, object]:
                               [Detection(1, np.array([-0.0, 0.1 + 0.2])),
                                Detection(0, np.array([5e-324, -1e-300]))],
                               target_velocities=tricky(M, 3)),
+        "camera_lockstep": CameraFrameWire.build(3, 9, 0.18, 123456, [],
+                                                 drone_positions=tricky(N, 3)),
         "camera_plain": CameraFrameWire.build(0, 0, 0.0, 0, []),
         "truth": TruthWire.build(4, 0.08, tricky(N, 3), tricky(M, 3), tricky(M, 3)),
         "clock": ClockWire(step=7, time_s=0.14, state="running", mode="lockstep", detail="ok"),

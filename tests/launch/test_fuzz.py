@@ -5,9 +5,11 @@ MAVLink/UDP) and, while the mission runs, a separate Zenoh session and separate 
 flood every input the processes have:
 
 - 10 000 payloads on every Zenoh key an agent subscribes to: ``world/camera/<i>`` for each
-  drone, the world's beacon relay ``world/beacons``, ``world/clock`` and
-  ``agent/<j>/consensus`` of each drone; and 10 000 on the beacons the world relays
-  (``agent/*/beacon``, spread over every drone's key and one of no drone);
+  drone (frames with and without every drone's position, as lockstep sends them),
+  ``world/clock`` and ``agent/<j>/consensus`` of each drone; and 10 000 on each key that
+  nobody in a lockstep swarm listens to, which must change nothing: the world's beacon
+  relay ``world/beacons`` (realtime only) and the drones' beacons (``agent/*/beacon``,
+  spread over every drone's key and one of no drone; a lockstep world takes none);
 - 10 000 datagrams at every UDP endpoint: each emulated vehicle's socket in the world and
   each agent's ``udpin`` port.
 
@@ -96,10 +98,12 @@ WRONG_DRONE_FRAMES = 100  # valid camera frames for another drone, on each camer
 # -- valid messages to mutate ------------------------------------------------------------------
 
 
-def _camera_bases(codec: WireCodec, drone: int) -> list[bytes]:
+def _camera_bases(codec: WireCodec, drone: int, n: int) -> list[bytes]:
+    positions = np.column_stack([np.arange(n) - 2.5, np.full(n, -1.0), np.full(n, 3.5)])
     return [codec.encode(CameraFrameWire.build(
         drone, step, 0.02 * step, 1000 + 20 * step,
-        [Detection(0, np.array([0.1 * step - 0.3, 0.05]))] if step % 2 else []))
+        [Detection(0, np.array([0.1 * step - 0.3, 0.05]))] if step % 2 else [],
+        drone_positions=positions + 0.1 * step if step < 2 else None))
         for step in range(4)]
 
 
@@ -150,7 +154,7 @@ class Plan:
         self.reach: dict[str, tuple[int, ...]] = {}  # the agents that receive each key
         self.agent_expected = [0] * n
         for i in range(n):
-            payloads = zenoh_payloads(rng, _camera_bases(codec, i), codec.decode_camera,
+            payloads = zenoh_payloads(rng, _camera_bases(codec, i, n), codec.decode_camera,
                                       PER_KEY - WRONG_DRONE_FRAMES, n_drones=n)
             other = (i + 1) % n  # valid frames, but for another drone: the agent refuses
             payloads += [codec.encode(CameraFrameWire.build(other, s, 0.02 * s, 5 * s, []))
@@ -162,14 +166,15 @@ class Plan:
         beacons = zenoh_payloads(rng, _beacon_bases(codec, n), codec.decode_beacon, PER_KEY,
                                  n_drones=n)
         beacon_keys = [keys.beacon(j) for j in (*range(n), 999)]
-        for k, key in enumerate(beacon_keys):  # agent/*/beacon: the world relays them
+        for k, key in enumerate(beacon_keys):  # agent/*/beacon: nobody takes them here
             self.zenoh[key] = beacons[k::len(beacon_keys)]
             self.reach[key] = ()
-        self.world_zenoh_expected = PER_KEY
+        # Lockstep: the world takes no beacon (the frames carry every drone's position) and
+        # relays none, so no agent listens to world/beacons: neither flood may count.
+        self.world_zenoh_expected = 0
         self.zenoh[keys.beacon_relay] = zenoh_payloads(
             rng, _relay_bases(codec, n), codec.decode_beacon_relay, PER_KEY, n_drones=n)
-        self.reach[keys.beacon_relay] = tuple(range(n))
-        self.agent_expected = [e + PER_KEY for e in self.agent_expected]
+        self.reach[keys.beacon_relay] = ()
         self.zenoh[keys.clock] = zenoh_payloads(rng, _clock_bases(codec), codec.decode_clock,
                                                 PER_KEY, n_drones=n)
         self.reach[keys.clock] = tuple(range(n))

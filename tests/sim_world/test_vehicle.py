@@ -777,3 +777,19 @@ def test_endpoint_fixed_peer_when_not_following() -> None:
         other.sendto(Agent().arm(), ep.local_address)
         assert len(_poll_until(ep, 1)) == 1
         assert ep.peer_address == agent.getsockname()
+
+
+@settings(max_examples=50, deadline=None)
+@given(speeds)
+def test_reported_position_is_what_an_agent_reads_from_local_position_ned(u: np.ndarray) -> None:
+    """``reported_position_w`` (what a lockstep world puts in every camera frame for this
+    drone) is, bit for bit, the position the agent's link makes of the LOCAL_POSITION_NED
+    the vehicle sends at that moment (float32 local NED, back to W), not the float64 truth."""
+    a = Agent()
+    v = px4_offboard_armed(a)
+    t = fly(v, 10.0, 0.3, each=lambda now: v.receive(a.setpoint(u, stamp=40), now))
+    report = of_type(v.telemetry(1234, t), "LOCAL_POSITION_NED")[-1]
+    read = frames.world_from_local_ned((report.x, report.y, report.z), v.origin_w)
+    np.testing.assert_array_equal(v.reported_position_w.view(np.uint64), read.view(np.uint64))
+    if np.any(np.abs(u) > 0.1):  # it moved off the start: float32 rounding shows
+        assert not np.array_equal(v.reported_position_w, v.position_w)

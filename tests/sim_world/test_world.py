@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import Any
 
 import msgspec
+import numpy as np
 import pytest
 
 import sim_world.world as world_module
@@ -248,54 +249,26 @@ def test_a_realtime_world_relays_every_drones_newest_beacon_and_how_long_it_held
         assert made.rejections.total() == 0
 
 
-def test_a_lockstep_world_relays_step_k_as_soon_as_every_drones_beacon_of_it_is_in(
-        world: World) -> None:
-    """Lockstep: the relay of step k leaves once every drone's beacon of step k is in (the
-    first of each: a repeat changes nothing), in drone order, each held 0 s (the mission
-    clock stands still while the world waits); a beacon on another drone's key, of a step
-    already relayed or too far ahead is refused."""
-    session = open_session(zenoh_config(mode="client", connect=list(world.options.listen)))
-    heard: list[bytes] = []
-    listener = session.declare_subscriber(world.keys.beacon_relay,
-                                          lambda sample: heard.append(sample.payload.to_bytes()))
-    keys, codec = world.keys, world.codec
-
-    def beacon(j: int, step: int, x: float = 0.0) -> bytes:
-        return codec.encode(BeaconWire.build(j, step, 0.02 * step, (j + x, 0.0, 3.0)))
-
-    def refused(count: int) -> None:
-        deadline = time.monotonic() + 10.0
-        while world.rejections.total() < count:
-            assert time.monotonic() < deadline, world.rejections.snapshot()
-            time.sleep(0.01)  # polling the world's counters (bounded by the deadline)
-
-    try:
-        # Until the world's subscription is known to this session (routes are declared
-        # asynchronously), put a beacon on the wrong key: the first refusal says it is.
-        deadline = time.monotonic() + 10.0
-        while world.rejections.total() == 0:
-            assert time.monotonic() < deadline, "the world heard no beacon"
-            session.put(keys.beacon(2), beacon(3, 0))
-            time.sleep(0.01)
-        session.put(keys.beacon(0), beacon(0, 0, x=0.5))
-        session.put(keys.beacon(0), beacon(0, 0, x=0.9))  # a repeat: the first one counts
-        for j in range(1, world.n):
-            session.put(keys.beacon(j), beacon(j, 0))
-        deadline = time.monotonic() + 10.0
-        while not heard:
-            assert time.monotonic() < deadline, "no relay of step 0"
-            time.sleep(0.01)
-        relay = codec.decode_beacon_relay(heard[0])
-        assert relay.step == 0
-        assert [e.beacon.sender for e in relay.beacons] == list(range(world.n))
-        assert relay.beacons[0].beacon.position_m == (0.5, 0.0, 3.0)
-        assert all(e.held_s == 0.0 and e.beacon.step == 0 for e in relay.beacons)
-        # Every probe went out before the beacons of step 0, on the same link: all counted.
-        refusals = world.rejections.total()
-        session.put(keys.beacon(1), beacon(1, 0))  # step 0 was relayed already
-        session.put(keys.beacon(1), beacon(1, 1 + world_module.RELAY_AHEAD_STEPS))
-        refused(refusals + 2)
-        assert len(heard) == 1
-    finally:
-        listener.undeclare()
-        session.close()
+def test_a_lockstep_worlds_frames_carry_every_drones_reported_position(world: World) -> None:
+    """Lockstep: every camera frame of step k carries each drone's position as its vehicle
+    reports it in LOCAL_POSITION_NED then (what that drone's beacon of step k would carry);
+    the world takes no beacon and publishes no relay, so nothing waits for N beacons."""
+    fleet = world.fleet
+    assert fleet is not None
+    captured = [_Captured() for _ in range(world.n)]
+    world._pub_camera = captured  # type: ignore[assignment]
+    reported = fleet.reported_positions_w()
+    world.publish_step(3, [1060] * world.n, reported)
+    for i, publisher in enumerate(captured):
+        (payload,) = publisher.payloads
+        frame = world.codec.decode_camera(payload)
+        assert (frame.drone, frame.step, frame.vehicle_time_ms) == (i, 3, 1060)
+        positions = frame.drone_position_array()
+        assert positions is not None
+        np.testing.assert_array_equal(positions.view(np.uint64), reported.view(np.uint64))
+    for i, vehicle in enumerate(fleet.vehicles):
+        np.testing.assert_array_equal(reported[i], vehicle.reported_position_w)
+    assert world._beacon_ring is None and world._pub_relay is None
+    assert world._subscribers == []
+    world.publish_step(4, [1080] * world.n)  # no positions: frames without them
+    assert world.codec.decode_camera(captured[0].payloads[-1]).drone_positions is None
