@@ -61,7 +61,7 @@ def test_every_section_runs_and_writes_its_fields(tmp_path: Path) -> None:
         assert ours["summary"][name]["median"]["median"] > 0, name
         assert ours["summary"][name]["p99"]["median"] > 0, name
     for kind in ("encode consensus", "encode beacon", "encode telemetry", "decode camera",
-                 "decode consensus", "decode beacons"):
+                 "decode consensus", "drone positions"):
         assert ours["summary"][kind]["median"]["median"] > 0, kind
     assert step["cvxpy_step_ratio"]["total"]["median"] > 0
 

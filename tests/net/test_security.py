@@ -413,7 +413,7 @@ def test_case1_lockstep_swarm_runs_over_tls_and_an_agent_certificate_gets_no_tru
                                            run_id="tlsrun"), log=lambda _line: None)
     assert launcher.endpoint.startswith("tls/127.0.0.1:")
     keys = Keys("tlsrun")
-    spy_truth, spy_relay = Heard(), Heard()
+    spy_truth, spy_frames = Heard(), Heard()
     spy: list[zenoh.Session] = []
     spy_subscribers: list[zenoh.Subscriber] = []
     stop = threading.Event()
@@ -428,7 +428,7 @@ def test_case1_lockstep_swarm_runs_over_tls_and_an_agent_certificate_gets_no_tru
                 time.sleep(0.1)
                 continue
             spy_subscribers.extend([session.declare_subscriber(keys.truth, spy_truth),
-                                    session.declare_subscriber(keys.beacon_relay, spy_relay)])
+                                    session.declare_subscriber(keys.camera(5), spy_frames)])
             spy.append(session)
             return
 
@@ -442,7 +442,7 @@ def test_case1_lockstep_swarm_runs_over_tls_and_an_agent_certificate_gets_no_tru
     try:
         assert record.n_steps == config.n_steps == 75
         assert spy, "the spy never joined"
-        assert spy_relay.count() > 0  # the spy was connected while the swarm flew
+        assert spy_frames.count() > 0  # the spy was connected while the swarm flew
         assert spy_truth.count() == 0
     finally:
         if spy:
