@@ -129,18 +129,23 @@ class VehicleFleet:
         """(N, 3): each vehicle's position as its agent reads it from LOCAL_POSITION_NED."""
         return np.array([v.reported_position_w for v in self.vehicles])
 
-    def service(self, timeout_s: float) -> None:
-        """Handle every datagram that arrives within ``timeout_s``; heartbeats at 1 Hz."""
+    def service(self, timeout_s: float) -> list[int]:
+        """Handle every datagram that arrives within ``timeout_s``; heartbeats at 1 Hz.
+        Returns the vehicles whose links (agent or ground station) had datagrams: only their
+        state can have changed (a lockstep world looks at those for the step's setpoint)."""
         now = self.clock()
         if now - self._last_heartbeat >= HEARTBEAT_PERIOD_S:
             self._last_heartbeat = now
             for vehicle, endpoint in zip(self.vehicles, self.endpoints, strict=True):
                 endpoint.send([vehicle.heartbeat()])
+        served: list[int] = []
         for key, _ in self.selector.select(timeout=max(timeout_s, 0.0)):
             i = key.data
             if i < 0:  # a vehicle's ground-station link (-1 - vehicle index)
                 self._service_gcs(-1 - i)
+                served.append(-1 - i)
                 continue
+            served.append(i)
             vehicle, endpoint = self.vehicles[i], self.endpoints[i]
             for chunk, sender, age in endpoint.poll_from():
                 taken = vehicle.authenticated_frames if vehicle.signing \
@@ -154,6 +159,7 @@ class VehicleFleet:
                     endpoint.follow(sender)
                 if replies:
                     endpoint.send(replies)
+        return served
 
     def _service_gcs(self, i: int) -> None:
         link, endpoint = self.gcs_links[i], self.gcs_endpoints[i]

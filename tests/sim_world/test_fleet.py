@@ -107,3 +107,29 @@ def test_fleet_vehicles_take_start_and_response_and_fly_themselves() -> None:
     finally:
         fleet.close()
         agent.close()
+
+
+def test_service_names_the_vehicles_whose_links_had_datagrams() -> None:
+    """A lockstep world looks for the step's setpoint only at the vehicles ``service`` names
+    (O(N) a step, not O(N) per wake-up): every vehicle a datagram came to, none other."""
+    agent = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    agent.bind(("127.0.0.1", 0))
+    fleet = VehicleFleet(np.array([[0.0, 0.0, 3.0], [2.0, 0.0, 3.0], [4.0, 0.0, 3.0]]),
+                         [np.zeros(3)] * 3, "px4", host="127.0.0.1",
+                         base_port=agent.getsockname()[1], u_max_m_s=3.0,
+                         setpoint_timeout_s=0.5, clock=lambda: 10.0)
+    try:
+        assert fleet.service(0.0) == []
+        for i in (2, 0):
+            agent.sendto(Agent(target=i + 1).setpoint([0.5, 0.0, 0.0], stamp=40),
+                         fleet.endpoints[i].local_address)
+        served: list[int] = []
+        deadline = time.monotonic() + 5.0
+        while sorted(served) != [0, 2]:
+            assert time.monotonic() < deadline, served
+            served += fleet.service(0.1)
+        assert [v.accepted_frames for v in fleet.vehicles] == [1, 0, 1]
+        assert fleet.service(0.0) == []
+    finally:
+        fleet.close()
+        agent.close()
