@@ -241,7 +241,7 @@ class World:
     def relay_beacons(self, step: int) -> None:
         """Realtime: every drone's newest beacon to the agents in one message, each with how
         long the world has held it, so that an agent dates it from its arrival here."""
-        if self._beacon_ring is None or self._pub_relay is None:
+        if self._pub_relay is None:  # lockstep: the frames carry the positions
             return
         relayed = []
         for i in range(self.n):
