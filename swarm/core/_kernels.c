@@ -12,6 +12,8 @@
  *                     for M targets in one call (what the agent runs)
  *   filter_stack      icf.posterior, posterior_covariance and predict  SPEC §5, 2.8-2.11
  *                     for M targets (n = 3 or 6)
+ *   qp_max_violation  qp.LocalQp.max_violation of the local QP (3.36-3.37), SPEC §9
+ *                     from its row inputs (LocalQpWorkspace's feasibility checks)
  *
  * Why hand-written Cholesky and Jacobi: LAPACK from C would have to come from scipy (its
  * cython_lapack capsules), whose import costs each agent ~0.3 s of the 2 s launch budget, and
@@ -342,6 +344,37 @@ filter_stack(const double *information, const double *vector, const double *tran
     return 0;
 }
 
+/* -- feasibility of the local QP (SPEC §9) ------------------------------------------------- */
+
+/* The largest violation of the local QP at z = [u (3), slacks (n_z - 3)]: of each row
+ * a_r . u + delta_r >= lower_r (a_r: columns[r], columns[R + r], columns[2R + r]; delta_r =
+ * z[3 + r] for the rows that have a slack, 0 for the others), of the box low <= u <= high and
+ * of delta >= 0; 0 if none is violated. A NaN row gap is returned as it is (a NaN in z or in
+ * the inputs is never feasible); NaNs elsewhere are skipped, as Python's max skips them. */
+static double
+qp_max_violation(const double *z, Py_ssize_t n_z, const double *columns, const double *lower,
+                 Py_ssize_t n_rows, const double low[3], const double high[3])
+{
+    double worst = 0.0;
+    for (Py_ssize_t r = 0; r < n_rows; r++) {
+        double slack = 3 + r < n_z ? z[3 + r] : 0.0;
+        double gap = lower[r] - (columns[r] * z[0] + columns[n_rows + r] * z[1]
+                                 + columns[2 * n_rows + r] * z[2] + slack);
+        if (!(gap <= worst)) {
+            if (gap != gap) return gap;
+            worst = gap;
+        }
+    }
+    for (int k = 0; k < 3; k++) {
+        double below = low[k] - z[k], above = z[k] - high[k];
+        if (below > worst) worst = below;
+        if (above > worst) worst = above;
+    }
+    for (Py_ssize_t i = 3; i < n_z; i++)
+        if (0.0 - z[i] > worst) worst = 0.0 - z[i];
+    return worst;
+}
+
 /* -- Python glue --------------------------------------------------------------------------- */
 
 static void
@@ -576,6 +609,79 @@ py_filter_stack(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     return PyBool_FromLong(status == 0);
 }
 
+/* The numbers of a list or tuple of `length` floats (or ints) into out; -1 with a one-line
+ * error naming `what` otherwise. Reads the values only: no Python code runs, so the sequence
+ * cannot change under it. */
+static int
+float_sequence(PyObject *seq, double *out, Py_ssize_t length, const char *what)
+{
+    if (!PyList_Check(seq) && !PyTuple_Check(seq)) {
+        PyErr_Format(PyExc_TypeError, "%s: expected a list or tuple of floats, got %s", what,
+                     Py_TYPE(seq)->tp_name);
+        return -1;
+    }
+    if (PySequence_Fast_GET_SIZE(seq) != length) {
+        PyErr_Format(PyExc_ValueError, "%s: expected %zd floats, got %zd", what, length,
+                     PySequence_Fast_GET_SIZE(seq));
+        return -1;
+    }
+    PyObject **items = PySequence_Fast_ITEMS(seq);
+    for (Py_ssize_t i = 0; i < length; i++) {
+        PyObject *item = items[i];
+        if (PyFloat_Check(item)) {
+            out[i] = PyFloat_AS_DOUBLE(item);
+        } else if (PyLong_Check(item) && !PyBool_Check(item)) {
+            out[i] = PyLong_AsDouble(item);
+            if (out[i] == -1.0 && PyErr_Occurred()) return -1;
+        } else {
+            PyErr_Format(PyExc_TypeError, "%s[%zd]: expected a float, got %s", what, i,
+                         Py_TYPE(item)->tp_name);
+            return -1;
+        }
+    }
+    return 0;
+}
+
+static Py_ssize_t
+sequence_length(PyObject *seq)
+{
+    return PyList_Check(seq) || PyTuple_Check(seq) ? PySequence_Fast_GET_SIZE(seq) : -1;
+}
+
+PyDoc_STRVAR(qp_max_violation_doc,
+"qp_max_violation(z, columns, lower, low, high) -> float\n--\n\n"
+"The largest violation of the local QP at z = [u (3), slacks] (0.0 if feasible), from lists\n"
+"or tuples of floats: the rows' velocity columns (3R, column-major: every row's x, then y,\n"
+"then z), their lower bounds (R; slack r enters row r), the box of u (3 and 3):\n"
+"qp.LocalQp.max_violation of that QP. A NaN row gap is returned as the violation.");
+
+static PyObject *
+py_qp_max_violation(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (check_nargs(nargs, 5, "qp_max_violation")) return NULL;
+    Py_ssize_t n_z = sequence_length(args[0]), n_rows = sequence_length(args[2]);
+    if (n_z < 3 || n_rows < 0) {
+        PyErr_SetString(PyExc_ValueError, "qp_max_violation: z must be a list or tuple of at "
+                        "least 3 floats and lower a list or tuple of floats");
+        return NULL;
+    }
+    /* One scratch block: z, columns (3R), lower (R), low (3), high (3). */
+    double *z = PyMem_Malloc(sizeof(double) * (size_t)(n_z + 4 * n_rows + 6));
+    if (z == NULL) return PyErr_NoMemory();
+    double *columns = z + n_z, *lower = columns + 3 * n_rows, *low = lower + n_rows;
+    double *high = low + 3;
+    PyObject *result = NULL;
+    if (float_sequence(args[0], z, n_z, "z") == 0
+            && float_sequence(args[1], columns, 3 * n_rows, "columns") == 0
+            && float_sequence(args[2], lower, n_rows, "lower") == 0
+            && float_sequence(args[3], low, 3, "low") == 0
+            && float_sequence(args[4], high, 3, "high") == 0)
+        result = PyFloat_FromDouble(qp_max_violation(z, n_z, columns, lower, n_rows, low,
+                                                     high));
+    PyMem_Free(z);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"perception", (PyCFunction)(void (*)(void))py_perception, METH_FASTCALL, perception_doc},
     {"symmetric_eigen", (PyCFunction)(void (*)(void))py_symmetric_eigen, METH_FASTCALL,
@@ -585,6 +691,8 @@ static PyMethodDef methods[] = {
      perception_barrier_doc},
     {"filter_stack", (PyCFunction)(void (*)(void))py_filter_stack, METH_FASTCALL,
      filter_stack_doc},
+    {"qp_max_violation", (PyCFunction)(void (*)(void))py_qp_max_violation, METH_FASTCALL,
+     qp_max_violation_doc},
     {NULL, NULL, 0, NULL},
 };
 

@@ -157,6 +157,12 @@ def barrier(drone: Array, estimate: Array, velocity: Array, gramian: Array,
     return terms[0], barriers[0]
 
 
+# ``LocalQp.max_violation`` of the local QP from its row inputs (lists of floats, as
+# ``LocalQpWorkspace`` holds them): ``qp_max_violation(z, columns, lower, low, high)``.
+# ``tests/core/test_qp.py`` binds it to ``LocalQp.max_violation`` through the workspace.
+qp_max_violation = _kernels.qp_max_violation
+
+
 def filter_stack(information: Array, vector: Array, transition: Array, process_noise: float,
                  n_agents: int) -> tuple[Array, Array, Array, Array] | None:
     """(x̂⁺, x̂⁻ without the communicated velocity, W⁻, P⁺) of M targets (SPEC §5,

@@ -23,6 +23,7 @@ import daqp
 import numpy as np
 from numpy.typing import NDArray
 
+from swarm.core.kernels import qp_max_violation as _qp_max_violation
 from swarm.core.records import record
 
 Array = NDArray[np.float64]
@@ -344,7 +345,7 @@ class LocalQpWorkspace:
         u_max = self.u_max
         u_low, u_high = u_box if u_box is not None else ([-u_max] * 3, [u_max] * 3)
         self._u_low, self._u_high = u_low, u_high
-        if self._max_violation(list(nominal), u_columns, lower) == 0.0:
+        if self._max_violation(nominal, u_columns, lower) == 0.0:  # also checks the lengths
             z = np.zeros(self.linear.shape[0])
             z[:3] = nominal
             return record(QpSolution, dict(
@@ -352,7 +353,7 @@ class LocalQpWorkspace:
                 solve_time_s=time.perf_counter() - start, max_violation=0.0))
         n_rows = len(lower)
         block = self._block = self._row_block(n_rows)
-        block.u_block[:] = np.reshape(u_columns, (3, n_rows))
+        block.u_block.flat = u_columns  # (3, R), filled row by row: 3R floats, checked above
         block.lower[:] = lower
         if self.relaxed:
             k, floor = self.slack_weight, self.weight_floor
@@ -388,21 +389,7 @@ class LocalQpWorkspace:
     def _max_violation(self, z: list[float], u_columns: list[float],
                        lower: list[float]) -> float:
         """``LocalQp.max_violation`` of the QP of these inputs at z, on plain floats (a NaN in
-        z or the inputs is returned as the violation); reads no matrix."""
-        u0, u1, u2 = z[0], z[1], z[2]
-        n_rows = len(lower)
-        slacks = z[3:] + [0.0] * (n_rows - len(z) + 3)  # δ_r in row r (x + 0 = x elsewhere)
-        worst = 0.0
-        for bound, a0, a1, a2, slack in zip(lower, u_columns[:n_rows],
-                                            u_columns[n_rows:2 * n_rows], u_columns[2 * n_rows:],
-                                            slacks, strict=True):
-            gap = bound - (a0 * u0 + a1 * u1 + a2 * u2 + slack)
-            if not gap <= worst:  # larger, or NaN (which np.max propagates)
-                if gap != gap:
-                    return gap
-                worst = gap
-        for u, low, high in zip((u0, u1, u2), self._u_low, self._u_high, strict=True):
-            worst = max(worst, low - u, u - high)
-        for slack in z[3:]:
-            worst = max(worst, 0.0 - slack)
-        return float(worst)
+        z or the inputs is returned as the violation); reads no matrix. Compiled
+        (``kernels.qp_max_violation``); raises ``ValueError`` unless ``u_columns`` holds 3
+        floats per entry of ``lower``."""
+        return _qp_max_violation(z, u_columns, lower, self._u_low, self._u_high)

@@ -17,9 +17,12 @@ from pathlib import Path
 import daqp
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from swarm.core import qp as qp_module
 from swarm.core.barrier import collision_row
+from swarm.core.kernels import qp_max_violation
 from swarm.core.qp import INACTIVE_ROW_LOWER, LocalQp, QpSolver, build_local_qp
 
 U_MAX = 3.0
@@ -453,6 +456,59 @@ def test_the_workspace_holds_the_qp_build_local_qp_builds(m_targets: int, relaxe
         assert again.found
         np.testing.assert_allclose(again.z, solution.z, rtol=0, atol=1e-9)
     assert compared >= 8
+
+
+@settings(max_examples=300, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), m_targets=st.integers(1, 3), relaxed=st.booleans(),
+       special=st.sampled_from(["none", "nan u", "nan slack", "inf u", "-inf u", "huge"]))
+def test_the_compiled_feasibility_check_is_local_qp_max_violation(
+        seed: int, m_targets: int, relaxed: bool, special: str) -> None:
+    """``kernels.qp_max_violation`` (what the workspace's checks run) against the readable
+    ``LocalQp.max_violation`` of the same QP, at feasible and infeasible points, in a rate
+    box, with a NaN or an infinite entry in z (never feasible: NaN in, NaN out)."""
+    rng = np.random.default_rng(seed)
+    instance = random_instance(rng, m_targets, hard_feasible=bool(rng.random() < 0.5))
+    qp = instance.build(relaxed=relaxed)
+    centre = rng.uniform(-U_MAX, U_MAX, 3)
+    half = rng.uniform(0.0, 1.0, 3)
+    qp.z_min[:3], qp.z_max[:3] = np.maximum(centre - half, -U_MAX), np.minimum(centre + half, U_MAX)
+    z = rng.normal(0.0, rng.choice([0.1, 1.0, 5.0]), qp.cost_linear.shape[0])
+    if rng.random() < 0.3:  # a point that meets every bound of the slacks
+        z[3:] = np.abs(z[3:])
+    slot = {"nan u": (rng.integers(3), np.nan), "inf u": (rng.integers(3), np.inf),
+            "-inf u": (rng.integers(3), -np.inf), "huge": (rng.integers(z.size), 1e300)}
+    if special == "nan slack" and z.size > 3:
+        slot[special] = (rng.integers(3, z.size), np.nan)
+    if special in slot:
+        index, value = slot[special]
+        z[index] = value
+    _, columns, lower, _ = _workspace_inputs(instance)
+    got = qp_max_violation(z.tolist(), columns, lower, qp.z_min[:3].tolist(),
+                           qp.z_max[:3].tolist())
+    expected = qp.max_violation(z)
+    if np.isnan(expected):
+        assert np.isnan(got)
+    else:
+        assert got == pytest.approx(expected, rel=1e-12, abs=1e-12)
+
+
+def test_the_compiled_feasibility_check_names_what_it_was_given_wrong() -> None:
+    """Wrong lengths and types are a one-line error naming the argument, never a read past
+    the end."""
+    ok = ([0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 1.0, 0.0, 0.0], [0.5, -1.0], [-1.0] * 3, [1.0] * 3)
+    assert qp_max_violation(*ok) == 0.5
+    for index, value, error, words in (
+            (1, [1.0] * 5, ValueError, "columns: expected 6 floats, got 5"),
+            (3, [-1.0] * 2, ValueError, "low: expected 3 floats, got 2"),
+            (0, [0.0, 0.0], ValueError, "at least 3 floats"),
+            (0, [0.0, 0.0, "x"], TypeError, "z[2]: expected a float, got str"),
+            (2, np.zeros(2), ValueError, "lower a list or tuple"),
+            (4, None, TypeError, "high: expected a list or tuple of floats, got NoneType"),
+            (1, [1.0, 0.0, True, 1.0, 0.0, 0.0], TypeError, "columns[2]: expected a float")):
+        args = list(ok)
+        args[index] = value
+        with pytest.raises(error, match=words.replace("[", r"\[").replace("]", r"\]")):
+            qp_max_violation(*args)
 
 
 def test_workspace_sends_nan_nominal_to_the_solver_not_the_shortcut() -> None:
