@@ -14,6 +14,8 @@
  *                     for M targets (n = 3 or 6)
  *   qp_max_violation  qp.LocalQp.max_violation of the local QP (3.36-3.37), SPEC §9
  *                     from its row inputs (LocalQpWorkspace's feasibility checks)
+ *   native_finite     np.isfinite(...).all() of native float64 bytes (the wire rules' check
+ *                     of every received float, swarm.messages.rules)
  *
  * Why hand-written Cholesky and Jacobi: LAPACK from C would have to come from scipy (its
  * cython_lapack capsules), whose import costs each agent ~0.3 s of the 2 s launch budget, and
@@ -682,6 +684,41 @@ py_qp_max_violation(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     return result;
 }
 
+PyDoc_STRVAR(native_finite_doc,
+"native_finite(*parts) -> bool\n--\n\n"
+"Whether every float64 (native byte order) in the bytes-like parts is finite; each part's\n"
+"length must be a multiple of 8. The parts are read as they are, unaligned or not.");
+
+static PyObject *
+py_native_finite(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    for (Py_ssize_t i = 0; i < nargs; i++) {
+        Py_buffer view;
+        if (PyObject_GetBuffer(args[i], &view, PyBUF_SIMPLE) != 0) {
+            PyErr_Clear();
+            PyErr_Format(PyExc_TypeError, "native_finite: part %zd is not bytes-like (%s)", i,
+                         Py_TYPE(args[i])->tp_name);
+            return NULL;
+        }
+        if (view.len % 8) {
+            PyErr_Format(PyExc_ValueError, "native_finite: part %zd holds %zd bytes, not a "
+                         "whole number of float64", i, view.len);
+            PyBuffer_Release(&view);
+            return NULL;
+        }
+        const char *bytes = view.buf;
+        int finite = 1;
+        for (Py_ssize_t k = 0; k < view.len && finite; k += 8) {
+            double value;
+            memcpy(&value, bytes + k, sizeof value);
+            finite = isfinite(value);
+        }
+        PyBuffer_Release(&view);
+        if (!finite) Py_RETURN_FALSE;
+    }
+    Py_RETURN_TRUE;
+}
+
 static PyMethodDef methods[] = {
     {"perception", (PyCFunction)(void (*)(void))py_perception, METH_FASTCALL, perception_doc},
     {"symmetric_eigen", (PyCFunction)(void (*)(void))py_symmetric_eigen, METH_FASTCALL,
@@ -693,6 +730,8 @@ static PyMethodDef methods[] = {
      filter_stack_doc},
     {"qp_max_violation", (PyCFunction)(void (*)(void))py_qp_max_violation, METH_FASTCALL,
      qp_max_violation_doc},
+    {"native_finite", (PyCFunction)(void (*)(void))py_native_finite, METH_FASTCALL,
+     native_finite_doc},
     {NULL, NULL, 0, NULL},
 };
 

@@ -161,6 +161,9 @@ def barrier(drone: Array, estimate: Array, velocity: Array, gramian: Array,
 # ``LocalQpWorkspace`` holds them): ``qp_max_violation(z, columns, lower, low, high)``.
 # ``tests/core/test_qp.py`` binds it to ``LocalQp.max_violation`` through the workspace.
 qp_max_violation = _kernels.qp_max_violation
+# Whether every float64 of native-order bytes is finite: ``native_finite(*parts)``, the wire
+# rules' check of every float a peer sends (``swarm.messages.rules``).
+native_finite = _kernels.native_finite
 
 
 def filter_stack(information: Array, vector: Array, transition: Array, process_noise: float,

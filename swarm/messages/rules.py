@@ -37,6 +37,7 @@ from typing import Annotated, Any, Final
 import msgspec
 import numpy as np
 
+from swarm.core.kernels import native_finite
 from swarm.errors import VigilError
 
 _MAX_REASON_CHARS: Final = 300
@@ -82,15 +83,6 @@ def fail(reason: str, rule: str) -> None:
     raise WireError(reason, rule=rule)
 
 
-def sum_finite(raw: bytes | bytearray) -> bool:
-    """Every native float64 in ``raw`` (a multiple of 8 bytes) is finite, or maybe not (False):
-    their sum is finite, unless it overflows. Plain Python, no numpy call: on the agent's hot
-    path the data caches are cold after the core's step, and one more numpy entry point
-    costs more there than this loop."""
-    total = sum(memoryview(raw).cast("d"))
-    return total - total == 0.0
-
-
 def all_finite(raw: bytes | bytearray) -> bool:
     """Every float64 in the little-endian bytes ``raw`` (a multiple of 8 long) is finite."""
     values = np.frombuffer(raw, dtype=_LE_F64)
@@ -100,8 +92,9 @@ def all_finite(raw: bytes | bytearray) -> bool:
 def finite_floats(named: list[tuple[str, bytes]], native: bool) -> None:
     """Raise naming the first of ``(name, little-endian float64 bytes)`` that holds a
     non-finite value. ``native``: the machine is little-endian, so a plain sum may say yes."""
-    joined = b"".join(data for _, data in named)
-    if (native and sum_finite(joined)) or all_finite(joined):
+    if native and native_finite(*(data for _, data in named)):
+        return
+    if not native and all_finite(b"".join(data for _, data in named)):
         return
     for name, data in named:
         if not all_finite(data):
@@ -193,17 +186,15 @@ class _Generator:
             "_out_of_range": _out_of_range, "_mismatch": _mismatch, "_bad_length": _bad_length,
             "_too_many": _too_many, "_twice": _twice, "_bad_array": _bad_array,
             "_arrays_finite": _arrays_finite, "_native": sys.byteorder == "little",
-            "_sum": sum, "_nan": math.nan}
+            "_finite": native_finite}
 
     def compile(self, cls: type) -> tuple[Check, str]:
         self._struct(cls, "m", "")
-        if self._arrays:  # all floats finite: one sum says yes (see sum_finite), else numpy
+        if self._arrays:  # all floats finite: one compiled pass says yes, else numpy names one
             datas = [f"{var}.data" if var not in self._optional else
                      f"({var}.data if {var} is not None else b'')" for _, var in self._arrays]
-            raw = datas[0] if len(datas) == 1 else f"b''.join(({', '.join(datas)},))"
             pairs = ", ".join(f"({label}, {var})" for label, var in self._arrays)
-            self._emit(f"total_ = _sum(memoryview({raw}).cast('d')) if _native else _nan")
-            self._emit("if total_ - total_ != 0.0:")
+            self._emit(f"if not (_native and _finite({', '.join(datas)})):")
             self._emit(f"    _arrays_finite(({pairs},))")
         name = f"check_{cls.__name__}"
         source = f"def {name}(m):\n" + "\n".join(self._lines or ["    pass"]) + "\n"

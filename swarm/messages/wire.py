@@ -44,6 +44,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from swarm.core.agent import ConsensusMessage, Detection, StepDiagnostics
+from swarm.core.kernels import native_finite
 from swarm.core.records import record
 from swarm.messages.rules import (
     Check,
@@ -56,7 +57,6 @@ from swarm.messages.rules import (
     explain,
     fail,
     finite_floats,
-    sum_finite,
 )
 
 Array = NDArray[np.float64]
@@ -709,7 +709,7 @@ def _consensus_block(sizes: Mapping[str, int | None]) -> Check:
                      + " missing", "shape")
             fail(f"round-{rnd} consensus data carries {len(data)} bytes, expected {expected} "
                  f"for M = {M}, n = {n}", "shape")
-        if not (_NATIVE_LE and sum_finite(data)):
+        if not (_NATIVE_LE and native_finite(data)):
             finite_floats([(name, data[8 * start:8 * stop])
                            for name, _, start, stop in layouts[rnd == 0]], native=False)
     return check

@@ -22,6 +22,7 @@ quantity's scale. Measured over these examples: bit for bit for the perception t
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -424,3 +425,28 @@ def test_a_kernel_binary_older_than_its_source_is_refused(tmp_path) -> None:
     kernels._check_built_from_current_source(binary, source)  # up to date: nothing said
     source.unlink()
     kernels._check_built_from_current_source(binary, source)  # an installed wheel: no source
+
+
+@settings(max_examples=300, deadline=None)
+@given(values=st.lists(st.one_of(st.floats(), st.sampled_from([0.0, -0.0, 1e308, -1e-320])),
+                       max_size=40),
+       cuts=st.lists(st.integers(0, 40), max_size=4), shift=st.integers(0, 7))
+def test_native_finite_is_isfinite_all(values: list[float], cuts: list[int], shift: int) -> None:
+    """``native_finite`` (the wire rules' check of received floats) is
+    ``np.isfinite(...).all()`` of the floats in all its parts together, however they are cut
+    and wherever in memory they start (unaligned: a memoryview ``shift`` bytes in)."""
+    raw = np.array(values, dtype=np.float64).tobytes()
+    bounds = sorted({0, len(values), *(min(c, len(values)) for c in cuts)})
+    parts = [raw[8 * a:8 * b] for a, b in itertools.pairwise(bounds)]
+    shifted = [memoryview(b"x" * shift + part)[shift:] for part in parts]
+    expected = bool(np.isfinite(np.array(values, dtype=np.float64)).all())
+    assert kernels.native_finite(*parts) is expected
+    assert kernels.native_finite(*shifted) is expected
+    assert kernels.native_finite() is True
+
+
+def test_native_finite_names_a_part_that_is_not_floats() -> None:
+    with pytest.raises(ValueError, match="part 1 holds 12 bytes"):
+        kernels.native_finite(b"", b"x" * 12)
+    with pytest.raises(TypeError, match="part 0 is not bytes-like"):
+        kernels.native_finite([1.0])
