@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 from swarm.core import icf, kernels
 from swarm.core.barrier import robust_lower_bound
 from swarm.core.consensus_layout import ConsensusLayout
+from swarm.core.consensus_message import ConsensusMessage, message_size
 from swarm.core.formation import bearing_formation_scalars
 from swarm.core.gramian import initial_gramian
 from swarm.core.kernels import BarrierScalars, PerceptionScalars
@@ -51,32 +52,6 @@ class Detection:
 
     target: int
     image_point: Array
-
-
-@dataclass(frozen=True)
-class ConsensusMessage:
-    """What drone ``sender`` sends its neighbours in round ``round`` of step ``step``.
-
-    Round 0 also carries the continuous-time consensus states at the start of the step
-    (SPEC §6); later rounds carry only the ICF information pair (SPEC §5).
-    """
-
-    sender: int
-    step: int
-    round: int
-    information: Array  # V^κ, (M, n, n)
-    information_vector: Array  # v^κ, (M, n)
-    projector_mean: Array | None = None  # s for wΠ̂, (M, 3, 3)
-    projector_integral: Array | None = None  # η for wΠ̂, (M, 3, 3)
-    weight_mean: Array | None = None  # s for w, (M,)
-    weight_integral: Array | None = None  # η for w, (M,)
-    gramian: Array | None = None  # G copies, (M, 3, 3)
-
-    def is_finite(self) -> bool:
-        parts = [self.information, self.information_vector]
-        parts += [a for a in (self.projector_mean, self.projector_integral, self.weight_mean,
-                              self.weight_integral, self.gramian) if a is not None]
-        return all(bool(np.isfinite(a).all()) for a in parts)
 
 
 @dataclass(frozen=True)
@@ -228,6 +203,7 @@ class DroneAgent:
         self._disagreement = np.zeros(layout.size)  # Σ_j (x_i − x_j) of the round-0 states
         self._operator = _consensus_operator(layout, setup.dt_s, gram,
                                              est.info_gain * setup.n_drones)
+        self._message_size = message_size(m, n, with_states=True)
         self._neighbours = setup.neighbours
         self._weight_columns: dict[tuple[int, ...], Array] = {}
         self._barrier_constants = self._kernel_constants(setup.n_drones)
@@ -560,33 +536,27 @@ class DroneAgent:
         return {name: 1e6 * t for name, t in zip(SECTIONS, self._clock.seconds, strict=True)}
 
     def _message(self, rnd: int, *, with_states: bool) -> ConsensusMessage:
-        m, n = self.setup.n_targets, self._n_state
-        icf_copy = self._icf.copy()
-        information = icf_copy[:self._n_info].reshape(m, n, n)
-        vector = icf_copy[self._n_info:]
-        vector.shape = (m, n)
-        if not with_states:
-            return record(ConsensusMessage, dict(
-                sender=self.setup.drone_id, step=self._step, round=rnd,
-                information=information, information_vector=vector, projector_mean=None,
-                projector_integral=None, weight_mean=None, weight_integral=None,
-                gramian=None))
-        return record(ConsensusMessage, dict(
-            sender=self.setup.drone_id, step=self._step, round=rnd, information=information,
-            information_vector=vector, **self._layout.unpack(self._cons_array.copy())))
+        """The message of round ``rnd``: the ICF pair and, in round 0, the consensus states,
+        one concatenation of the packed vectors (``swarm.core.consensus_message``)."""
+        data = (np.concatenate((self._icf, self._cons_array)) if with_states
+                else self._icf.copy())
+        return record(ConsensusMessage, {
+            "sender": self.setup.drone_id, "step": self._step, "round": rnd,
+            "n_targets": self.setup.n_targets, "n_state": self._n_state, "data": data})
 
     def _gather(self, inbox: Mapping[int, ConsensusMessage],
                 first: bool) -> tuple[tuple[int, ...], Array]:
         """The neighbours usable this round and one row per party: the own state first, then
-        each usable neighbour's data packed the same way (ICF pair, then in round 0 the
-        consensus states).
+        each usable neighbour's ``data`` as it came (the ICF pair, then in round 0 the
+        consensus states, packed as the own state is: ``swarm.core.consensus_message``).
 
         A neighbour missing from the inbox is counted missing; a message from the wrong
-        sender, of the wrong shape or round, or with a non-finite number is counted rejected.
+        sender, of the wrong round or sizes, or with a non-finite number is counted rejected.
+        A later-round message that carries the round-0 states gives its pair.
         """
         m, n = self.setup.n_targets, self._n_state
-        info_shape, vector_shape = (m, n, n), (m, n)
-        mat_shape, vec_shape = (m, 3, 3), (m,)
+        pair = self._icf.shape[0]
+        full = self._message_size
         usable: list[int] = []
         parts: list[Array] = [self._icf, self._cons_array] if first else [self._icf]
         for j in self._neighbours:
@@ -594,28 +564,20 @@ class DroneAgent:
             if msg is None:
                 self._missing += 1
                 continue
-            if (msg.sender != j or msg.round != self._round
-                    or msg.information.shape != info_shape
-                    or msg.information_vector.shape != vector_shape):
+            data = msg.data
+            if (msg.sender != j or msg.round != self._round or msg.n_targets != m
+                    or msg.n_state != n or type(data) is not np.ndarray
+                    or data.dtype is not _F64 or data.ndim != 1):
                 self._rejected += 1
                 continue
-            if first:
-                s_proj, s_w, eta_proj, eta_w, g = (msg.projector_mean, msg.weight_mean,
-                                                   msg.projector_integral, msg.weight_integral,
-                                                   msg.gramian)
-                if (s_proj is None or s_w is None or eta_proj is None or eta_w is None
-                        or g is None or s_proj.shape != mat_shape or s_w.shape != vec_shape
-                        or eta_proj.shape != mat_shape or eta_w.shape != vec_shape
-                        or g.shape != mat_shape):
-                    self._rejected += 1
-                    continue
-                parts += (msg.information.ravel(), msg.information_vector.ravel(),
-                          *self._layout.pack(s_proj, s_w, eta_proj, eta_w, g))
+            size = data.shape[0]
+            if size == full:
+                parts.append(data if first else data[:pair])
+            elif size == pair and not first:
+                parts.append(data)
             else:
-                if _has_states(msg) and not msg.is_finite():
-                    self._rejected += 1
-                    continue
-                parts += (msg.information.ravel(), msg.information_vector.ravel())
+                self._rejected += 1
+                continue
             usable.append(j)
         if not usable:
             return (), self._icf[:0]
@@ -763,6 +725,7 @@ class DroneAgent:
 
 
 _ZERO3 = (0.0, 0.0, 0.0)
+_F64 = np.dtype(np.float64)  # native: what the agent and the decoder make
 _ZERO9 = (0.0,) * 9
 
 
@@ -824,11 +787,6 @@ def _finite3(xyz: list[float]) -> bool:
     """All three finite: x − x is 0 for a finite x and NaN for ±inf or NaN."""
     x, y, z = xyz
     return (x - x) + (y - y) + (z - z) == 0.0
-
-
-def _has_states(msg: ConsensusMessage) -> bool:
-    return any(a is not None for a in (msg.projector_mean, msg.projector_integral,
-                                       msg.weight_mean, msg.weight_integral, msg.gramian))
 
 
 def _measured_projector(image_point: list[float]) -> tuple[float, ...]:

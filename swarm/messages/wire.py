@@ -32,7 +32,6 @@ which convert and encode in one call.
 
 from __future__ import annotations
 
-import functools
 import math
 import operator
 import sys
@@ -43,7 +42,13 @@ import msgspec
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from swarm.core.agent import ConsensusMessage, Detection, StepDiagnostics
+from swarm.core.agent import Detection, StepDiagnostics
+from swarm.core.consensus_message import (
+    STATE_NAMES,
+    ConsensusMessage,
+    message_layout,
+    message_size,
+)
 from swarm.core.kernels import native_finite
 from swarm.core.records import record
 from swarm.messages.rules import (
@@ -85,6 +90,7 @@ CLOCK_MODES: Final = ("lockstep", "realtime")
 
 _LE_F64: Final = np.dtype("<f8")
 _F64: Final = np.dtype(np.float64)
+_ndarray: Final = np.ndarray
 # The wire is little-endian: on such a machine a float64 array's own bytes are the wire bytes.
 _NATIVE_LE: Final = sys.byteorder == "little"
 # What converting the caller's objects may raise (an array of strings, a shape that is not
@@ -158,42 +164,12 @@ class _Wire(msgspec.Struct, frozen=True, array_like=True, forbid_unknown_fields=
         return out
 
 
-# The arrays of a consensus message in the order ``ConsensusWire.data`` packs them: the ICF pair,
-# then (round 0 only) the consensus states as the core packs them (``DroneAgent._gather``).
-CONSENSUS_PAIR: Final = ("information", "information_vector")
-CONSENSUS_STATES: Final = ("projector_mean", "weight_mean", "projector_integral",
-                           "weight_integral", "gramian")
-
-
-def consensus_shapes(n_targets: int, n_state: int) -> dict[str, tuple[int, ...]]:
-    """The shape of each array of a consensus message, in packing order."""
-    M, n = n_targets, n_state
-    return {"information": (M, n, n), "information_vector": (M, n),
-            "projector_mean": (M, 3, 3), "weight_mean": (M,), "projector_integral": (M, 3, 3),
-            "weight_integral": (M,), "gramian": (M, 3, 3)}
-
-
-@functools.lru_cache(maxsize=64)
-def _consensus_layout(n_targets: int, n_state: int, with_states: bool
-                      ) -> tuple[tuple[str, tuple[int, ...], int, int], ...]:
-    """(name, shape, start, stop) of each array in the packed block, in floats."""
-    shapes = consensus_shapes(n_targets, n_state)
-    names = CONSENSUS_PAIR + CONSENSUS_STATES if with_states else CONSENSUS_PAIR
-    layout = []
-    start = 0
-    for name in names:
-        stop = start + math.prod(shapes[name])
-        layout.append((name, shapes[name], start, stop))
-        start = stop
-    return tuple(layout)
-
-
 class ConsensusWire(_Wire, tag="consensus", kw_only=True):
-    """``ConsensusMessage`` on ``agent/<i>/consensus``: the sender's sizes and every array in
-    one packed block of little-endian float64 (``data``): [information (M, n, n) |
-    information_vector (M, n)], and in round 0 also [projector_mean (M, 3, 3) | weight_mean (M,)
-    | projector_integral (M, 3, 3) | weight_integral (M,) | gramian (M, 3, 3)] — C order, the
-    packing of the core's own arrays, so that encoding is one join and decoding one view."""
+    """``ConsensusMessage`` on ``agent/<i>/consensus``: the sender's sizes and its ``data``
+    as little-endian float64 bytes: [information (M, n, n) | information_vector (M, n)], and
+    in round 0 also [projector_mean (M, 3, 3) | weight_mean (M,) | projector_integral
+    (M, 3, 3) | weight_integral (M,) | gramian (M, 3, 3)] — C order, the core's own packing
+    (``swarm.core.consensus_message``), so that encoding is one copy and decoding one."""
 
     sender: DroneId
     step: NonNegativeInt
@@ -203,11 +179,10 @@ class ConsensusWire(_Wire, tag="consensus", kw_only=True):
     data: Annotated[bytes, msgspec.Meta(extra={"packed": "consensus"})]
 
     def arrays(self) -> dict[str, Array]:
-        """Every array this message carries as a new numpy float64 array, by field name of
-        ``ConsensusMessage`` (no validation: decoded messages are checked)."""
-        message = consensus_from_wire(self)
-        return {name: value for name in CONSENSUS_PAIR + CONSENSUS_STATES
-                if (value := getattr(message, name)) is not None}
+        """Every array this message carries as a numpy float64 array (views of one new
+        block), by ``ConsensusMessage``'s names (no validation: decoded messages are
+        checked)."""
+        return consensus_from_wire(self).arrays()
 
 
 class BeaconWire(_Wire, tag="beacon", kw_only=True):
@@ -493,64 +468,28 @@ class _Header(msgspec.Struct, array_like=True):
 
 
 def consensus_to_wire(message: ConsensusMessage) -> ConsensusWire:
-    """The wire form of ``message`` (sizes from its ``information``; not validated for a swarm:
-    ``WireCodec.encode`` does that). Raises ``WireError`` if its arrays do not fit together
-    (shapes that disagree, or only some of the round-0 states)."""
-    information = message.information
-    if type(information) is not np.ndarray:
-        information = np.asarray(information)
-    shape = information.shape
-    if len(shape) != 3 or shape[1] != shape[2]:
-        raise WireError(f"information has shape {shape!s:.60}, expected (M, n, n)",
+    """The wire form of ``message`` (not validated for a swarm: ``WireCodec.encode`` does
+    that). Raises ``WireError`` if it is not a ``ConsensusMessage`` whose ``data`` is a 1-D
+    float64 array of one of the two sizes its M and n give."""
+    if not isinstance(message, ConsensusMessage):
+        raise WireError(f"not a consensus message: {type(message).__name__}", rule="type")
+    data = message.data
+    M, n = message.n_targets, message.n_state
+    if type(M) is not int or type(n) is not int or M < 0 or n < 0:
+        raise WireError(f"consensus sizes must be integers >= 0, got M = {M!r:.20}, "
+                        f"n = {n!r:.20}", rule="type")
+    if (not isinstance(data, np.ndarray) or data.ndim != 1
+            or data.shape[0] not in (message_size(M, n, False), message_size(M, n, True))):
+        shape = np.shape(data) if isinstance(data, np.ndarray) else type(data).__name__
+        raise WireError(f"consensus data {shape!s:.40} does not fit M = {M}, n = {n}",
                         rule="shape")
-    M, n = int(shape[0]), int(shape[1])
-    states = _consensus_states(message)
-    pm, wm, pi, wi, g = states
-    if pm is None and wm is None and pi is None and wi is None and g is None:
-        parts: tuple[Any, ...] = (information, message.information_vector)
-    elif pm is None or wm is None or pi is None or wi is None or g is None:
-        missing = [name for name, value in zip(CONSENSUS_STATES, states, strict=True)
-                   if value is None]
-        raise WireError(f"round-0 consensus states incomplete: {', '.join(missing)} missing",
-                        rule="shape")
-    else:
-        parts = (information, message.information_vector, *states)
-    shapes, dtypes = _consensus_form(M, n, len(parts) > 2)
-    try:  # the core's own arrays: their bytes as they are
-        native = (_NATIVE_LE and tuple(map(_dtype_of, parts)) == dtypes
-                  and tuple(map(_shape_of, parts)) == shapes)
-    except AttributeError:  # not arrays: converted below
-        native = False
-    if native:
-        data = b"".join(map(_tobytes, parts))
-    else:
-        chunks = []
-        for (name, expected, _, _), value in zip(_consensus_layout(M, n, len(parts) > 2),
-                                                 parts, strict=True):
-            got, raw = _le_bytes(value)
-            if got != expected:
-                raise WireError(f"{name} has shape {got!s:.60}, expected {expected}",
-                                rule="shape")
-            chunks.append(raw)
-        data = b"".join(chunks)
+    if data.dtype is not _F64 or not _NATIVE_LE:
+        if data.dtype.kind != "f":
+            raise WireError(f"consensus data must be floats, got {data.dtype}", rule="type")
+        data = np.ascontiguousarray(data, dtype=_LE_F64)
     return ConsensusWire(sender=_plain_int(message.sender), step=_plain_int(message.step),
-                         round=_plain_int(message.round), n_targets=M, n_state=n, data=data)
-
-
-@functools.lru_cache(maxsize=64)
-def _consensus_form(n_targets: int, n_state: int, with_states: bool
-                    ) -> tuple[tuple[tuple[int, ...], ...], tuple[np.dtype[Any], ...]]:
-    """The shapes and the dtypes (native float64) of a consensus message's arrays."""
-    layout = _consensus_layout(n_targets, n_state, with_states)
-    return tuple(shape for _, shape, _, _ in layout), (_F64,) * len(layout)
-
-
-_shape_of: Final = operator.attrgetter("shape")
-_dtype_of: Final = operator.attrgetter("dtype")
-_tobytes: Final = np.ndarray.tobytes
-
-
-_consensus_states: Final = operator.attrgetter(*CONSENSUS_STATES)
+                         round=_plain_int(message.round), n_targets=M, n_state=n,
+                         data=data.tobytes())
 
 
 def _plain_int(value: Any) -> Any:
@@ -563,32 +502,17 @@ def _plain_int(value: Any) -> Any:
 
 
 def consensus_from_wire(wire: ConsensusWire) -> ConsensusMessage:
-    """The ``ConsensusMessage`` of a (checked) wire message: its arrays are writable,
-    C-contiguous views of one new native float64 array, bit-exact."""
+    """The ``ConsensusMessage`` of a (checked) wire message: ``data`` one new native float64
+    array, bit-exact."""
     M, n = wire.n_targets, wire.n_state
-    floats = len(wire.data) // 8
-    layout = _consensus_layout(M, n, True)
-    if floats != layout[-1][3] or len(wire.data) % 8:
-        layout = _consensus_layout(M, n, False)
-        if floats != layout[-1][3] or len(wire.data) % 8:
-            raise WireError(f"consensus data of {len(wire.data)} bytes does not fit M = {M}, "
-                            f"n = {n}", rule="shape")
+    floats, odd = divmod(len(wire.data), 8)
+    if odd or floats not in (message_size(M, n, False), message_size(M, n, True)):
+        raise WireError(f"consensus data of {len(wire.data)} bytes does not fit M = {M}, "
+                        f"n = {n}", rule="shape")
     block = np.frombuffer(wire.data, dtype=_LE_F64).astype(np.float64)
-    fields: dict[str, Any] = dict.fromkeys(CONSENSUS_STATES)
-    for name, shape, start, stop in layout:
-        view = block[start:stop]
-        view.shape = shape
-        fields[name] = view
-    return _new_message(wire.sender, wire.step, wire.round, fields)
-
-
-_NO_STATES: Final = dict.fromkeys(CONSENSUS_STATES)
-_ndarray: Final = np.ndarray
-
-
-def _new_message(sender: int, step: int, rnd: int, arrays: dict[str, Any]) -> ConsensusMessage:
-    """``ConsensusMessage(...)``, every field given (``swarm.core.records``)."""
-    return record(ConsensusMessage, {"sender": sender, "step": step, "round": rnd, **arrays})
+    return record(ConsensusMessage, {"sender": wire.sender, "step": wire.step,
+                                     "round": wire.round, "n_targets": M, "n_state": n,
+                                     "data": block})
 
 
 def _vector3(values: ArrayLike) -> tuple[float, float, float]:
@@ -695,7 +619,7 @@ def _consensus_block(sizes: Mapping[str, int | None]) -> Check:
     every float finite."""
     M, n = sizes["targets"], sizes["state"]
     assert M is not None and n is not None
-    layouts = (_consensus_layout(M, n, False), _consensus_layout(M, n, True))
+    layouts = (message_layout(M, n, False), message_layout(M, n, True))
     later, first = (8 * layout[-1][3] for layout in layouts)
 
     def check(m: ConsensusWire) -> None:
@@ -705,7 +629,7 @@ def _consensus_block(sizes: Mapping[str, int | None]) -> Check:
             if rnd != 0 and len(data) == first:
                 fail(f"round {rnd} must not carry the round-0 consensus states", "shape")
             if rnd == 0 and len(data) == later:
-                fail("round 0 without the consensus states: " + ", ".join(CONSENSUS_STATES)
+                fail("round 0 without the consensus states: " + ", ".join(STATE_NAMES)
                      + " missing", "shape")
             fail(f"round-{rnd} consensus data carries {len(data)} bytes, expected {expected} "
                  f"for M = {M}, n = {n}", "shape")
@@ -751,11 +675,6 @@ class WireCodec:
         self._rules: dict[type, Check] = SwarmRules(
             sizes, tuple(_KINDS), array_type=F64Array,
             packings={"consensus": _consensus_block}).checks
-        # (name, shape, byte offset) of each array in the packed block, by round == 0.
-        self._consensus_views = tuple(
-            tuple((name, shape, 8 * start) for name, shape, start, _ in layout)
-            for layout in (_consensus_layout(n_targets, n_state, False),
-                           _consensus_layout(n_targets, n_state, True)))
 
     # -- encode --------------------------------------------------------------------------
 
@@ -819,19 +738,16 @@ class WireCodec:
     # -- decode --------------------------------------------------------------------------
 
     def decode_consensus(self, payload: bytes) -> ConsensusMessage:
-        """The ``ConsensusMessage`` in ``payload``, checked; its arrays are writable,
-        C-contiguous views of one new float64 array (as ``consensus_from_wire`` makes them)."""
+        """The ``ConsensusMessage`` in ``payload``, checked; its ``data`` is one new, writable
+        native float64 array (as ``consensus_from_wire`` makes it)."""
         wire = self._decode(payload, ConsensusWire)
         if not _NATIVE_LE:
             return consensus_from_wire(wire)
-        buffer = bytearray(wire.data)  # one writable copy, the arrays views into it
-        first = wire.round == 0
-        fields = {name: _ndarray(shape, _F64, buffer, offset)
-                  for name, shape, offset in self._consensus_views[first]}
-        if not first:
-            fields.update(_NO_STATES)
-        fields["sender"], fields["step"], fields["round"] = wire.sender, wire.step, wire.round
-        return record(ConsensusMessage, fields)
+        data = bytearray(wire.data)  # one writable copy, the array over it
+        return record(ConsensusMessage, {
+            "sender": wire.sender, "step": wire.step, "round": wire.round,
+            "n_targets": wire.n_targets, "n_state": wire.n_state,
+            "data": _ndarray((len(data) // 8,), _F64, data)})
 
     def decode_consensus_wire(self, payload: bytes) -> ConsensusWire:
         return self._decode(payload, ConsensusWire)

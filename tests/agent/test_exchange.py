@@ -76,7 +76,7 @@ def peers(link: AutopilotLink, *, ended: bool = False, drains: list[int] | None 
 
 
 def message(sender: int, step: int, rnd: int) -> ConsensusMessage:
-    return ConsensusMessage(sender, step, rnd, np.eye(6)[None], np.zeros((1, 6)))
+    return ConsensusMessage.of_arrays(sender, step, rnd, np.eye(6)[None], np.zeros((1, 6)))
 
 
 def test_lockstep_waits_for_every_neighbour_of_the_round(link: AutopilotLink) -> None:

@@ -38,8 +38,8 @@ def wait_until(condition, timeout_s: float = 10.0) -> bool:
 
 def consensus(sender: int, m: int, n_state: int) -> ConsensusMessage:
     rng = np.random.default_rng(sender)
-    return ConsensusMessage(sender, 3, 1, rng.normal(size=(m, n_state, n_state)),
-                            rng.normal(size=(m, n_state)))
+    return ConsensusMessage.of_arrays(sender, 3, 1, rng.normal(size=(m, n_state, n_state)),
+                                      rng.normal(size=(m, n_state)))
 
 
 @contextlib.contextmanager

@@ -97,7 +97,9 @@ def test_bad_detections_are_counted_and_never_reach_the_filter() -> None:
 def test_missing_and_malformed_neighbour_messages_are_left_out_and_counted() -> None:
     agent = lone_agent(ControlParams())
     first = agent.begin_step(0, np.array([0.0, 0.0, 3.0]), [])
-    poisoned = dataclasses.replace(first, sender=1, information=first.information * np.nan)
+    data = first.data.copy()
+    data[:first.information.size] = np.nan  # V of every target
+    poisoned = dataclasses.replace(first, sender=1, data=data)
     agent.consensus_round({1: poisoned})
     result = agent.finish_step({})
     assert result.diagnostics.rejected_inputs == 1
@@ -105,6 +107,32 @@ def test_missing_and_malformed_neighbour_messages_are_left_out_and_counted() -> 
     result = run_alone(agent, 1, [0.0, 0.0, 3.0])
     assert result.diagnostics.missing_neighbour_messages == 1
     assert agent.missing_neighbour_messages == 1 and agent.rejected_inputs == 1
+
+
+@pytest.mark.parametrize("change", [
+    "short data", "long data", "float32 data", "big-endian data", "list data", "2-D data",
+    "other M", "other n", "pair only in round 0", "inf in a state"])
+def test_a_neighbour_message_that_does_not_fit_is_rejected_and_counted(change: str) -> None:
+    """Whatever a message made outside the agent and the decoder holds, the agent takes only
+    a 1-D native float64 block of its own sizes (``swarm.core.consensus_message``): anything
+    else is left out of the sums and counted, never read past or reshaped."""
+    agent = lone_agent(ControlParams())
+    first = agent.begin_step(0, np.array([0.0, 0.0, 3.0]), [])
+    data = first.data
+    pair = first.information.size + first.information_vector.size
+    states = data.copy()
+    states[pair + 3] = np.inf
+    bad = {"short data": dict(data=data[:-1]), "long data": dict(data=np.append(data, 0.0)),
+           "float32 data": dict(data=data.astype(np.float32)),
+           "big-endian data": dict(data=data.astype(">f8")), "list data": dict(data=list(data)),
+           "2-D data": dict(data=data.reshape(1, -1)), "other M": dict(n_targets=2),
+           "other n": dict(n_state=3), "pair only in round 0": dict(data=data[:pair]),
+           "inf in a state": dict(data=states)}[change]
+    agent.consensus_round({1: dataclasses.replace(first, sender=1, **bad)})
+    result = agent.finish_step({})
+    assert result.diagnostics.rejected_inputs == 1
+    assert np.all(np.isfinite(agent.target_estimates))
+    assert np.all(np.isfinite(agent.gramian_copies))
 
 
 def test_a_message_from_another_round_is_rejected() -> None:

@@ -51,7 +51,8 @@ def consensus_message(round_: int = 0, sender: int = 3, step: int = 17) -> Conse
     if round_ == 0:
         extras = dict(projector_mean=tricky(M, 3, 3), projector_integral=tricky(M, 3, 3),
                       weight_mean=tricky(M), weight_integral=tricky(M), gramian=tricky(M, 3, 3))
-    return ConsensusMessage(sender, step, round_, tricky(M, NS, NS), tricky(M, NS), **extras)
+    return ConsensusMessage.of_arrays(sender, step, round_, tricky(M, NS, NS), tricky(M, NS),
+                                      **extras)
 
 
 def real_agent_outputs():

@@ -47,8 +47,9 @@ def consensus(sender: int, step: int, round_: int) -> ConsensusMessage:
                       projector_integral=np.full((N_TARGETS, 3, 3), -base),
                       weight_mean=np.full(N_TARGETS, base), weight_integral=np.zeros(N_TARGETS),
                       gramian=np.full((N_TARGETS, 3, 3), base))
-    return ConsensusMessage(sender, step, round_, np.full((N_TARGETS, N_STATE, N_STATE), base),
-                            np.full((N_TARGETS, N_STATE), base), **extras)
+    return ConsensusMessage.of_arrays(
+        sender, step, round_, np.full((N_TARGETS, N_STATE, N_STATE), base),
+        np.full((N_TARGETS, N_STATE), base), **extras)
 
 
 def main() -> int:

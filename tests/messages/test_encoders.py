@@ -14,7 +14,12 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from swarm.core.agent import ConsensusMessage
+from swarm.core.consensus_message import (
+    ARRAY_NAMES,
+    STATE_NAMES,
+    ConsensusMessage,
+    ConsensusMessageError,
+)
 from swarm.messages.wire import (
     BeaconWire,
     TelemetryCounters,
@@ -70,67 +75,108 @@ def test_encode_consensus_gives_the_bytes_of_encode() -> None:
 
 
 def replace(message: ConsensusMessage, **changes: Any) -> ConsensusMessage:
+    """``message`` with other header fields (``dataclasses.replace``) or other arrays (packed
+    again by ``ConsensusMessage.of_arrays``, which may refuse them)."""
+    arrays = {name: changes.pop(name) for name in ARRAY_NAMES if name in changes}
+    if arrays:
+        given = {**dict.fromkeys(STATE_NAMES), **message.arrays(), **arrays}
+        message = ConsensusMessage.of_arrays(
+            message.sender, message.step, message.round, given.pop("information"),
+            given.pop("information_vector"), **given)
     return dataclasses.replace(message, **changes)
 
 
-def bad_consensus_messages() -> list[ConsensusMessage]:
+def raw_message(rnd: int = 0, **changes: Any) -> ConsensusMessage:
+    """A message made directly (not by ``of_arrays``), for what the encoder must refuse."""
+    good = consensus_message(round_=rnd)
+    return dataclasses.replace(good, **changes)
+
+
+def bad_consensus_messages() -> list[Callable[[], ConsensusMessage]]:
+    """Ways to make a consensus message, most of them wrong: each is built inside the test
+    (``of_arrays`` refuses some of them before any encoder sees them)."""
     good, later = consensus_message(), consensus_message(round_=2)
     nan_info = good.information.copy()
     nan_info[1, 2, 3] = np.nan
     inf_gramian = good.gramian.copy()
     inf_gramian[0, 0, 0] = -np.inf
+    full, pair = good.data.shape[0], later.data.shape[0]
     return [
-        replace(good, information=nan_info), replace(good, gramian=inf_gramian),
-        replace(later, information_vector=np.full((M, NS), np.inf)),
-        replace(good, sender=N), replace(good, sender=-1), replace(good, step=-3),
-        replace(good, round=3), replace(good, sender=np.int64(2)), replace(good, sender=True),
-        replace(good, sender=2.0), replace(good, gramian=None),
-        replace(good, projector_mean=None, projector_integral=None, weight_mean=None,
-                weight_integral=None, gramian=None),
-        replace(later, weight_mean=good.weight_mean),
-        replace(later, projector_mean=good.projector_mean,
-                projector_integral=good.projector_integral, weight_mean=good.weight_mean,
-                weight_integral=good.weight_integral, gramian=good.gramian),
-        replace(good, information=good.information[:, :5, :5]),
-        replace(good, information=np.zeros((M, NS + 1, NS + 1))),
-        replace(good, information_vector=np.ones((M, NS), dtype=np.float32)),
-        replace(good, information_vector=np.ones((M, NS), dtype=np.int64)),
-        replace(good, information_vector=good.information_vector.tolist()),
-        replace(good, weight_mean=good.weight_mean.astype(">f8")),
-        replace(good, gramian=np.asfortranarray(good.gramian)),
-        replace(good, information=None), replace(good, information="x"),
-        replace(good, weight_mean=np.array(["a", "b"])),
-        replace(good, information=np.full((M, NS, NS), HUGE)),  # valid: the sum overflows
+        lambda: replace(good, information=nan_info), lambda: replace(good, gramian=inf_gramian),
+        lambda: replace(later, information_vector=np.full((M, NS), np.inf)),
+        lambda: replace(good, sender=N), lambda: replace(good, sender=-1),
+        lambda: replace(good, step=-3), lambda: replace(good, round=3),
+        lambda: replace(good, sender=np.int64(2)), lambda: replace(good, sender=True),
+        lambda: replace(good, sender=2.0), lambda: replace(good, gramian=None),
+        lambda: replace(good, projector_mean=None, projector_integral=None, weight_mean=None,
+                        weight_integral=None, gramian=None),
+        lambda: replace(later, weight_mean=good.weight_mean),
+        lambda: replace(later, projector_mean=good.projector_mean,
+                        projector_integral=good.projector_integral,
+                        weight_mean=good.weight_mean, weight_integral=good.weight_integral,
+                        gramian=good.gramian),
+        lambda: replace(good, information=good.information[:, :5, :5]),
+        lambda: replace(good, information=np.zeros((M, NS + 1, NS + 1))),
+        lambda: replace(good, information_vector=np.ones((M, NS), dtype=np.float32)),
+        lambda: replace(good, information_vector=np.ones((M, NS), dtype=np.int64)),
+        lambda: replace(good, information_vector=good.information_vector.tolist()),
+        lambda: replace(good, weight_mean=good.weight_mean.astype(">f8")),
+        lambda: replace(good, gramian=np.asfortranarray(good.gramian)),
+        lambda: replace(good, information=None), lambda: replace(good, information="x"),
+        lambda: replace(good, weight_mean=np.array(["a", "b"])),
+        lambda: replace(good, information=np.full((M, NS, NS), HUGE)),  # valid: sum overflows
+        # made directly, not by of_arrays:
+        lambda: raw_message(data=good.data[:-1]), lambda: raw_message(data=good.data.tolist()),
+        lambda: raw_message(data=good.data.reshape(-1, 2)),
+        lambda: raw_message(data=good.data.astype(np.float32)),
+        lambda: raw_message(data=good.data.astype(">f8")),
+        lambda: raw_message(data=np.zeros(full, dtype=np.int64)),
+        lambda: raw_message(2, data=good.data), lambda: raw_message(0, data=later.data[:pair]),
+        lambda: raw_message(n_targets=M + 1), lambda: raw_message(n_state=np.int64(NS)),
+        lambda: raw_message(n_targets=M + 1, data=np.zeros(full + 29 + NS * (NS + 1))),
     ]
 
 
 BAD_CONSENSUS = bad_consensus_messages()
-# What each of BAD_CONSENSUS gives: "ok" (converted as the core's arrays would be), or the rule
-# it breaks and a word of the reason.
+# What each of BAD_CONSENSUS gives: "ok" (converted as the core's arrays would be), the rule of
+# the encoder's refusal and a word of its reason, or "made": ``of_arrays`` refuses the arrays
+# (a ``ConsensusMessageError``) and no message exists to send.
 CONSENSUS_OUTCOMES = [
     ("finite", "information contains"), ("finite", "gramian contains"),
     ("finite", "information_vector contains"), ("range", "sender 6 out of range"),
     ("range", "sender must be an integer >= 0"), ("range", "step must be an integer >= 0"),
     ("range", "round 3 out of range"), ("ok", ""), ("type", "sender: Expected `int`"),
-    ("type", "sender: Expected `int`, got `float`"), ("shape", "gramian missing"),
-    ("shape", "round 0 without the consensus states"), ("shape", "incomplete"),
-    ("shape", "must not carry"), ("shape", "information_vector has shape"),
-    ("shape", "information_vector has shape"), ("ok", ""), ("ok", ""), ("ok", ""), ("ok", ""),
-    ("ok", ""), ("shape", "information has shape ()"), ("shape", "information has shape ()"),
-    ("type", "cannot encode ConsensusMessage: ValueError"), ("ok", ""),
+    ("type", "sender: Expected `int`, got `float`"), ("made", "gramian missing"),
+    ("shape", "round 0 without the consensus states"), ("made", "incomplete"),
+    ("shape", "must not carry"), ("made", "information_vector has shape"),
+    ("made", "information_vector has shape"), ("ok", ""), ("ok", ""), ("ok", ""), ("ok", ""),
+    ("ok", ""), ("made", "information has shape ()"), ("made", "information has shape ()"),
+    ("made", "weight_mean is not numbers: ValueError"), ("ok", ""),
+    ("shape", "does not fit M = 2"), ("shape", "consensus data list does not fit"),
+    ("shape", "does not fit M = 2"), ("finite", "information contains"), ("ok", ""),
+    ("type", "consensus data must be floats, got int64"), ("shape", "must not carry"),
+    ("shape", "round 0 without the consensus states"), ("shape", "does not fit M = 3"),
+    ("type", "consensus sizes must be integers"), ("shape", "n_targets 3 does not match"),
 ]
 
 
 @pytest.mark.parametrize("index", range(len(BAD_CONSENSUS)))
 def test_encode_consensus_refuses_with_the_rule_broken(index: int) -> None:
-    message = BAD_CONSENSUS[index]
+    build = BAD_CONSENSUS[index]
     rule, words = CONSENSUS_OUTCOMES[index]
+    if rule == "made":
+        with pytest.raises(ConsensusMessageError, match=words.replace("(", r"\(").replace(
+                ")", r"\)")):
+            build()
+        return
+    message = build()
     got = outcome(lambda: CODEC.encode_consensus(message))
     if rule == "ok":
         assert got[0] == "ok", got
         back = CODEC.decode_consensus(got[1])  # sent as float64, C order
         assert np.array_equal(back.information_vector, np.asarray(
             message.information_vector, dtype=np.float64))
+        assert np.array_equal(back.data, np.asarray(message.data, dtype=np.float64))
     else:
         assert got[0] == "error" and words in got[1], got
         with pytest.raises(WireError) as info:
