@@ -16,6 +16,10 @@
  *                     from its row inputs (LocalQpWorkspace's feasibility checks)
  *   native_finite     np.isfinite(...).all() of native float64 bytes (the wire rules' check
  *                     of every received float, swarm.messages.rules)
+ *   consensus_sums    icf.consensus_iteration of the packed ICF pair, and the    SPEC §5-§6
+ *                     disagreement of the round-0 consensus states (DroneAgent)  2.6-2.7
+ *   consensus_step    the packed PI consensus and Gramian step, agent._consensus_operator
+ *                     (pi_consensus_step, gramian_step)                          3.29-3.30
  *
  * Why hand-written Cholesky and Jacobi: LAPACK from C would have to come from scipy (its
  * cython_lapack capsules), whose import costs each agent ~0.3 s of the 2 s launch budget, and
@@ -377,6 +381,63 @@ qp_max_violation(const double *z, Py_ssize_t n_z, const double *columns, const d
     return worst;
 }
 
+/* -- consensus (SPEC §5-§6) ------------------------------------------------------------------ */
+
+static int
+all_finite(const double *values, Py_ssize_t count)
+{
+    for (Py_ssize_t i = 0; i < count; i++)
+        if (!isfinite(values[i])) return 0;
+    return 1;
+}
+
+/* One ICF consensus iteration (2.6-2.7) on the packed pair a (n_icf floats): icf_out =
+ * a + sum_j w_j (a_j - a), the neighbours in order, each difference rounded, then weighted,
+ * then added, as consensus_iteration adds them; and with the round-0 states c (n_cons floats,
+ * own_cons != NULL) disagreement_out = -sum_j (c_j - c). Neighbour j's block is [a_j | c_j].
+ * The caller has dropped the blocks with a non-finite value. */
+static void
+consensus_sums(const double *own_icf, Py_ssize_t n_icf, const double *own_cons,
+               Py_ssize_t n_cons, const double *const *blocks, const double *weights,
+               Py_ssize_t count, double *icf_out, double *disagreement_out)
+{
+    for (Py_ssize_t i = 0; i < n_icf; i++) {
+        double own = own_icf[i], sum = own;
+        for (Py_ssize_t j = 0; j < count; j++) sum = sum + weights[j] * (blocks[j][i] - own);
+        icf_out[i] = sum;
+    }
+    if (own_cons == NULL) return;
+    for (Py_ssize_t i = 0; i < n_cons; i++) {
+        double own = own_cons[i], sum = 0.0;
+        for (Py_ssize_t j = 0; j < count; j++) {
+            double difference = blocks[j][n_icf + i] - own;
+            sum = j == 0 ? difference : sum + difference;
+        }
+        disagreement_out[i] = -sum;
+    }
+}
+
+/* The packed consensus step: out[i] = sum_r coefficients[r][i] * z[index[r][i]] over the
+ * `rows` terms in order (products rounded, then added from r = 0), with z = [x (n) | d (n) |
+ * u (n_u) | 0]: what np.add.reduce(z[index] * coefficients, axis=0) computes. */
+static void
+consensus_step(const double *x, const double *d, const double *u, Py_ssize_t n, Py_ssize_t n_u,
+               const Py_ssize_t *index, const double *coefficients, Py_ssize_t rows,
+               double *out)
+{
+    for (Py_ssize_t i = 0; i < n; i++) {
+        double sum = 0.0;
+        for (Py_ssize_t r = 0; r < rows; r++) {
+            Py_ssize_t k = index[r * n + i];
+            double value = k < n ? x[k] : k < 2 * n ? d[k - n] : k < 2 * n + n_u
+                           ? u[k - 2 * n] : 0.0;
+            double term = coefficients[r * n + i] * value;
+            sum = r == 0 ? term : sum + term;
+        }
+        out[i] = sum;
+    }
+}
+
 /* -- Python glue --------------------------------------------------------------------------- */
 
 static void
@@ -719,6 +780,139 @@ py_native_finite(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     Py_RETURN_TRUE;
 }
 
+PyDoc_STRVAR(consensus_sums_doc,
+"consensus_sums(own_icf, own_cons, blocks, weights, icf_out, disagreement_out) -> int\n--\n\n"
+"One ICF consensus iteration of the packed pair own_icf (n floats) with the neighbours'\n"
+"blocks (a list of float64 arrays, each starting with its pair) weighted by weights (a list\n"
+"of floats): icf_out = a + sum_j w_j (a_j - a). With own_cons (the round-0 consensus\n"
+"states, m floats; None in later rounds) the blocks carry [pair | states] and\n"
+"disagreement_out = -sum_j (c_j - c) (zeros without a block). A block with a non-finite\n"
+"value among the floats used is left out; returns how many were.");
+
+static PyObject *
+py_consensus_sums(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (check_nargs(nargs, 6, "consensus_sums")) return NULL;
+    int first = args[1] != Py_None;
+    PyObject *blocks = args[2], *weight_list = args[3];
+    if (!PyList_Check(blocks) || !PyList_Check(weight_list)
+            || PyList_GET_SIZE(blocks) != PyList_GET_SIZE(weight_list)) {
+        PyErr_SetString(PyExc_TypeError, "consensus_sums: blocks and weights must be lists of "
+                        "the same length");
+        return NULL;
+    }
+    if (first == (args[5] == Py_None)) {
+        PyErr_SetString(PyExc_TypeError, "consensus_sums: own_cons and disagreement_out go "
+                        "together (both None after round 0)");
+        return NULL;
+    }
+    Py_ssize_t count = PyList_GET_SIZE(blocks);
+    static const BufferSpec specs[4] = {{0, "own_icf", -1, 0}, {4, "icf_out", -1, 1},
+                                        {1, "own_cons", -1, 0}, {5, "disagreement_out", -1, 1}};
+    Py_buffer v[4];
+    int n_views = first ? 4 : 2;
+    if (acquire(args, specs, n_views, v)) return NULL;
+    Py_ssize_t n_icf = v[0].len / 8, n_cons = first ? v[2].len / 8 : 0;
+    const Py_ssize_t lengths[4] = {n_icf, n_icf, n_cons, n_cons};
+    if (check_lengths(v, specs, lengths, n_views)) return NULL;
+    /* Scratch: the views of the blocks, their data and weights. */
+    Py_buffer *views = PyMem_Calloc((size_t)count + 1, sizeof(Py_buffer));
+    const double **data = PyMem_Calloc((size_t)count + 1, sizeof(double *));
+    double *weights = PyMem_Calloc((size_t)count + 1, sizeof(double));
+    Py_ssize_t held = 0, used = 0, dropped = 0;
+    PyObject *result = NULL;
+    if (views == NULL || data == NULL || weights == NULL) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    for (Py_ssize_t j = 0; j < count; j++) {
+        if (float64_buffer(PyList_GET_ITEM(blocks, j), &views[held], 0, -1, "block")) goto done;
+        held++;
+        if (views[held - 1].len / 8 < n_icf + n_cons) {
+            PyErr_Format(PyExc_ValueError, "consensus_sums: block %zd holds %zd floats, "
+                         "expected at least %zd", j, views[held - 1].len / 8, n_icf + n_cons);
+            goto done;
+        }
+        double weight = PyFloat_AsDouble(PyList_GET_ITEM(weight_list, j));
+        if (weight == -1.0 && PyErr_Occurred()) goto done;
+        const double *block = views[held - 1].buf;
+        if (!all_finite(block, n_icf + n_cons)) {
+            dropped++;
+            continue;
+        }
+        data[used] = block;
+        weights[used++] = weight;
+    }
+    consensus_sums(v[0].buf, n_icf, first ? v[2].buf : NULL, n_cons, data, weights, used,
+                   v[1].buf, first ? v[3].buf : NULL);
+    if (first && used == 0) memset(v[3].buf, 0, (size_t)n_cons * sizeof(double));
+    result = PyLong_FromSsize_t(dropped);
+done:
+    release(views, (int)held);
+    release(v, n_views);
+    PyMem_Free(views);
+    PyMem_Free(data);
+    PyMem_Free(weights);
+    return result;
+}
+
+PyDoc_STRVAR(consensus_step_doc,
+"consensus_step(x, d, u, index, coefficients, out)\n--\n\n"
+"out[i] = sum_r coefficients[r, i] * z[index[r, i]] (products, then added from r = 0) with\n"
+"z = [x (n) | d (n) | u (a list of floats) | 0]: np.add.reduce(z[index] * coefficients,\n"
+"axis=0) of agent._consensus_operator's (index, coefficients), both (rows, n).");
+
+static PyObject *
+py_consensus_step(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (check_nargs(nargs, 6, "consensus_step")) return NULL;
+    static const BufferSpec specs[4] = {{0, "x", -1, 0}, {1, "d", -1, 0},
+                                        {4, "coefficients", -1, 0}, {5, "out", -1, 1}};
+    Py_buffer v[4], index;
+    Py_ssize_t n_u = PyList_Check(args[2]) ? PyList_GET_SIZE(args[2]) : -1;
+    if (n_u < 0) {
+        PyErr_SetString(PyExc_TypeError, "consensus_step: u must be a list of floats");
+        return NULL;
+    }
+    if (acquire(args, specs, 4, v)) return NULL;
+    Py_ssize_t n = v[0].len / 8, terms = v[2].len / 8;
+    const Py_ssize_t lengths[4] = {n, n, terms, n};
+    if (check_lengths(v, specs, lengths, 4)) return NULL;
+    if (PyObject_GetBuffer(args[3], &index, PyBUF_FORMAT | PyBUF_C_CONTIGUOUS) != 0) {
+        release(v, 4);
+        return NULL;
+    }
+    const char *format = index.format ? index.format : "B";
+    int integers = index.itemsize == (Py_ssize_t)sizeof(Py_ssize_t)
+                   && strchr("lLqQn", format[strlen(format) - 1]) != NULL;
+    double *u = PyMem_Malloc(sizeof(double) * (size_t)(n_u + 1));
+    PyObject *result = NULL;
+    if (u == NULL) {
+        PyErr_NoMemory();
+    } else if (!integers || n == 0 || terms % n != 0 || index.len / index.itemsize != terms) {
+        PyErr_Format(PyExc_ValueError, "consensus_step: index (%zd items of format '%s') and "
+                     "coefficients (%zd) must both be (rows, n = %zd), index of intp", index.len
+                     / (index.itemsize ? index.itemsize : 1), format, terms, n);
+    } else if (float_sequence(args[2], u, n_u, "u") == 0) {
+        const Py_ssize_t *at = index.buf;
+        int in_range = 1;
+        for (Py_ssize_t k = 0; k < terms; k++)
+            if (at[k] < 0 || at[k] > 2 * n + n_u) in_range = 0;
+        if (!in_range) {
+            PyErr_Format(PyExc_ValueError, "consensus_step: an index lies outside z (%zd "
+                         "floats)", 2 * n + n_u + 1);
+        } else {
+            consensus_step(v[0].buf, v[1].buf, u, n, n_u, at, v[2].buf, terms / n, v[3].buf);
+            result = Py_None;
+            Py_INCREF(result);
+        }
+    }
+    PyMem_Free(u);
+    PyBuffer_Release(&index);
+    release(v, 4);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"perception", (PyCFunction)(void (*)(void))py_perception, METH_FASTCALL, perception_doc},
     {"symmetric_eigen", (PyCFunction)(void (*)(void))py_symmetric_eigen, METH_FASTCALL,
@@ -732,6 +926,10 @@ static PyMethodDef methods[] = {
      qp_max_violation_doc},
     {"native_finite", (PyCFunction)(void (*)(void))py_native_finite, METH_FASTCALL,
      native_finite_doc},
+    {"consensus_sums", (PyCFunction)(void (*)(void))py_consensus_sums, METH_FASTCALL,
+     consensus_sums_doc},
+    {"consensus_step", (PyCFunction)(void (*)(void))py_consensus_step, METH_FASTCALL,
+     consensus_step_doc},
     {NULL, NULL, 0, NULL},
 };
 

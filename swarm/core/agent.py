@@ -205,7 +205,6 @@ class DroneAgent:
                                              est.info_gain * setup.n_drones)
         self._message_size = message_size(m, n, with_states=True)
         self._neighbours = setup.neighbours
-        self._weight_columns: dict[tuple[int, ...], Array] = {}
         self._barrier_constants = self._kernel_constants(setup.n_drones)
         self._single_integrator = est.model == "single_integrator"
         # Rows for the drones within R_ca only: the QP's size depends on them, not on N.
@@ -370,20 +369,19 @@ class DroneAgent:
             raise AgentStateError(f"consensus_round called in phase {self._phase!r}")
         self._clock.begin()
         first = self._round == 0
-        usable, data = self._gather(inbox, first)
-        if usable:
-            n_icf = self._icf.shape[0]
-            # Row 0 is the own state a; rows j become a_j − a, then a_ij (a_j − a) for the ICF
-            # pair, and the sum down the rows is a + Σ_j a_ij (a_j − a) in neighbour order,
-            # as ``consensus_iteration`` adds them (2.6-2.7).
-            np.subtract(data[1:], data[0], out=data[1:])
-            data[1:, :n_icf] *= self._weight_column(usable)
-            self._icf = np.add.reduce(data[:, :n_icf], axis=0)
-            if first:
-                # Σ_j (x_i − x_j) = −Σ_j (x_j − x_i) of the round-0 consensus states (3.29-3.30).
-                self._disagreement = np.negative(np.add.reduce(data[1:, n_icf:], axis=0))
-        elif first:
-            self._disagreement = np.zeros(len(self._cons))
+        blocks, weights = self._gather(inbox, first)
+        # a + Σ_j a_ij (a_j − a) of the ICF pair in neighbour order, as ``consensus_iteration``
+        # adds them (2.6-2.7), and in round 0 Σ_j (x_i − x_j) of the consensus states
+        # (3.29-3.30); a block with a non-finite number is left out and counted.
+        icf = np.empty_like(self._icf)
+        if first:
+            self._disagreement = np.empty_like(self._cons_array)
+            self._rejected += kernels.consensus_sums(self._icf, self._cons_array, blocks,
+                                                     weights, icf, self._disagreement)
+        else:
+            self._rejected += kernels.consensus_sums(self._icf, None, blocks, weights, icf,
+                                                     None)
+        self._icf = icf
         self._round += 1
         if self._round >= self.n_rounds:
             self._phase = "finish"
@@ -545,20 +543,22 @@ class DroneAgent:
             "n_targets": self.setup.n_targets, "n_state": self._n_state, "data": data})
 
     def _gather(self, inbox: Mapping[int, ConsensusMessage],
-                first: bool) -> tuple[tuple[int, ...], Array]:
-        """The neighbours usable this round and one row per party: the own state first, then
-        each usable neighbour's ``data`` as it came (the ICF pair, then in round 0 the
-        consensus states, packed as the own state is: ``swarm.core.consensus_message``).
+                first: bool) -> tuple[list[Array], list[float]]:
+        """The usable neighbours' data this round, each ``data`` as it came (the ICF pair,
+        then in round 0 the consensus states, packed as the own state is:
+        ``swarm.core.consensus_message``), and their weights a_ij, in neighbour order.
 
         A neighbour missing from the inbox is counted missing; a message from the wrong
-        sender, of the wrong round or sizes, or with a non-finite number is counted rejected.
-        A later-round message that carries the round-0 states gives its pair.
+        sender, of the wrong round or sizes is counted rejected (one with a non-finite number
+        by ``consensus_round``). A later-round message that carries the round-0 states gives
+        its pair.
         """
         m, n = self.setup.n_targets, self._n_state
         pair = self._icf.shape[0]
         full = self._message_size
-        usable: list[int] = []
-        parts: list[Array] = [self._icf, self._cons_array] if first else [self._icf]
+        weight_of = self.setup.neighbour_weights
+        blocks: list[Array] = []
+        weights: list[float] = []
         for j in self._neighbours:
             msg = inbox.get(j)
             if msg is None:
@@ -572,25 +572,14 @@ class DroneAgent:
                 continue
             size = data.shape[0]
             if size == full:
-                parts.append(data if first else data[:pair])
+                blocks.append(data if first else data[:pair])
             elif size == pair and not first:
-                parts.append(data)
+                blocks.append(data)
             else:
                 self._rejected += 1
                 continue
-            usable.append(j)
-        if not usable:
-            return (), self._icf[:0]
-        data = np.concatenate(parts).reshape(len(usable) + 1, -1)
-        # A sum is finite only if every term is (a finite sum may overflow: then look closer).
-        if not math.isfinite(np.add.reduce(data, axis=None)):
-            finite = np.isfinite(data[1:]).all(axis=1)
-            self._rejected += int(np.count_nonzero(~finite))
-            usable = [j for j, ok in zip(usable, finite.tolist(), strict=True) if ok]
-            if not usable:
-                return (), self._icf[:0]
-            data = data[np.concatenate(([True], finite))]
-        return tuple(usable), data
+            weights.append(weight_of[j])
+        return blocks, weights
 
     def _clean_beacons(self, beacons: Mapping[int, Array]) -> dict[int, list[float]]:
         """Other drones' positions as floats; a non-finite or malformed one is counted
@@ -607,14 +596,6 @@ class DroneAgent:
             clean[j] = xyz
         return clean
 
-    def _weight_column(self, usable: tuple[int, ...]) -> Array:
-        column = self._weight_columns.get(usable)
-        if column is None:
-            weights = self.setup.neighbour_weights
-            column = np.array([[weights[j]] for j in usable], dtype=float)
-            self._weight_columns[usable] = column
-        return column
-
     def _advance_consensus(self, terms: list, weights: list[float]) -> None:
         """One Euler step of the PI consensus (3.30) for wΠ̂ and w and of the Gramian copies
         (3.29), symmetrized, on the packed state.
@@ -626,12 +607,9 @@ class DroneAgent:
         """
         local_input = [w * x for w, t in zip(weights, terms, strict=True) for x in t.projector]
         local_input += weights  # u_i = [w Π̂ (9M), w (M)]
-        local_input.append(0.0)  # what unused operator terms point at
-        stacked = np.concatenate((self._cons_array, self._disagreement, local_input))
-        index, coefficients = self._operator
-        updated = np.add.reduce(stacked[index] * coefficients, axis=0)
-        self._cons_array = updated
-        self._cons = updated.tolist()
+        self._cons_array = consensus_step(self._operator, self._cons_array, self._disagreement,
+                                          local_input)
+        self._cons = self._cons_array.tolist()
 
     def _initialise_consensus_states(self) -> None:
         """s_i(0) = u_i(0) from the initial estimate, η_i(0) = 0 (SPEC §6)."""
@@ -771,6 +749,18 @@ def _consensus_operator(layout: ConsensusLayout, dt: float, gram: GramianParams,
                 put(4, i, d0 + i, 0.5 * couple)
                 put(5, i, d0 + it, 0.5 * couple)
     return index, coefficients
+
+
+def consensus_step(operator: tuple[Array, Array], x: Array, disagreement: Array,
+                   local_input: list[float]) -> Array:
+    """The packed consensus state after one step (SPEC §6, 3.29-3.30): each entry the sum of
+    its precomputed terms over z = [x, Σ_j (x − x_j), u, 0], ``np.add.reduce(z[index] *
+    coefficients, axis=0)`` for ``operator`` = (index, coefficients) of
+    ``_consensus_operator``, in one compiled call (``kernels.consensus_step``)."""
+    index, coefficients = operator
+    updated = np.empty_like(x)
+    kernels.consensus_step(x, disagreement, local_input, index, coefficients, updated)
+    return updated
 
 
 def _clip3(u: tuple[float, float, float] | list[float],

@@ -164,6 +164,14 @@ qp_max_violation = _kernels.qp_max_violation
 # Whether every float64 of native-order bytes is finite: ``native_finite(*parts)``, the wire
 # rules' check of every float a peer sends (``swarm.messages.rules``).
 native_finite = _kernels.native_finite
+# The agent's consensus arithmetic on its packed vectors (``DroneAgent.consensus_round``,
+# ``agent.consensus_step``): ``consensus_sums(own_icf, own_cons, blocks, weights, icf_out,
+# disagreement_out) -> dropped`` is ``icf.consensus_iteration`` of the ICF pair (and the
+# round-0 disagreement Σ_j (x − x_j)); ``consensus_step(x, d, u, index, coefficients, out)``
+# the sum of ``agent._consensus_operator``'s terms. ``tests/core/test_fast_paths.py`` binds
+# both, bit for bit, to their numpy forms and to the readable steps.
+consensus_sums = _kernels.consensus_sums
+consensus_step = _kernels.consensus_step
 
 
 def filter_stack(information: Array, vector: Array, transition: Array, process_noise: float,

@@ -11,13 +11,14 @@ formation); a factor of 1.0001 on one coefficient of the consensus operator fail
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from swarm.core.agent import _consensus_operator
+from swarm.core.agent import AgentSetup, DroneAgent, _consensus_operator, consensus_step
 from swarm.core.consensus_layout import ConsensusLayout
 from swarm.core.dynamic_consensus import pi_consensus_step
 from swarm.core.formation import (
@@ -26,7 +27,14 @@ from swarm.core.formation import (
     bearing_formation_velocity,
 )
 from swarm.core.gramian import gramian_step
-from swarm.core.params import ConsensusGains, GramianParams
+from swarm.core.icf import consensus_iteration
+from swarm.core.params import (
+    ConsensusGains,
+    ControlParams,
+    EstimationParams,
+    GramianParams,
+    PerceptionParams,
+)
 
 RTOL = 1e-9
 EXAMPLES = settings(max_examples=300, deadline=None)
@@ -84,7 +92,10 @@ def test_consensus_operator_equals_the_pi_consensus_and_gramian_steps(
     index, coefficients = _consensus_operator(layout, dt, gram, rate_gain)
     disagreement = sum((own - x for x in others), np.zeros(layout.size))
     z = np.concatenate((own, disagreement, local_input, [0.0]))
-    fast = layout.unpack(np.add.reduce(z[index] * coefficients, axis=0))
+    packed = consensus_step((index, coefficients), own, disagreement, local_input.tolist())
+    # The compiled sum is numpy's gather-product-sum, bit for bit.
+    assert packed.tobytes() == np.add.reduce(z[index] * coefficients, axis=0).tobytes()
+    fast = layout.unpack(packed)
 
     mine, theirs = layout.unpack(own), [layout.unpack(x) for x in others]
     new_s_p, new_eta_p = pi_consensus_step(
@@ -103,3 +114,46 @@ def test_consensus_operator_equals_the_pi_consensus_and_gramian_steps(
                            ("projector_integral", new_eta_p), ("weight_integral", new_eta_w),
                            ("gramian", new_g)):
         _close(fast[name], readable, scale)
+
+
+@settings(max_examples=60, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), n_neighbours=st.integers(1, 4),
+       poisoned=st.sampled_from([None, "nan", "inf"]), m=st.integers(1, 3))
+def test_the_agents_consensus_round_is_consensus_iteration_bit_for_bit(
+        seed: int, n_neighbours: int, poisoned: str | None, m: int) -> None:
+    """``DroneAgent.consensus_round`` (the compiled ``consensus_sums`` on the packed blocks
+    as they came) against ``icf.consensus_iteration`` of the ICF pair, bit for bit, and the
+    round-0 disagreement against Σ_j (x_i − x_j) of the consensus states, over two rounds;
+    a neighbour whose block holds a non-finite number is left out of both and counted."""
+    rng = np.random.default_rng(seed)
+    neighbours = list(range(1, n_neighbours + 1))
+    weights = {j: float(w) for j, w in zip(neighbours, rng.uniform(0.05, 0.3, n_neighbours),
+                                           strict=True)}
+    setup = AgentSetup(
+        drone_id=0, n_drones=n_neighbours + 1, n_targets=m, dt_s=0.02,
+        neighbour_weights=weights, perception=PerceptionParams(),
+        estimation=EstimationParams(consensus_rounds=2), gramian=GramianParams(),
+        control=ControlParams())
+    agent = DroneAgent(setup, rng.normal(size=(m, 3)))
+    message = agent.begin_step(0, np.array([0.3, -0.1, 3.0]), [])
+    bad = int(rng.choice(neighbours)) if poisoned else None
+    for rnd in (0, 1):
+        own_pair, own_states = agent._icf.copy(), agent._cons_array.copy()
+        blocks = {j: rng.normal(size=message.data.shape) * 10.0 ** rng.integers(-3, 4)
+                  for j in neighbours}
+        if bad is not None:
+            blocks[bad][rng.integers(blocks[bad].size if rnd == 0 else own_pair.size)] = (
+                np.nan if poisoned == "nan" else -np.inf)
+        inbox = {j: dataclasses.replace(message, sender=j, data=blocks[j]) for j in neighbours}
+        rejected_before = agent._rejected
+        message = agent.consensus_round(inbox) or message
+        used = [j for j in neighbours if j != bad]
+        expected = consensus_iteration(own_pair, [(weights[j], blocks[j][:own_pair.size])
+                                                  for j in used])
+        assert agent._icf.tobytes() == expected.tobytes()
+        assert agent._rejected - rejected_before == (bad is not None)
+        if rnd == 0:
+            differences = [own_states - blocks[j][own_pair.size:] for j in used]
+            np.testing.assert_array_equal(
+                agent._disagreement, sum(differences[1:], differences[0]) if used
+                else np.zeros_like(own_states))
