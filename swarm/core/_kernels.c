@@ -16,6 +16,8 @@
  *                     from its row inputs (LocalQpWorkspace's feasibility checks)
  *   native_finite     np.isfinite(...).all() of native float64 bytes (the wire rules' check
  *                     of every received float, swarm.messages.rules)
+ *   initial_information  icf.initial_information for M targets from the measured  SPEC §4-§5
+ *                     image points (projector.bearing_from_image_point)          2.4-2.5, 2.15
  *   consensus_sums    icf.consensus_iteration of the packed ICF pair, and the    SPEC §5-§6
  *                     disagreement of the round-0 consensus states (DroneAgent)  2.6-2.7
  *   consensus_step    the packed PI consensus and Gramian step, agent._consensus_operator
@@ -379,6 +381,41 @@ qp_max_violation(const double *z, Py_ssize_t n_z, const double *columns, const d
     for (Py_ssize_t i = 3; i < n_z; i++)
         if (0.0 - z[i] > worst) worst = 0.0 - z[i];
     return worst;
+}
+
+/* -- the ICF's local step (SPEC §4-§5) -------------------------------------------------------- */
+
+/* V0 = W/N + b[[P, 0], [0, 0]] and v0 = W x / N + b[P p; 0] (2.4-2.5, 2.15) for M targets into
+ * out = [V0 (M n n) | v0 (M n)], from the prior information W (M n n) and state x (M n). P is
+ * the projector of the measured bearing [x_img, y_img, -1]/norm of target r's image point;
+ * a target with detected[r] == 0 adds nothing (mu = 0). p: where the image was taken. */
+static void
+initial_information(const double *prior_information, const double *prior_state, int m, int n,
+                    double n_agents, double gain, const double p[3], const double *image_points,
+                    const double *detected, double *out)
+{
+    double *vectors = out + (size_t)m * n * n;
+    for (int r = 0; r < m; r++) {
+        const double *w = prior_information + (size_t)r * n * n, *x = prior_state + (size_t)r * n;
+        double *info = out + (size_t)r * n * n, *v = vectors + (size_t)r * n;
+        for (int i = 0; i < n * n; i++) info[i] = w[i] / n_agents;
+        for (int i = 0; i < n; i++) {
+            double sum = 0.0;
+            for (int k = 0; k < n; k++) sum += info[n * i + k] * x[k];
+            v[i] = sum;
+        }
+        if (!detected[r]) continue;
+        double ix = image_points[2 * r], iy = image_points[2 * r + 1];
+        double norm = sqrt(ix * ix + iy * iy + 1.0);
+        double bx = ix / norm, by = iy / norm, bz = -1.0 / norm;
+        double pxy = 0.0 - bx * by, pxz = 0.0 - bx * bz, pyz = 0.0 - by * bz;
+        double proj[9] = {1.0 - bx * bx, pxy, pxz, pxy, 1.0 - by * by, pyz, pxz, pyz,
+                          1.0 - bz * bz};
+        for (int a = 0; a < 3; a++) {
+            for (int b = 0; b < 3; b++) info[n * a + b] += gain * proj[3 * a + b];
+            v[a] += gain * (proj[3 * a] * p[0] + proj[3 * a + 1] * p[1] + proj[3 * a + 2] * p[2]);
+        }
+    }
 }
 
 /* -- consensus (SPEC §5-§6) ------------------------------------------------------------------ */
@@ -780,6 +817,55 @@ py_native_finite(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     Py_RETURN_TRUE;
 }
 
+PyDoc_STRVAR(initial_information_doc,
+"initial_information(prior_information, prior_state, n_agents, info_gain, seen_from,\n"
+" image_points, detected, out)\n--\n\n"
+"icf.initial_information of M targets into out = [V0 (M x n x n) | v0 (M x n)]: the prior\n"
+"information (M x n x n) and state (M x n) arrays, N, b, where the image was taken (3 floats),\n"
+"the measured image points (2M floats) and detected flags (M floats, 0: not seen), lists.");
+
+static PyObject *
+py_initial_information(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (check_nargs(nargs, 8, "initial_information")) return NULL;
+    static const BufferSpec specs[3] = {{0, "prior_information", -1, 0},
+                                        {1, "prior_state", -1, 0}, {7, "out", -1, 1}};
+    Py_buffer v[3];
+    double n_agents = PyFloat_AsDouble(args[2]), gain = PyFloat_AsDouble(args[3]);
+    if (PyErr_Occurred()) return NULL;
+    Py_ssize_t m = PyList_Check(args[6]) ? PyList_GET_SIZE(args[6]) : -1;
+    if (m < 1) {
+        PyErr_SetString(PyExc_TypeError, "initial_information: detected must be a non-empty "
+                        "list of floats");
+        return NULL;
+    }
+    if (acquire(args, specs, 3, v)) return NULL;
+    Py_ssize_t n = v[1].len / 8 / m;
+    if (n < 1 || n > MAX_STATE || n * m != v[1].len / 8) {
+        PyErr_Format(PyExc_ValueError, "initial_information: prior_state holds %zd values, "
+                     "not M = %zd rows of n <= %d", v[1].len / 8, m, MAX_STATE);
+        release(v, 3);
+        return NULL;
+    }
+    const Py_ssize_t lengths[3] = {m * n * n, m * n, m * n * n + m * n};
+    if (check_lengths(v, specs, lengths, 3)) return NULL;
+    double *scratch = PyMem_Malloc(sizeof(double) * (size_t)(3 + 3 * m));
+    PyObject *result = NULL;
+    if (scratch == NULL) {
+        PyErr_NoMemory();
+    } else if (float_sequence(args[4], scratch, 3, "seen_from") == 0
+               && float_sequence(args[5], scratch + 3, 2 * m, "image_points") == 0
+               && float_sequence(args[6], scratch + 3 + 2 * m, m, "detected") == 0) {
+        initial_information(v[0].buf, v[1].buf, (int)m, (int)n, n_agents, gain, scratch,
+                            scratch + 3, scratch + 3 + 2 * m, v[2].buf);
+        result = Py_None;
+        Py_INCREF(result);
+    }
+    PyMem_Free(scratch);
+    release(v, 3);
+    return result;
+}
+
 PyDoc_STRVAR(consensus_sums_doc,
 "consensus_sums(own_icf, own_cons, blocks, weights, icf_out, disagreement_out) -> int\n--\n\n"
 "One ICF consensus iteration of the packed pair own_icf (n floats) with the neighbours'\n"
@@ -926,6 +1012,8 @@ static PyMethodDef methods[] = {
      qp_max_violation_doc},
     {"native_finite", (PyCFunction)(void (*)(void))py_native_finite, METH_FASTCALL,
      native_finite_doc},
+    {"initial_information", (PyCFunction)(void (*)(void))py_initial_information,
+     METH_FASTCALL, initial_information_doc},
     {"consensus_sums", (PyCFunction)(void (*)(void))py_consensus_sums, METH_FASTCALL,
      consensus_sums_doc},
     {"consensus_step", (PyCFunction)(void (*)(void))py_consensus_step, METH_FASTCALL,

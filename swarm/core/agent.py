@@ -188,11 +188,6 @@ class DroneAgent:
         # ICF pair (V, v) packed as one vector: V (M·n·n) then v (M·n).
         self._n_info = m * n * n
         self._icf = np.zeros(self._n_info + m * n)
-        # Positions of the [[Π, 0], [0, 0]] blocks of V and the [Πp_i; 0] parts of v in it.
-        blocks = [r * n * n + a * n + b for r in range(m) for a in range(3) for b in range(3)]
-        parts = [self._n_info + r * n + a for r in range(m) for a in range(3)]
-        self._measurement_index = np.array(blocks + parts)
-        self._measurement_terms = np.zeros_like(self._icf)  # zero outside those positions
         # Consensus states packed as one list of floats (SPEC §6, ``ConsensusLayout``).
         self._layout = layout = ConsensusLayout(m)
         cons = [0.0] * layout.size
@@ -299,7 +294,7 @@ class DroneAgent:
         clock.reset()
         clock.begin()
         setup = self.setup
-        m, n = setup.n_targets, self._n_state
+        m = setup.n_targets
         position = np.ascontiguousarray(position, dtype=float)
         if position.shape != (3,) or not _all_finite(own := position.tolist()):
             raise ValueError(f"drone {setup.drone_id}: own position must be 3 finite numbers, "
@@ -314,44 +309,28 @@ class DroneAgent:
         self._missing = self._rejected = 0
         if self.qp_failures:
             self.qp_failures = []
-        measured: list[tuple[float, ...] | None] = [None] * m
+        image_points = [0.0] * (2 * m)  # the measured [x̄, ȳ] of each target (SPEC §4)
+        detected = [0.0] * m  # μ: 1.0 for a target seen this step
         for det in detections:
             point = np.asarray(det.image_point, dtype=float)
             if (not 0 <= det.target < m or point.shape != (2,)
                     or not _all_finite(xy := point.tolist())):
                 self._rejected += 1
                 continue
-            measured[det.target] = _measured_projector(xy)
-        detected = [p is not None for p in measured]
-        self._detected = np.array(detected)
+            image_points[2 * det.target:2 * det.target + 2] = xy
+            detected[det.target] = 1.0
+        self._detected = np.array(detected, dtype=bool)
         if communicated_velocities is not None:
             self._communicated_velocity = np.asarray(communicated_velocities, dtype=float)
         if not self._consensus_started:
             self._initialise_consensus_states()
         clock.lap(OTHER)
-        # V⁰ = W⁻/N + bμ[[Π,0],[0,0]], v⁰ = W⁻x̂⁻/N + bμ[Πp_i; 0] (2.4-2.5, 2.15), stacked.
+        # V⁰ = W⁻/N + bμ[[Π,0],[0,0]], v⁰ = W⁻x̂⁻/N + bμ[Πp_i; 0] (2.4-2.5, 2.15), Π of the
+        # measured bearing, for every target in one compiled call (icf.initial_information).
         packed = np.empty_like(self._icf)
-        info = packed[:self._n_info].reshape(m, n, n)
-        np.divide(self._prior_information, self._swarm_size, out=info)
-        np.matmul(info, self._prior_state[..., None],
-                  out=packed[self._n_info:].reshape(m, n, 1))
-        if any(detected):
-            gain = setup.estimation.info_gain
-            p0, p1, p2 = seen_from
-            blocks: list[float] = []
-            parts: list[float] = []
-            for proj in measured:
-                if proj is None:  # adds zeros: x + 0 = x
-                    blocks += _ZERO9
-                    parts += _ZERO3
-                    continue
-                blocks += [gain * x for x in proj]
-                parts += (gain * (proj[0] * p0 + proj[1] * p1 + proj[2] * p2),
-                          gain * (proj[3] * p0 + proj[4] * p1 + proj[5] * p2),
-                          gain * (proj[6] * p0 + proj[7] * p1 + proj[8] * p2))
-            terms = self._measurement_terms
-            terms[self._measurement_index] = blocks + parts
-            packed += terms
+        kernels.initial_information(self._prior_information, self._prior_state,
+                                    float(self._swarm_size), setup.estimation.info_gain,
+                                    seen_from, image_points, detected, packed)
         self._icf = packed
         self._phase = "consensus"
         clock.lap(ESTIMATION)
@@ -704,7 +683,6 @@ class DroneAgent:
 
 _ZERO3 = (0.0, 0.0, 0.0)
 _F64 = np.dtype(np.float64)  # native: what the agent and the decoder make
-_ZERO9 = (0.0,) * 9
 
 
 def _consensus_operator(layout: ConsensusLayout, dt: float, gram: GramianParams,
@@ -777,12 +755,3 @@ def _finite3(xyz: list[float]) -> bool:
     """All three finite: x − x is 0 for a finite x and NaN for ±inf or NaN."""
     x, y, z = xyz
     return (x - x) + (y - y) + (z - z) == 0.0
-
-
-def _measured_projector(image_point: list[float]) -> tuple[float, ...]:
-    """Π of the measured bearing [x̄, ȳ, −1]/‖·‖ (SPEC §2, §4), row-major, as floats."""
-    x, y = image_point
-    norm = math.sqrt(x * x + y * y + 1.0)
-    bx, by, bz = x / norm, y / norm, -1.0 / norm
-    pxy, pxz, pyz = 0.0 - bx * by, 0.0 - bx * bz, 0.0 - by * bz
-    return (1.0 - bx * bx, pxy, pxz, pxy, 1.0 - by * by, pyz, pxz, pyz, 1.0 - bz * bz)

@@ -171,6 +171,12 @@ native_finite = _kernels.native_finite
 # the sum of ``agent._consensus_operator``'s terms. ``tests/core/test_fast_paths.py`` binds
 # both, bit for bit, to their numpy forms and to the readable steps.
 consensus_sums = _kernels.consensus_sums
+# The ICF's local step for all M targets, from the measured image points (SPEC §4-§5):
+# ``initial_information(prior_information, prior_state, n_agents, info_gain, seen_from,
+# image_points, detected, out)`` is ``icf.initial_information`` of each target with the
+# projector of its measured bearing; ``tests/core/test_icf.py`` binds the agent's round-0
+# message to it.
+initial_information = _kernels.initial_information
 consensus_step = _kernels.consensus_step
 
 

@@ -13,9 +13,16 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from swarm.core import icf
+from swarm.core.agent import AgentSetup, Detection, DroneAgent
 from swarm.core.graph import CommunicationGraph
-from swarm.core.params import TargetModel
-from swarm.core.projector import bearing, projector
+from swarm.core.params import (
+    ControlParams,
+    EstimationParams,
+    GramianParams,
+    PerceptionParams,
+    TargetModel,
+)
+from swarm.core.projector import bearing, bearing_from_image_point, projector
 
 DT = 0.02
 PROCESS_NOISE = 0.01
@@ -259,3 +266,39 @@ def test_posterior_covariance_is_the_pseudo_inverse_of_the_posterior_information
         np.testing.assert_allclose(product, product.T, atol=1e-9 * scale)
     np.testing.assert_allclose(covariance, covariance.T, atol=1e-12 * np.linalg.norm(covariance))
     assert np.linalg.eigvalsh(covariance).min() >= -1e-9 * np.linalg.norm(covariance)
+
+
+@settings(max_examples=80, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), m=st.integers(1, 3),
+       model=st.sampled_from(["double_integrator", "single_integrator"]),
+       n_drones=st.integers(1, 6), gain=st.floats(0.1, 5.0))
+def test_the_agents_round_0_pair_is_initial_information_of_each_target(
+        seed: int, m: int, model: TargetModel, n_drones: int, gain: float) -> None:
+    """What the agent runs for V⁰, v⁰ (the compiled ``kernels.initial_information``, all
+    targets in one call) is ``initial_information`` of each target with the projector of its
+    measured bearing (``bearing_from_image_point``), taken from the camera's position, or
+    nothing for a target not detected — to round-off, on random priors."""
+    rng = np.random.default_rng(seed)
+    n = icf.state_dimension(model)
+    setup = AgentSetup(
+        drone_id=0, n_drones=n_drones, n_targets=m, dt_s=DT,
+        neighbour_weights={j: 0.1 for j in range(1, n_drones)}, perception=PerceptionParams(),
+        estimation=EstimationParams(model=model, info_gain=gain), gramian=GramianParams(),
+        control=ControlParams())
+    agent = DroneAgent(setup, rng.normal(size=(m, 3)))
+    priors = rng.normal(size=(m, n, n))
+    agent._prior_information = priors @ priors.transpose(0, 2, 1) + np.eye(n)
+    agent._prior_state = rng.normal(size=(m, n)) * 5.0
+    seen = rng.random(m) < 0.6
+    points = rng.normal(0.0, 0.5, (m, 2))
+    detections = [Detection(r, points[r]) for r in range(m) if seen[r]]
+    position, camera = rng.normal(size=(2, 3)) + np.array([0.0, 0.0, 3.0])
+    message = agent.begin_step(0, position, detections, camera_position=camera)
+    for r in range(m):
+        measured = projector(bearing_from_image_point(points[r])) if seen[r] else None
+        info, vector = icf.initial_information(agent._prior_state[r], agent._prior_information[r],
+                                               measured, camera, n_drones, gain)
+        scale = 1.0 + np.abs(info).max() + np.abs(vector).max()
+        np.testing.assert_allclose(message.information[r], info, rtol=0, atol=1e-14 * scale)
+        np.testing.assert_allclose(message.information_vector[r], vector, rtol=0,
+                                   atol=1e-14 * scale)
