@@ -214,14 +214,15 @@ class StepProbe:
         self._send_consensus(message)
         return message
 
-    def finish_step(self, _beacons: dict[int, np.ndarray]) -> StepResult:
+    def finish_step(self, _beacons: dict[int, list[float]]) -> StepResult:
         frame = self._frame
         assert frame is not None
 
-        def others() -> dict[int, np.ndarray]:  # as LockstepExchange.beacons takes them
+        def others() -> dict[int, list[float]]:  # as LockstepExchange.beacons takes them
             positions = frame.drone_position_array()
             assert positions is not None
-            return {j: positions[j] for j in range(len(positions)) if j != self.drone}
+            rows = positions.tolist()
+            return {j: rows[j] for j in range(len(rows)) if j != self.drone}
 
         decoded = self._timed("drone positions", others)
         result: StepResult = self._core(self._finish, decoded)

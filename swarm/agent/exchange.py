@@ -95,7 +95,7 @@ class Exchange(Protocol):
     def begin(self, step: int) -> None: ...
     def inbox(self, step: int, rnd: int) -> dict[int, ConsensusMessage]: ...
     def beacons(self, step: int, sample_age_s: float,
-                flying: np.ndarray) -> dict[int, np.ndarray]: ...
+                flying: np.ndarray) -> dict[int, list[float]]: ...
     def setpoint_interval_s(self) -> float: ...
     def run(self, step: StepFunction) -> None: ...
 
@@ -150,7 +150,7 @@ class LockstepExchange:
                           f"round-{rnd} consensus")
 
     def beacons(self, step: int, sample_age_s: float,
-                flying: np.ndarray) -> dict[int, np.ndarray]:
+                flying: np.ndarray) -> dict[int, list[float]]:
         """Every other drone's position at step k, all of the same instant: those the camera
         frame of step k carries (its vehicle's report, as its beacon of step k would say)."""
         frame = self._wait(self.camera_steps, step, 0, {0}, "camera frame")[0]
@@ -158,7 +158,8 @@ class LockstepExchange:
         if positions is None:
             raise LinkError(f"drone {self.peers.drone_id}: step {step}: the camera frame "
                             "carries no drone positions (a lockstep world sends them)")
-        return {j: positions[j] for j in self.peers.others}
+        rows = positions.tolist()  # floats, bit-exact: the core takes lists as they are
+        return {j: rows[j] for j in self.peers.others}
 
     def setpoint_interval_s(self) -> float:
         return self.peers.config.scenario.dt_s
@@ -308,7 +309,7 @@ class RealtimeExchange:
         return inbox
 
     def beacons(self, step: int, sample_age_s: float,
-                flying: np.ndarray) -> dict[int, np.ndarray]:
+                flying: np.ndarray) -> dict[int, list[float]]:
         """The other drones' latest beacons, each position carried forward to the instant of
         our own position sample (p_j + v_j·a_j − v_i·a_i, a = age of the sample; ``flying``
         = v_i, the velocity last sent): the collision rows see the relative position as it
@@ -329,7 +330,7 @@ class RealtimeExchange:
         positions = np.array([b.position_m for b, _ in held], dtype=float)
         velocities = np.array([b.velocity_m_s for b, _ in held], dtype=float)
         carried = positions + lead_s[:, None] * velocities - sample_age_s * flying
-        return dict(zip(latest, carried, strict=True))
+        return dict(zip(latest, carried.tolist(), strict=True))
 
     def setpoint_interval_s(self) -> float:
         """Measured: the wall time since the last setpoint (ΔT before the first)."""

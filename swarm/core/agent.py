@@ -199,6 +199,9 @@ class DroneAgent:
         self._operator = _consensus_operator(layout, setup.dt_s, gram,
                                              est.info_gain * setup.n_drones)
         self._message_size = message_size(m, n, with_states=True)
+        # g*_ij of the formation task as float triples (SPEC §10), made once.
+        self._desired_bearings = {j: tuple(np.asarray(g, dtype=float).reshape(3).tolist())
+                                  for j, g in setup.desired_bearings.items()}
         self._neighbours = setup.neighbours
         self._barrier_constants = self._kernel_constants(setup.n_drones)
         self._single_integrator = est.model == "single_integrator"
@@ -370,7 +373,7 @@ class DroneAgent:
         self._clock.lap(CONSENSUS)
         return message
 
-    def finish_step(self, beacons: Mapping[int, Array]) -> StepResult:
+    def finish_step(self, beacons: Mapping[int, Sequence[float]]) -> StepResult:
         """Posterior and prediction, barrier rows, QP, then advance consensus and Gramian.
 
         ``beacons`` maps other drones' ids to their positions at this step (collision rows for
@@ -560,16 +563,25 @@ class DroneAgent:
             weights.append(weight_of[j])
         return blocks, weights
 
-    def _clean_beacons(self, beacons: Mapping[int, Array]) -> dict[int, list[float]]:
+    def _clean_beacons(self, beacons: Mapping[int, Sequence[float]]
+                       ) -> dict[int, list[float]]:
         """Other drones' positions as floats; a non-finite or malformed one is counted
-        rejected (the own id is skipped)."""
+        rejected (the own id is skipped). A position may be an array or a list of 3 floats
+        (``LockstepExchange.beacons`` gives lists: one ``tolist`` for all)."""
         own_id = self.setup.drone_id
         clean: dict[int, list[float]] = {}
         for j, p_j in beacons.items():
             if j == own_id:
                 continue
-            p_j = np.asarray(p_j, dtype=float)
-            if p_j.shape != (3,) or not _finite3(xyz := p_j.tolist()):
+            if type(p_j) is list and len(p_j) == 3 and all(type(v) is float for v in p_j):
+                xyz = p_j
+            else:
+                array = np.asarray(p_j, dtype=float)
+                if array.shape != (3,):
+                    self._rejected += 1
+                    continue
+                xyz = array.tolist()
+            if not _finite3(xyz):
                 self._rejected += 1
                 continue
             clean[j] = xyz
@@ -609,9 +621,8 @@ class DroneAgent:
         ctrl = self.setup.control
         if ctrl.task == "zero":
             return _ZERO3, None
-        desired = self.setup.desired_bearings
-        neighbours = [(beacons[j], tuple(desired[j].tolist())) for j in self._neighbours
-                      if j in beacons]
+        desired = self._desired_bearings
+        neighbours = [(beacons[j], desired[j]) for j in self._neighbours if j in beacons]
         return bearing_formation_scalars(position, neighbours, ctrl.formation_gain)
 
     def _qp_rows(self, barriers, terms, target_velocities, weight_sums, position, beacons):

@@ -115,7 +115,7 @@ def test_lockstep_positions_of_step_k_come_with_the_camera_frame_of_step_k() -> 
 
         assert wait_until(delivered)
         got = agent.exchange.beacons(1, 0.0, np.zeros(3))
-        assert {j: p.tolist() for j, p in got.items()} == {
+        assert got == {
             j: positions[j].tolist() for j in range(1, 6)}  # not our own
         assert agent.rejections.total() == 0
         assert not agent.exchange.relayed_beacons

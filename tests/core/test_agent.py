@@ -421,3 +421,30 @@ def test_the_step_time_is_split_into_its_sections() -> None:
         assert sections["qp"] > 0.0 and sections["estimation"] > 0.0
         # (the last lap is one record(): 50 ms leaves room for a descheduled thread)
         assert diag.step_us <= sum(sections.values()) <= diag.step_us + 50e3
+
+
+@pytest.mark.parametrize("position", [
+    [0.62, 0.0, 3.0], (0.62, 0.0, 3.0), np.array([0.62, 0.0, 3.0]),
+    np.array([0.62, 0.0, 3.0], dtype=np.float32), [np.float64(0.62), 0.0, 3.0]],
+    ids=["list", "tuple", "array", "float32 array", "numpy scalars"])
+def test_a_drone_position_is_taken_as_a_list_or_an_array_alike(position) -> None:
+    """Lists of floats (what the exchanges give) and arrays give the same collision row."""
+    control = ControlParams(start_s=0.0, qp="relaxed")
+    results = [run_alone(lone_agent(control), 0, [0.0, 0.0, 3.0], beacons={1: p})
+               for p in (position, np.array([0.62, 0.0, 3.0]))]
+    got, expected = (r.velocity for r in results)
+    if isinstance(position, np.ndarray) and position.dtype == np.float32:
+        np.testing.assert_allclose(got, expected, atol=1e-6)  # 0.62 is not a float32
+    else:
+        assert got.tobytes() == expected.tobytes()
+    assert results[0].diagnostics.rejected_inputs == 0
+
+
+@pytest.mark.parametrize("position", [
+    [0.62, 0.0], [0.62, 0.0, 3.0, 1.0], [0.62, float("nan"), 3.0], [0.62, 0.0, float("inf")],
+    [None, 0.0, 3.0], np.array([[0.62, 0.0, 3.0]]), np.array([0.62, np.nan, 3.0])])
+def test_a_drone_position_that_is_not_three_finite_numbers_is_rejected(position) -> None:
+    control = ControlParams(start_s=0.0, qp="relaxed")
+    agent = lone_agent(control)
+    result = run_alone(agent, 0, [0.0, 0.0, 3.0], beacons={1: position})
+    assert result.diagnostics.rejected_inputs == 1 and np.all(np.isfinite(result.velocity))
