@@ -12,6 +12,8 @@
  *                     for M targets in one call (what the agent runs)
  *   filter_stack      icf.posterior, posterior_covariance and predict  SPEC §5, 2.8-2.11
  *                     for M targets (n = 3 or 6)
+ *   qp_load           the local QP (3.36-3.37) of one solve written into the     SPEC §9
+ *                     workspace's arrays, as qp.build_local_qp assembles it
  *   qp_max_violation  qp.LocalQp.max_violation of the local QP (3.36-3.37), SPEC §9
  *                     from its row inputs (LocalQpWorkspace's feasibility checks)
  *   native_finite     np.isfinite(...).all() of native float64 bytes (the wire rules' check
@@ -350,6 +352,46 @@ filter_stack(const double *information, const double *vector, const double *tran
         }
     }
     return 0;
+}
+
+/* The local QP of one solve into LocalQpWorkspace's arrays (SPEC §9, 3.36-3.37), entry for
+ * entry as qp.build_local_qp assembles it: the u columns of the R rows (columns: every row's
+ * x, then y, then z) into rows (R x n_z, C order; the slack columns are left as they are),
+ * the rows' lower bounds after the n_z bounds of z in bounds_lower, the box of u into the
+ * first 3 entries of bounds_lower and bounds_upper, q = -2 u_d into linear[:3] and, for the
+ * relaxed QP (n_z = 3 + 2M), the slack penalties 2 K max(w_r, w_floor) of delta_r and
+ * delta_w_r into P's diagonal. Returns whether P changed. */
+static int
+qp_load(const double *columns, const double *lower, Py_ssize_t n_rows, const double nominal[3],
+        const double low[3], const double high[3], const double *weights, double slack_weight,
+        double weight_floor, Py_ssize_t n_z, double *rows, double *bounds_lower,
+        double *bounds_upper, double *linear, double *hessian)
+{
+    for (Py_ssize_t r = 0; r < n_rows; r++) {
+        double *row = rows + r * n_z;
+        row[0] = columns[r];
+        row[1] = columns[n_rows + r];
+        row[2] = columns[2 * n_rows + r];
+        bounds_lower[n_z + r] = lower[r];
+    }
+    for (int k = 0; k < 3; k++) {
+        bounds_lower[k] = low[k];
+        bounds_upper[k] = high[k];
+        linear[k] = -2.0 * nominal[k];
+    }
+    int changed = 0;
+    Py_ssize_t m = (n_z - 3) / 2;
+    for (Py_ssize_t r = 0; r < m; r++) {
+        /* max(w, floor) as Python's max: floor only when it is larger (a NaN w stays) */
+        double penalty = 2.0 * slack_weight * (weight_floor > weights[r] ? weight_floor
+                                                                          : weights[r]);
+        double *first = hessian + (3 + r) * (n_z + 1), *second = hessian + (3 + m + r) * (n_z + 1);
+        if (*first != penalty || *second != penalty) {
+            *first = *second = penalty;
+            changed = 1;
+        }
+    }
+    return changed;
 }
 
 /* -- feasibility of the local QP (SPEC §9) ------------------------------------------------- */
@@ -748,6 +790,65 @@ sequence_length(PyObject *seq)
     return PyList_Check(seq) || PyTuple_Check(seq) ? PySequence_Fast_GET_SIZE(seq) : -1;
 }
 
+PyDoc_STRVAR(qp_load_doc,
+"qp_load(columns, lower, nominal, low, high, weights, slack_weight, weight_floor, rows,\n"
+" bounds_lower, bounds_upper, linear, hessian) -> bool\n--\n\n"
+"Writes the local QP of one solve into LocalQpWorkspace's arrays: the u columns (3R floats,\n"
+"column-major) into rows (R x n_z), lower (R) after the n_z bounds of z in bounds_lower\n"
+"(n_z + R), the box of u (low, high: 3 each) into both bound arrays, -2 u_d into linear\n"
+"(n_z) and the slack penalties 2 K max(w, floor) of the M weights into the diagonal of the\n"
+"hessian (n_z x n_z) when n_z = 3 + 2M. Lists or tuples for the inputs, float64 arrays for\n"
+"the outputs. Returns whether the hessian changed.");
+
+static PyObject *
+py_qp_load(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (check_nargs(nargs, 13, "qp_load")) return NULL;
+    double slack_weight = PyFloat_AsDouble(args[6]), weight_floor = PyFloat_AsDouble(args[7]);
+    if (PyErr_Occurred()) return NULL;
+    Py_ssize_t n_rows = sequence_length(args[1]), n_weights = sequence_length(args[5]);
+    if (n_rows < 0 || n_weights < 0) {
+        PyErr_SetString(PyExc_TypeError, "qp_load: lower and weights must be lists or tuples "
+                        "of floats");
+        return NULL;
+    }
+    static const BufferSpec specs[5] = {{8, "rows", -1, 1}, {9, "bounds_lower", -1, 1},
+                                        {10, "bounds_upper", -1, 1}, {11, "linear", -1, 1},
+                                        {12, "hessian", -1, 1}};
+    Py_buffer v[5];
+    if (acquire(args, specs, 5, v)) return NULL;
+    Py_ssize_t n_z = v[3].len / 8;
+    const Py_ssize_t lengths[5] = {n_rows * n_z, n_z + n_rows, n_z + n_rows, n_z, n_z * n_z};
+    if (check_lengths(v, specs, lengths, 5)) return NULL;
+    Py_ssize_t m = (n_z - 3) / 2;
+    if (n_z < 3 || (n_z > 3 && (n_z - 3) % 2) || (n_z > 3 && n_weights != m)) {
+        PyErr_Format(PyExc_ValueError, "qp_load: %zd variables and %zd weights, expected 3 (hard)"
+                     " or 3 + 2M with M weights (relaxed)", n_z, n_weights);
+        release(v, 5);
+        return NULL;
+    }
+    double *scratch = PyMem_Malloc(sizeof(double) * (size_t)(4 * n_rows + 9 + n_weights + 1));
+    PyObject *result = NULL;
+    if (scratch == NULL) {
+        PyErr_NoMemory();
+    } else {
+        double *columns = scratch, *lower = columns + 3 * n_rows, *nominal = lower + n_rows;
+        double *low = nominal + 3, *high = low + 3, *weights = high + 3;
+        if (float_sequence(args[0], columns, 3 * n_rows, "columns") == 0
+                && float_sequence(args[1], lower, n_rows, "lower") == 0
+                && float_sequence(args[2], nominal, 3, "nominal") == 0
+                && float_sequence(args[3], low, 3, "low") == 0
+                && float_sequence(args[4], high, 3, "high") == 0
+                && float_sequence(args[5], weights, n_weights, "weights") == 0)
+            result = PyBool_FromLong(qp_load(columns, lower, n_rows, nominal, low, high, weights,
+                                             slack_weight, weight_floor, n_z, v[0].buf,
+                                             v[1].buf, v[2].buf, v[3].buf, v[4].buf));
+    }
+    PyMem_Free(scratch);
+    release(v, 5);
+    return result;
+}
+
 PyDoc_STRVAR(qp_max_violation_doc,
 "qp_max_violation(z, columns, lower, low, high) -> float\n--\n\n"
 "The largest violation of the local QP at z = [u (3), slacks] (0.0 if feasible), from lists\n"
@@ -1008,6 +1109,7 @@ static PyMethodDef methods[] = {
      perception_barrier_doc},
     {"filter_stack", (PyCFunction)(void (*)(void))py_filter_stack, METH_FASTCALL,
      filter_stack_doc},
+    {"qp_load", (PyCFunction)(void (*)(void))py_qp_load, METH_FASTCALL, qp_load_doc},
     {"qp_max_violation", (PyCFunction)(void (*)(void))py_qp_max_violation, METH_FASTCALL,
      qp_max_violation_doc},
     {"native_finite", (PyCFunction)(void (*)(void))py_native_finite, METH_FASTCALL,

@@ -161,6 +161,10 @@ def barrier(drone: Array, estimate: Array, velocity: Array, gramian: Array,
 # ``LocalQpWorkspace`` holds them): ``qp_max_violation(z, columns, lower, low, high)``.
 # ``tests/core/test_qp.py`` binds it to ``LocalQp.max_violation`` through the workspace.
 qp_max_violation = _kernels.qp_max_violation
+# The local QP of one solve written into ``LocalQpWorkspace``'s arrays (rows, bounds, q, the
+# slack penalties on P's diagonal): ``qp_load(...) -> P changed``. ``tests/core/test_qp.py``
+# holds the workspace's matrices to ``build_local_qp`` after every solve.
+qp_load = _kernels.qp_load
 # Whether every float64 of native-order bytes is finite: ``native_finite(*parts)``, the wire
 # rules' check of every float a peer sends (``swarm.messages.rules``).
 native_finite = _kernels.native_finite

@@ -23,6 +23,7 @@ import daqp
 import numpy as np
 from numpy.typing import NDArray
 
+from swarm.core.kernels import qp_load as _qp_load
 from swarm.core.kernels import qp_max_violation as _qp_max_violation
 from swarm.core.records import record
 
@@ -167,43 +168,35 @@ def _status_name(exit_flag: int) -> str:
 
 class _DaqpModel:
     """One DAQP workspace for QPs of one shape: ``min ½zᵀPz + qᵀz`` s.t. ``z_min ≤ z ≤ z_max``
-    and ``rows·z ≥ lower``, in DAQP's form (the first n bounds are the box of z, the rest
-    bound the rows, with +inf above). Set up on the first solve, updated after: DAQP keeps
-    the active set of the last solve as its starting guess. DAQP reads the arrays it is given
-    at each update (it holds on to them until the next one)."""
+    and ``rows·z ≥ lower``, in DAQP's form: ``bounds_lower`` = [z_min, lower] and
+    ``bounds_upper`` = [z_max, +inf per row] (the first n bound z, the rest the rows). Set up
+    on the first solve, updated after: DAQP keeps the active set of the last solve as its
+    starting guess. DAQP reads the arrays it is given at each update (it holds on to them
+    until the next one), so the caller keeps them alive and unchanged until then."""
 
     def __init__(self) -> None:
         self._model: daqp.Model | None = None
-        self._upper: Array | None = None  # [z_max, +inf per row]
-        self._lower: Array | None = None  # [z_min, lower]
 
-    def solve(self, hessian: Array, linear: Array, rows: Array, lower: Array, z_min: Array,
-              z_max: Array, *, hessian_changed: bool = True) -> tuple[Array, int, int]:
+    def solve(self, hessian: Array, linear: Array, rows: Array, bounds_lower: Array,
+              bounds_upper: Array, *, hessian_changed: bool = True) -> tuple[Array, int, int]:
         """(z, DAQP exit flag, iterations) of the QP with these matrices (C-contiguous)."""
-        n = linear.shape[0]
         if self._model is None:
-            self._upper = np.concatenate((z_max, np.full(lower.shape, np.inf)))
-            self._lower = np.concatenate((z_min, lower))
             model = daqp.Model()
-            exit_flag, _ = model.setup(hessian, linear, rows, self._upper, self._lower,
-                                       np.zeros(self._upper.shape, dtype=np.intc))
+            exit_flag, _ = model.setup(hessian, linear, rows, bounds_upper, bounds_lower,
+                                       np.zeros(bounds_upper.shape, dtype=np.intc))
             if exit_flag < 0:  # P not positive definite: nothing to solve with
-                return np.full(n, np.nan), int(exit_flag), 0
+                return np.full(linear.shape[0], np.nan), int(exit_flag), 0
             settings = model.settings
             settings["primal_tol"] = PRIMAL_TOLERANCE
             settings["iter_limit"] = ITERATION_LIMIT
             model.settings = settings
             self._model = model
         else:
-            assert self._upper is not None and self._lower is not None
-            self._upper[:n] = z_max
-            self._lower[:n] = z_min
-            self._lower[n:] = lower
             exit_flag = self._model.update(H=hessian if hessian_changed else None, f=linear,
-                                           A=rows, bupper=self._upper, blower=self._lower)
+                                           A=rows, bupper=bounds_upper, blower=bounds_lower)
             if exit_flag < 0:  # a new P that is not positive definite: not solved
                 self._model = None  # set up afresh next time
-                return np.full(n, np.nan), int(exit_flag), 0
+                return np.full(linear.shape[0], np.nan), int(exit_flag), 0
         z, _objective, exit_flag, info = self._model.solve()
         return z, int(exit_flag), int(info["iterations"])
 
@@ -224,7 +217,9 @@ class QpSolver:
         z, exit_flag, iterations = self._model.solve(
             np.ascontiguousarray(qp.cost_hessian, dtype=float),
             np.ascontiguousarray(qp.cost_linear, dtype=float),
-            np.ascontiguousarray(qp.rows, dtype=float), qp.lower, qp.z_min, qp.z_max)
+            np.ascontiguousarray(qp.rows, dtype=float),
+            np.concatenate((qp.z_min, qp.lower)).astype(float),
+            np.concatenate((qp.z_max, np.full(qp.lower.shape, np.inf))).astype(float))
         solved = exit_flag == 1 and bool(np.all(np.isfinite(z)))
         elapsed = time.perf_counter() - start
         violation = qp.max_violation(z) if solved else float("inf")
@@ -254,13 +249,19 @@ def rate_limited_box(previous: tuple[float, float, float], max_change: float,
 
 @dataclass
 class _RowBlock:
-    """The rows of the local QP for one number of collision rows, with their DAQP workspace."""
+    """The rows and bounds of the local QP for one number of collision rows, with their DAQP
+    workspace: the bounds in DAQP's form, [z_min, lower] and [z_max, +inf per row]."""
 
     rows: Array  # (2M + collisions, n), C order
-    lower: Array
-    u_block: Array  # writable view: the u columns of ``rows``, column-major as ``solve`` takes
+    bounds_lower: Array  # (n + rows,)
+    bounds_upper: Array  # (n + rows,)
     model: _DaqpModel
     hessian_version: int = -1  # the P its model was last given (``LocalQpWorkspace``)
+
+    @property
+    def lower(self) -> Array:
+        """The rows' lower bounds (a view)."""
+        return self.bounds_lower[self.rows.shape[1]:]
 
 
 class LocalQpWorkspace:
@@ -288,18 +289,15 @@ class LocalQpWorkspace:
         self.hessian = np.zeros((n, n))
         self.hessian[0, 0] = self.hessian[1, 1] = self.hessian[2, 2] = 2.0
         self.linear = np.zeros(n)
-        self.z_min = np.full(n, -u_max)
-        self.z_max = np.full(n, u_max)
+        # The bounds of z other than the box of u (rows' blocks copy them): δ ≥ 0.
+        self._z_min = np.full(n, -u_max)
+        self._z_max = np.full(n, u_max)
         if relaxed:
-            self.z_min[3:] = 0.0
-            self.z_max[3:] = np.inf
-        # The slack part of P's diagonal (a writable view), and how often it changed.
-        self._slack_diagonal = self.hessian.reshape(-1)[3 * (n + 1)::n + 1]
+            self._z_min[3:] = 0.0
+            self._z_max[3:] = np.inf
         self._hessian_version = 0
         self._blocks: dict[int, _RowBlock] = {}
         self._block = self._row_block(2 * m_targets + n_collision)
-        self._penalties: list[float] | None = None
-        self._nominal: tuple[float, float, float] | None = None
         self._u_low = [-self.u_max] * 3  # the box of u of the current solve
         self._u_high = [self.u_max] * 3
 
@@ -312,18 +310,29 @@ class LocalQpWorkspace:
     def lower(self) -> Array:
         return self._block.lower
 
+    @property
+    def z_min(self) -> Array:
+        """The lower bounds of z of the last solve that reached DAQP (a view)."""
+        return self._block.bounds_lower[:self.linear.shape[0]]
+
+    @property
+    def z_max(self) -> Array:
+        return self._block.bounds_upper[:self.linear.shape[0]]
+
     def _row_block(self, n_rows: int) -> _RowBlock:
         block = self._blocks.get(n_rows)
         if block is None:
-            n_slack = self.linear.shape[0] - 3
+            n = self.linear.shape[0]
+            n_slack = n - 3
             if n_rows < 2 * self.m_targets:
                 raise ValueError(f"the local QP has at least 2M = {2 * self.m_targets} rows, "
                                  f"got {n_rows}")
-            rows = np.zeros((n_rows, 3 + n_slack))
+            rows = np.zeros((n_rows, n))
             if self.relaxed:
                 rows[np.arange(n_slack), 3 + np.arange(n_slack)] = 1.0
-            block = self._blocks[n_rows] = _RowBlock(rows, np.zeros(n_rows), rows[:, :3].T,
-                                                     _DaqpModel())
+            block = self._blocks[n_rows] = _RowBlock(
+                rows, np.concatenate((self._z_min, np.zeros(n_rows))),
+                np.concatenate((self._z_max, np.full(n_rows, np.inf))), _DaqpModel())
         return block
 
     def solve(self, nominal: tuple[float, float, float], u_columns: list[float],
@@ -351,23 +360,13 @@ class LocalQpWorkspace:
             return record(QpSolution, dict(
                 found=True, z=z, status=NOMINAL_FEASIBLE, iterations=0,
                 solve_time_s=time.perf_counter() - start, max_violation=0.0))
-        n_rows = len(lower)
-        block = self._block = self._row_block(n_rows)
-        block.u_block.flat = u_columns  # (3, R), filled row by row: 3R floats, checked above
-        block.lower[:] = lower
-        if self.relaxed:
-            k, floor = self.slack_weight, self.weight_floor
-            penalties = [2.0 * k * max(w, floor) for w in weights]
-            if penalties != self._penalties:
-                self._slack_diagonal[:] = penalties + penalties
-                self._penalties = penalties
-                self._hessian_version += 1
-        if nominal != self._nominal:
-            self.linear[:3] = (-2.0 * nominal[0], -2.0 * nominal[1], -2.0 * nominal[2])
-            self._nominal = nominal
-        self.z_min[:3], self.z_max[:3] = u_low, u_high
+        block = self._block = self._row_block(len(lower))
+        if _qp_load(u_columns, lower, nominal, u_low, u_high, weights, self.slack_weight,
+                    self.weight_floor, block.rows, block.bounds_lower, block.bounds_upper,
+                    self.linear, self.hessian):
+            self._hessian_version += 1  # new slack penalties
         z, exit_flag, iterations = block.model.solve(
-            self.hessian, self.linear, block.rows, block.lower, self.z_min, self.z_max,
+            self.hessian, self.linear, block.rows, block.bounds_lower, block.bounds_upper,
             hessian_changed=block.hessian_version != self._hessian_version)
         block.hessian_version = self._hessian_version
         values = z.tolist()

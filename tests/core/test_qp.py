@@ -699,3 +699,35 @@ def test_the_qps_where_the_envelope_overrules_localization_buy_only_the_slack_ne
         objective = qp.objective(z) + float(nominal @ nominal)
         assert objective <= reference[1] * (1 + 1e-9) + 1e-9, (k, objective, reference[1])
     assert worst <= VELOCITY_ATOL, worst
+
+
+def test_qp_load_says_when_p_changed_and_names_what_it_was_given_wrong() -> None:
+    """The workspace's loader: P's slack diagonal is written (and said changed) only when a
+    penalty 2 K max(w, w_floor) differs; wrong sizes are a one-line error, nothing written."""
+    from swarm.core.kernels import qp_load
+
+    n_z, n_rows = 7, 4  # M = 2, relaxed
+    rows, linear, hessian = np.zeros((n_rows, n_z)), np.zeros(n_z), 2.0 * np.eye(n_z)
+    low, up = np.zeros(n_z + n_rows), np.full(n_z + n_rows, np.inf)
+    args = ([1.0] * 12, [0.5] * 4, (0.1, 0.2, 0.3), [-1.0] * 3, [1.0] * 3, [0.5, 1e-9], 1e6,
+            1e-3)
+    assert qp_load(*args, rows, low, up, linear, hessian) is True
+    np.testing.assert_array_equal(np.diag(hessian)[3:], [1e6, 2e3, 1e6, 2e3])
+    np.testing.assert_array_equal(linear[:3], [-0.2, -0.4, -0.6])
+    np.testing.assert_array_equal(low[:3], [-1.0] * 3)
+    np.testing.assert_array_equal(low[n_z:], [0.5] * 4)
+    assert qp_load(*args, rows, low, up, linear, hessian) is False  # same weights: same P
+    before = [a.copy() for a in (rows, low, up, linear, hessian)]
+    for index, value, error, words in (
+            (0, [1.0] * 11, ValueError, "columns: expected 12 floats, got 11"),
+            (5, [0.5], ValueError, "7 variables and 1 weights"),
+            (2, (0.1, 0.2), ValueError, "nominal: expected 3 floats"),
+            (5, None, TypeError, "lower and weights must be lists or tuples")):
+        bad = list(args)
+        bad[index] = value
+        with pytest.raises(error, match=words):
+            qp_load(*bad, rows, low, up, linear, hessian)
+    with pytest.raises(ValueError, match="rows: expected 28 float64 values, got 21"):
+        qp_load(*args, np.zeros((3, n_z)), low, up, linear, hessian)
+    for a, b in zip((rows, low, up, linear, hessian), before, strict=True):
+        np.testing.assert_array_equal(a, b)
