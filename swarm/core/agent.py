@@ -573,7 +573,8 @@ class DroneAgent:
         for j, p_j in beacons.items():
             if j == own_id:
                 continue
-            if type(p_j) is list and len(p_j) == 3 and all(type(v) is float for v in p_j):
+            if (type(p_j) is list and len(p_j) == 3 and type(p_j[0]) is float
+                    and type(p_j[1]) is float and type(p_j[2]) is float):
                 xyz = p_j
             else:
                 array = np.asarray(p_j, dtype=float)
