@@ -219,9 +219,8 @@ class StepProbe:
         assert frame is not None
 
         def others() -> dict[int, list[float]]:  # as LockstepExchange.beacons takes them
-            positions = frame.drone_position_array()
-            assert positions is not None
-            rows = positions.tolist()
+            rows = frame.drone_position_rows()
+            assert rows is not None
             return {j: rows[j] for j in range(len(rows)) if j != self.drone}
 
         decoded = self._timed("drone positions", others)

@@ -154,11 +154,10 @@ class LockstepExchange:
         """Every other drone's position at step k, all of the same instant: those the camera
         frame of step k carries (its vehicle's report, as its beacon of step k would say)."""
         frame = self._wait(self.camera_steps, step, 0, {0}, "camera frame")[0]
-        positions = frame.drone_position_array()
-        if positions is None:
+        rows = frame.drone_position_rows()  # floats, bit-exact: the core takes lists as they are
+        if rows is None:
             raise LinkError(f"drone {self.peers.drone_id}: step {step}: the camera frame "
                             "carries no drone positions (a lockstep world sends them)")
-        rows = positions.tolist()  # floats, bit-exact: the core takes lists as they are
         return {j: rows[j] for j in self.peers.others}
 
     def setpoint_interval_s(self) -> float:

@@ -134,6 +134,13 @@ class F64Array(msgspec.Struct, frozen=True, array_like=True, forbid_unknown_fiel
         """A new, writable native float64 array (no validation: decoded messages are checked)."""
         return np.frombuffer(self.data, dtype=_LE_F64).reshape(self.shape).astype(np.float64)
 
+    def to_list(self) -> list[Any]:
+        """The values as (nested) lists of floats, bit-exact (no validation: decoded messages
+        are checked). On a little-endian machine the bytes are read in place, no array made."""
+        if _NATIVE_LE and all(self.shape):  # memoryview cannot cast to an empty shape
+            return memoryview(self.data).cast("d", self.shape).tolist()
+        return self.to_array().tolist()
+
 
 def _array_or_none(values: ArrayLike | None) -> F64Array | None:
     return None if values is None else F64Array.from_array(values)
@@ -300,6 +307,10 @@ class CameraFrameWire(_Wire, tag="camera", kw_only=True):
     def drone_position_array(self) -> Array | None:
         """``drone_positions`` as a new (N, 3) float64 array, None when the frame has none."""
         return None if self.drone_positions is None else self.drone_positions.to_array()
+
+    def drone_position_rows(self) -> list[list[float]] | None:
+        """``drone_positions`` as N lists [x, y, z] of floats, None when the frame has none."""
+        return None if self.drone_positions is None else self.drone_positions.to_list()
 
 
 class TruthWire(_Wire, tag="truth", kw_only=True):

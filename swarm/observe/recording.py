@@ -33,7 +33,6 @@ import queue
 import re
 import shutil
 import subprocess
-import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -90,7 +89,6 @@ DRAIN_PERIOD_S: Final = 0.1  # the writer thread wakes this often (and at close)
 MODES: Final = ("lockstep", "realtime", "inprocess")
 KINDS: Final = ("telemetry", "beacon", "camera", "truth", "autopilot")
 _GIT_TIMEOUT_S: Final = 5.0
-_LITTLE_ENDIAN: Final = sys.byteorder == "little"
 # msgspec's JSON is ~10x faster than the json module both ways, with the same exact
 # shortest-repr floats; the recorder's thread shares the launcher's GIL with its callbacks.
 _JSON_ENCODER: Final = msgspec.json.Encoder()
@@ -222,9 +220,7 @@ class RecordingMetadata:
 
 def _floats(array: F64Array) -> list[Any]:
     """A float64 wire array as (nested) lists of floats."""
-    if _LITTLE_ENDIAN:  # the wire is little-endian: read the bytes in place, no array copy
-        return memoryview(array.data).cast("d", array.shape).tolist()
-    return array.to_array().tolist()
+    return array.to_list()
 
 
 def _array(values: Any) -> F64Array:

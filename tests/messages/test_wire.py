@@ -149,6 +149,27 @@ def test_helpers_give_numpy_back() -> None:
     assert same_bits(tel.position(), np.array([0.5, -0.0, 3.0]))
 
 
+@settings(max_examples=200, deadline=None)
+@given(shape=st.lists(st.integers(0, 4), min_size=1, max_size=3),
+       seed=st.integers(0, 2**32 - 1))
+def test_a_wire_array_as_lists_is_its_array_bit_for_bit(shape: list[int], seed: int) -> None:
+    """``F64Array.to_list`` (what the lockstep exchange gives the core, and the recordings'
+    JSON) holds the very floats of ``to_array``, -0.0, NaN payloads and subnormals included,
+    nested as the shape says; so does ``CameraFrameWire.drone_position_rows``."""
+    rng = np.random.default_rng(seed)
+    values = rng.normal(size=shape) * 10.0 ** rng.integers(-320, 300, size=shape)
+    values.flat[::3] = np.array([-0.0, np.nan, np.inf, 5e-324])[: len(values.flat[::3])]
+    array = F64Array.from_array(values)
+    listed = array.to_list()
+    assert np.array(listed, dtype=np.float64).reshape(shape).tobytes() == values.tobytes()
+    if all(shape):  # (lists cannot nest below an empty one)
+        assert np.shape(listed) == tuple(shape)
+    frame = MESSAGES["camera_lockstep"]
+    rows = frame.drone_position_rows()
+    assert np.array(rows).tobytes() == frame.drone_position_array().tobytes()
+    assert all(type(v) is float for row in rows for v in row)
+
+
 # -- validation ----------------------------------------------------------------------------------
 
 
