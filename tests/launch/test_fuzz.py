@@ -136,7 +136,7 @@ def _consensus_bases(codec: WireCodec, sender: int, m: int, n_state: int) -> lis
             projector_mean=rng.normal(size=(m, 3, 3)), weight_mean=rng.random(m),
             projector_integral=rng.normal(size=(m, 3, 3)), weight_integral=rng.random(m),
             gramian=rng.normal(size=(m, 3, 3)))
-        out.append(codec.encode(ConsensusMessage(
+        out.append(codec.encode(ConsensusMessage.of_arrays(
             sender, 12, rnd, rng.normal(size=(m, n_state, n_state)),
             rng.normal(size=(m, n_state)), **states)))
     return out
