@@ -32,6 +32,7 @@ which convert and encode in one call.
 
 from __future__ import annotations
 
+import functools
 import math
 import operator
 import sys
@@ -74,7 +75,8 @@ _W = TypeVar("_W")
 # 6: lockstep camera frames carry every drone's reported position (drone_positions) in place
 #    of the relay of the drones' beacons: a lockstep agent of an older build would wait for a
 #    relay that no longer comes.
-WIRE_VERSION: Final = 6
+# 7: telemetry packs its arrays in one block (TelemetryWire.data, with n_targets and n_state).
+WIRE_VERSION: Final = 7
 
 MAX_DRONES: Final = 1024  # codec limits: a swarm larger than this is a configuration error
 MAX_TARGETS: Final = 1024
@@ -394,25 +396,51 @@ _OPTIONAL_FLOAT_COUNTERS: Final = tuple(
     if optional and isinstance(t, msgspec.inspect.FloatType))
 
 
+# The arrays of a telemetry message, in the order ``TelemetryWire.data`` packs them: the
+# ``StepDiagnostics`` arrays of these names.
+TELEMETRY_ARRAYS: Final = ("velocity", "nominal_velocity", "estimates", "estimate_covariance",
+                           "lambda_bar", "psi0", "psi1", "weights", "weight_sum_estimate",
+                           "slacks", "weight_slacks")
+
+
+def telemetry_shapes(n_targets: int, n_state: int) -> dict[str, tuple[int, ...]]:
+    """The shape of each array of a telemetry message, in packing order."""
+    m = n_targets
+    return {"velocity": (3,), "nominal_velocity": (3,), "estimates": (m, n_state),
+            "estimate_covariance": (m, 3, 3), "lambda_bar": (m,), "psi0": (m,), "psi1": (m,),
+            "weights": (m,), "weight_sum_estimate": (m,), "slacks": (m,),
+            "weight_slacks": (m,)}
+
+
+@functools.lru_cache(maxsize=64)
+def telemetry_layout(n_targets: int, n_state: int
+                     ) -> tuple[tuple[str, tuple[int, ...], int, int], ...]:
+    """(name, shape, start, stop) of each array in ``TelemetryWire.data``, in floats."""
+    layout, start = [], 0
+    for name, shape in telemetry_shapes(n_targets, n_state).items():
+        stop = start + math.prod(shape)
+        layout.append((name, shape, start, stop))
+        start = stop
+    return tuple(layout)
+
+
 class TelemetryWire(_Wire, tag="telemetry", kw_only=True):
     """One agent step on ``agent/<i>/telemetry``: every ``StepDiagnostics`` field (``drone_id``
-    is ``drone``), the drone's position and the process's running ``counters``."""
+    is ``drone``), the drone's position and the process's running ``counters``.
+
+    The step's arrays (``TELEMETRY_ARRAYS``: velocity, estimates, λ̄, …) travel packed in
+    ``data``, little-endian float64 in ``telemetry_layout(n_targets, n_state)``: one bytes
+    field where eleven ``F64Array``s cost eleven objects to build and to decode every step.
+    Each array is still read by its name (``tel.lambda_bar``: an ``F64Array`` over its bytes);
+    ``TelemetryWire.build`` makes a message from arrays."""
 
     drone: DroneId
     step: NonNegativeInt
     time_s: NonNegativeFinite
     position_m: Vector3
-    velocity: _shaped(3)
-    nominal_velocity: _shaped(3)
-    estimates: _shaped("targets", "state")
-    estimate_covariance: _shaped("targets", 3, 3)  # position block of P⁺ = pinv(W⁺) [m²]
-    lambda_bar: _shaped("targets")
-    psi0: _shaped("targets")
-    psi1: _shaped("targets")
-    weights: _shaped("targets")
-    weight_sum_estimate: _shaped("targets")
-    slacks: _shaped("targets")
-    weight_slacks: _shaped("targets")
+    n_targets: Annotated[int, msgspec.Meta(ge=0, extra={"equals": "targets"})]  # M
+    n_state: Annotated[int, msgspec.Meta(ge=0, extra={"equals": "state"})]  # n
+    data: Annotated[bytes, msgspec.Meta(extra={"packed": "telemetry"})]
     detected: Annotated[tuple[bool, ...], msgspec.Meta(max_length=MAX_TARGETS,
                                                        extra={"length": "targets"})]
     control_active: bool
@@ -427,6 +455,47 @@ class TelemetryWire(_Wire, tag="telemetry", kw_only=True):
     counters: TelemetryCounters = TelemetryCounters()
     rate_limit_released: bool = False  # this step's QP was solved without the rate box
     safety_conflict: bool = False  # localization slack used while an envelope row was active
+
+    @classmethod
+    def build(cls, **fields: Any) -> TelemetryWire:
+        """The message of these fields, the arrays (``TELEMETRY_ARRAYS``, array-likes; an
+        ``F64Array`` as its values) packed in ``data`` with their sizes from ``estimates``
+        (M, n). Raises ``WireError`` for an array missing or of another shape."""
+        missing = [name for name in TELEMETRY_ARRAYS if name not in fields]
+        if missing:
+            raise WireError(f"telemetry arrays missing: {', '.join(missing)}", rule="shape")
+        arrays = {name: fields.pop(name) for name in TELEMETRY_ARRAYS}
+        arrays = {name: a.to_array() if isinstance(a, F64Array) else a
+                  for name, a in arrays.items()}
+        m, n, data = _pack_telemetry(tuple(arrays.values()))
+        return cls(n_targets=m, n_state=n, data=data, **fields)
+
+    def array(self, name: str) -> F64Array:
+        """The array ``name`` (one of ``TELEMETRY_ARRAYS``) as an ``F64Array`` over its bytes."""
+        for field_name, shape, start, stop in telemetry_layout(self.n_targets, self.n_state):
+            if field_name == name:
+                return F64Array(shape, self.data[8 * start:8 * stop])
+        raise KeyError(f"a telemetry message has no array {name!r}")
+
+    def arrays(self) -> dict[str, Array]:
+        """Every array as a new numpy float64 array, by name (no validation: decoded messages
+        are checked)."""
+        block = np.frombuffer(self.data, dtype=_LE_F64).astype(np.float64)
+        return {name: block[start:stop].reshape(shape) for name, shape, start, stop
+                in telemetry_layout(self.n_targets, self.n_state)}
+
+    velocity = property(lambda self: self.array("velocity"))
+    nominal_velocity = property(lambda self: self.array("nominal_velocity"))
+    estimates = property(lambda self: self.array("estimates"))
+    # the position block of P⁺ = pinv(W⁺) [m²]
+    estimate_covariance = property(lambda self: self.array("estimate_covariance"))
+    lambda_bar = property(lambda self: self.array("lambda_bar"))
+    psi0 = property(lambda self: self.array("psi0"))
+    psi1 = property(lambda self: self.array("psi1"))
+    weights = property(lambda self: self.array("weights"))
+    weight_sum_estimate = property(lambda self: self.array("weight_sum_estimate"))
+    slacks = property(lambda self: self.array("slacks"))
+    weight_slacks = property(lambda self: self.array("weight_slacks"))
 
     @classmethod
     def from_diagnostics(cls, diag: StepDiagnostics, position: ArrayLike,
@@ -457,6 +526,47 @@ class TelemetryWire(_Wire, tag="telemetry", kw_only=True):
             rate_limit_released=self.rate_limit_released,
             safety_conflict=self.safety_conflict,
         )
+
+
+@functools.lru_cache(maxsize=64)
+def _telemetry_form(n_targets: int, n_state: int
+                    ) -> tuple[tuple[tuple[int, ...], ...], tuple[np.dtype[Any], ...]]:
+    """The shapes and the dtypes (native float64) of a telemetry message's arrays."""
+    layout = telemetry_layout(n_targets, n_state)
+    return tuple(shape for _, shape, _, _ in layout), (_F64,) * len(layout)
+
+
+_shape_of: Final = operator.attrgetter("shape")
+_dtype_of: Final = operator.attrgetter("dtype")
+
+
+def _pack_telemetry(arrays: tuple[Any, ...]) -> tuple[int, int, bytes]:
+    """(M, n, data) of the ``TELEMETRY_ARRAYS`` in order: M and n from ``estimates``, every
+    shape checked against the layout, the bytes joined as they are for native float64
+    arrays (the agent's own), converted otherwise. Raises ``WireError`` (shape)."""
+    estimates = arrays[2]
+    shape = (estimates.shape if type(estimates) is _ndarray
+             else np.shape(estimates) if estimates is not None else ())
+    if len(shape) != 2:
+        raise WireError(f"estimates has shape {shape!s:.60}, expected (M, n)", rule="shape")
+    m, n = int(shape[0]), int(shape[1])
+    layout = telemetry_layout(m, n)
+    shapes, dtypes = _telemetry_form(m, n)
+    try:  # the core's own arrays: their bytes as they are
+        native = (_NATIVE_LE and tuple(map(_dtype_of, arrays)) == dtypes
+                  and tuple(map(_shape_of, arrays)) == shapes)
+    except AttributeError:  # not arrays: converted below
+        native = False
+    if native:
+        return m, n, b"".join([array.tobytes() for array in arrays])
+    chunks = []
+    for array, (name, expected, _, _) in zip(arrays, layout, strict=True):
+        got, raw = _le_bytes(array)
+        if got != expected:
+            raise WireError(f"{name} has shape {got!s:.60}, expected {expected}",
+                            rule="shape")
+        chunks.append(raw)
+    return m, n, b"".join(chunks)
 
 
 WireMessage = (ConsensusWire | BeaconWire | BeaconRelayWire | CameraFrameWire | TruthWire
@@ -569,10 +679,6 @@ def _counters(counters: TelemetryCounters | None,
 
 _NO_COUNTERS: Final = TelemetryCounters()
 _COUNTER_NAMES: Final = frozenset(TelemetryCounters.__struct_fields__)
-# The arrays of a telemetry message, in field order: its F64Array fields.
-TELEMETRY_ARRAYS: Final = tuple(
-    name for name, t, _, _ in declared_fields(TelemetryWire)
-    if isinstance(t, msgspec.inspect.StructType) and t.cls is F64Array)
 
 
 def _beacon_fields(sender: int, step: int, time_s: float, position_m: ArrayLike,
@@ -586,10 +692,10 @@ def _beacon_fields(sender: int, step: int, time_s: float, position_m: ArrayLike,
 
 def _telemetry_fields(diag: StepDiagnostics, position: ArrayLike,
                       counters: TelemetryCounters) -> tuple[Any, ...]:
-    """``TelemetryWire``'s fields after ``version``, in order, each array as its (shape,
-    bytes) pair (``F64Array``'s elements): the one conversion of a step's diagnostics that
-    ``telemetry_from_diagnostics`` and ``WireCodec.encode_telemetry`` share."""
-    arrays = tuple(map(_le_bytes, _telemetry_arrays(diag)))
+    """``TelemetryWire``'s fields after ``version``, in order, the arrays packed: the one
+    conversion of a step's diagnostics that ``telemetry_from_diagnostics`` and
+    ``WireCodec.encode_telemetry`` share."""
+    m, n, data = _pack_telemetry(_telemetry_arrays(diag))
     detected = diag.detected
     if type(detected) is np.ndarray and detected.dtype == np.bool_:
         flags = tuple(detected.reshape(-1).tolist())
@@ -597,7 +703,7 @@ def _telemetry_fields(diag: StepDiagnostics, position: ArrayLike,
         flags = tuple(bool(v) for v in np.asarray(detected).reshape(-1))
     bearing = diag.bearing_error
     return (int(diag.drone_id), int(diag.step), float(diag.time_s), _vector3(position),
-            *arrays, flags, bool(diag.control_active), str(diag.qp_status),
+            m, n, data, flags, bool(diag.control_active), str(diag.qp_status),
             int(diag.qp_iterations), bool(diag.qp_fallback), float(diag.qp_solve_us),
             float(diag.step_us), None if bearing is None else float(bearing),
             int(diag.missing_neighbour_messages), int(diag.rejected_inputs), counters,
@@ -606,22 +712,38 @@ def _telemetry_fields(diag: StepDiagnostics, position: ArrayLike,
 
 def _telemetry(diag: StepDiagnostics, position: ArrayLike,
                counters: TelemetryCounters) -> TelemetryWire:
-    fields = dict(zip(_TELEMETRY_FIELDS, _telemetry_fields(diag, position, counters),
-                      strict=True))
-    for name in TELEMETRY_ARRAYS:
-        fields[name] = F64Array(*fields[name])
-    return TelemetryWire(**fields)
+    return TelemetryWire(**dict(zip(_TELEMETRY_FIELDS,
+                                    _telemetry_fields(diag, position, counters), strict=True)))
 
 
 _BEACON_FIELDS: Final = BeaconWire.__struct_fields__[1:]
 _TELEMETRY_FIELDS: Final = TelemetryWire.__struct_fields__[1:]
 _telemetry_arrays: Final = operator.attrgetter(*TELEMETRY_ARRAYS)
-# _telemetry_fields lists the fields in this order (StepDiagnostics' arrays by these names).
+# _telemetry_fields lists the fields in this order.
 assert TelemetryWire.__struct_fields__[1:] == (
-    "drone", "step", "time_s", "position_m", *TELEMETRY_ARRAYS, "detected", "control_active",
-    "qp_status", "qp_iterations", "qp_fallback", "qp_solve_us", "step_us", "bearing_error",
-    "missing_neighbour_messages", "rejected_inputs", "counters", "rate_limit_released",
-    "safety_conflict")
+    "drone", "step", "time_s", "position_m", "n_targets", "n_state", "data", "detected",
+    "control_active", "qp_status", "qp_iterations", "qp_fallback", "qp_solve_us", "step_us",
+    "bearing_error", "missing_neighbour_messages", "rejected_inputs", "counters",
+    "rate_limit_released", "safety_conflict")
+
+
+def _telemetry_block(sizes: Mapping[str, int | None]) -> Check:
+    """The rule of ``TelemetryWire.data`` (its ``"packed"`` marker): the arrays of this
+    swarm's M and n (``telemetry_layout``), every float finite."""
+    M, n = sizes["targets"], sizes["state"]
+    assert M is not None and n is not None
+    layout = telemetry_layout(M, n)
+    expected = 8 * layout[-1][3]
+
+    def check(m: TelemetryWire) -> None:
+        data = m.data
+        if len(data) != expected:
+            fail(f"telemetry data carries {len(data)} bytes, expected {expected} for M = {M}, "
+                 f"n = {n}", "shape")
+        if not (_NATIVE_LE and native_finite(data)):
+            finite_floats([(name, data[8 * start:8 * stop])
+                           for name, _, start, stop in layout], native=False)
+    return check
 
 
 def _consensus_block(sizes: Mapping[str, int | None]) -> Check:
@@ -685,7 +807,7 @@ class WireCodec:
                  "rounds": n_rounds}
         self._rules: dict[type, Check] = SwarmRules(
             sizes, tuple(_KINDS), array_type=F64Array,
-            packings={"consensus": _consensus_block}).checks
+            packings={"consensus": _consensus_block, "telemetry": _telemetry_block}).checks
 
     # -- encode --------------------------------------------------------------------------
 

@@ -53,6 +53,7 @@ from mcap.writer import CompressionType, Writer
 
 from swarm.errors import VigilError
 from swarm.messages.wire import (
+    TELEMETRY_ARRAYS,
     BeaconWire,
     CameraFrameWire,
     DetectionWire,
@@ -232,9 +233,7 @@ def _vector3(values: Any) -> tuple[float, float, float]:
     return (x, y, z)
 
 
-_TELEMETRY_ARRAYS: Final = ("velocity", "nominal_velocity", "estimates", "estimate_covariance",
-                            "lambda_bar", "psi0", "psi1", "weights", "weight_sum_estimate",
-                            "slacks", "weight_slacks")
+_TELEMETRY_ARRAYS: Final = TELEMETRY_ARRAYS
 _TELEMETRY_PLAIN: Final = ("drone", "step", "time_s", "control_active", "qp_status",
                            "qp_iterations", "qp_fallback", "qp_solve_us", "step_us",
                            "bearing_error", "missing_neighbour_messages", "rejected_inputs",
@@ -265,13 +264,14 @@ def telemetry_from_json(data: dict[str, Any]) -> TelemetryWire:
     counters = TelemetryCounters(**{
         name: given[name] if name in given or name not in _ADDED_LATER else _ADDED_LATER[name]
         for name in _COUNTER_FIELDS})
-    return TelemetryWire(
+    return TelemetryWire.build(
         **{name: data[name] if name in data or name not in _ADDED_LATER else _ADDED_LATER[name]
            for name in _TELEMETRY_PLAIN},
         position_m=_vector3(data["position_m"]),
-        **{name: _array(data[name]) for name in _TELEMETRY_ARRAYS if name in data},
+        **{name: np.asarray(data[name], dtype=np.float64) for name in _TELEMETRY_ARRAYS
+           if name in data},
         **({} if "estimate_covariance" in data else  # absent before wire version 4: unknown
-           {"estimate_covariance": _array(np.full((len(data["lambda_bar"]), 3, 3), np.nan))}),
+           {"estimate_covariance": np.full((len(data["lambda_bar"]), 3, 3), np.nan)}),
         detected=tuple(bool(v) for v in data["detected"]), counters=counters)
 
 

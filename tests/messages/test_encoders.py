@@ -309,7 +309,7 @@ TELEMETRY_OUTCOMES: dict[str, Any] = {
     "nan array": ("finite", "psi1 contains a non-finite value"),
     "inf velocity": ("finite", "velocity contains"), "huge values": "ok",
     "short array": ("shape", "slacks has shape (1,)"),
-    "wrong shape": ("shape", "estimates has shape (2, 7)"), "float32": "ok", "int array": "ok",
+    "wrong shape": ("shape", "n_state 7 does not match"), "float32": "ok", "int array": "ok",
     "list": "ok", "detected list": "ok", "detected ints": "ok",
     "detected short": ("shape", "detected holds 1 items"),
     "drone": ("range", "drone 6 out of range"), "numpy drone": "ok",

@@ -15,6 +15,7 @@ from hypothesis import strategies as st
 
 from swarm.core.agent import ConsensusMessage
 from swarm.messages.wire import (
+    TELEMETRY_ARRAYS,
     WIRE_VERSION,
     BeaconRelayWire,
     BeaconWire,
@@ -179,6 +180,18 @@ def with_nan(array: F64Array, value: float = np.nan) -> F64Array:
     return F64Array.from_array(a)
 
 
+def telemetry_fields(tel: TelemetryWire) -> dict:
+    """Every field of ``tel`` as ``TelemetryWire.build`` takes them: the arrays by name."""
+    fields = {name: getattr(tel, name) for name in tel.__struct_fields__
+              if name not in ("version", "n_targets", "n_state", "data")}
+    return {**fields, **{name: getattr(tel, name) for name in TELEMETRY_ARRAYS}}
+
+
+def telemetry_with(tel: TelemetryWire, **arrays) -> TelemetryWire:
+    """``tel`` with some of its arrays replaced (packed again)."""
+    return TelemetryWire.build(**{**telemetry_fields(tel), **arrays})
+
+
 def consensus_with_nan(wire: ConsensusWire, field: str, value: float = np.nan) -> ConsensusWire:
     """``wire`` with the last value of one of its packed arrays replaced."""
     message = CODEC.consensus_from_wire(wire)
@@ -203,7 +216,7 @@ def test_non_finite_values_are_rejected(bad: float) -> None:
         ("truth", msgspec.structs.replace(MESSAGES["truth"], target_velocities=with_nan(
             MESSAGES["truth"].target_velocities, bad))),
         ("clock", msgspec.structs.replace(MESSAGES["clock"], time_s=bad)),
-        ("telemetry", msgspec.structs.replace(MESSAGES["telemetry"], psi1=with_nan(
+        ("telemetry", telemetry_with(MESSAGES["telemetry"], psi1=with_nan(
             MESSAGES["telemetry"].psi1, bad))),
         ("telemetry", msgspec.structs.replace(MESSAGES["telemetry"], bearing_error=bad)),
         ("telemetry", msgspec.structs.replace(MESSAGES["telemetry"], counters=TelemetryCounters(
@@ -223,9 +236,9 @@ def test_wrong_version_is_rejected_naming_both_versions(name: str) -> None:
     reason = reason_of(DECODERS[kind], raw(message))
     assert f"version {WIRE_VERSION + 1}" in reason and f"version {WIRE_VERSION}" in reason
     # A future version with a different layout is still explained by its version.
-    future = raw([kind, 7, "a", "different", "layout"])
+    future = raw([kind, WIRE_VERSION + 1, "a", "different", "layout"])
     reason = reason_of(DECODERS[kind], future)
-    assert "version 7" in reason and f"version {WIRE_VERSION}" in reason
+    assert f"version {WIRE_VERSION + 1}" in reason and f"version {WIRE_VERSION}" in reason
     with pytest.raises(WireError, match="version"):
         CODEC.encode(message)
 
@@ -255,9 +268,17 @@ def test_wrong_shapes_and_lengths_are_rejected() -> None:
     other = WireCodec(N, M + 1, NS)
     assert "shape" in reason_of(other.decode_consensus, PAYLOADS["consensus"])
     assert "shape" in reason_of(WireCodec(N + 1, M, NS).decode_truth, PAYLOADS["truth"])
-    assert "estimates has shape" in reason_of(other.decode_telemetry, PAYLOADS["telemetry"])
-    tel = msgspec.structs.replace(MESSAGES["telemetry"], velocity=F64Array.from_array(np.zeros(4)))
-    assert "velocity" in reason_of(CODEC.decode_telemetry, raw(tel))
+    assert "n_targets 2 does not match" in reason_of(other.decode_telemetry,
+                                                     PAYLOADS["telemetry"])
+    # A telemetry block of the wrong length, or arrays that do not fit its layout.
+    tel = MESSAGES["telemetry"]
+    for data in (tel.data[:-8], tel.data + bytes(8), tel.data[:-1]):
+        assert "telemetry data carries" in reason_of(
+            CODEC.decode_telemetry, raw(msgspec.structs.replace(tel, data=data)))
+    with pytest.raises(WireError, match=r"velocity has shape \(4,\), expected \(3,\)"):
+        telemetry_with(tel, velocity=np.zeros(4))
+    with pytest.raises(WireError, match="telemetry arrays missing: psi0"):
+        TelemetryWire.build(**{k: v for k, v in telemetry_fields(tel).items() if k != "psi0"})
 
 
 def relayed(*entries: tuple[int, float]) -> BeaconRelayWire:

@@ -30,6 +30,7 @@ from mcap.writer import Writer
 
 from swarm.launch.launcher import LaunchOptions, SwarmLauncher
 from swarm.messages.wire import (
+    TELEMETRY_ARRAYS,
     BeaconWire,
     CameraFrameWire,
     DetectionWire,
@@ -131,7 +132,7 @@ def sample_messages() -> list[Any]:
                                  mavlink_state="armed OFFBOARD")
     m, n = 2, 6
     arr = F64Array.from_array
-    telemetry = TelemetryWire(
+    telemetry = TelemetryWire.build(
         drone=1, step=42, time_s=0.84, position_m=(AWKWARD[0], 1.0, 3.5),
         velocity=arr(AWKWARD[:3]), nominal_velocity=arr([0.0, 0.0, 0.0]),
         estimates=arr(np.arange(m * n, dtype=float).reshape(m, n) / 3.0),
@@ -158,9 +159,11 @@ def sample_messages() -> list[Any]:
 
 
 def with_fields(message: TelemetryWire, **changes: Any) -> TelemetryWire:
-    """A copy with some fields changed (msgspec structs have no ``replace``)."""
-    fields = {name: getattr(message, name) for name in message.__struct_fields__}
-    return TelemetryWire(**{**fields, **changes})
+    """A copy with some fields or arrays changed (the arrays packed again)."""
+    fields = {name: getattr(message, name) for name in message.__struct_fields__
+              if name not in ("version", "n_targets", "n_state", "data")}
+    arrays = {name: getattr(message, name) for name in TELEMETRY_ARRAYS}
+    return TelemetryWire.build(**{**fields, **arrays, **changes})
 
 
 CONVERTERS = {
