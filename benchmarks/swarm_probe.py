@@ -152,8 +152,13 @@ class ClockTap:
     def __init__(self, inner: Any) -> None:
         self._inner = inner
         self.events: list[tuple[float, int, str]] = []
+        # Set when the state changes (the mission's window opens or closes): the sampler
+        # samples every child at once, before a fast swarm's processes have ended.
+        self.state_changed = threading.Event()
 
     def put(self, source: Any, value: ClockWire, *args: Any, **kwargs: Any) -> Any:
+        if not self.events or self.events[-1][2] != value.state:
+            self.state_changed.set()
         self.events.append((now_s(), value.step, value.state))
         return self._inner.put(source, value, *args, **kwargs)
 
@@ -182,12 +187,15 @@ class ChildTrace:
 class Sampler(threading.Thread):
     """Polls the launcher's children (CPU, memory, new log lines) until stopped."""
 
-    def __init__(self, launcher: SwarmLauncher, mission_running: Callable[[], bool]) -> None:
+    def __init__(self, launcher: SwarmLauncher, mission_running: Callable[[], bool],
+                 wake: threading.Event | None = None) -> None:
         super().__init__(name="swarm-probe", daemon=True)
         self.launcher = launcher
         self.mission_running = mission_running
         self.traces: dict[int, ChildTrace] = {}
         self.halt = threading.Event()
+        # Set by whoever sees the mission's window open or close (``ClockTap``): sample now.
+        self.wake = wake if wake is not None else threading.Event()
         self._next_pss = 0.0
 
     def run(self) -> None:
@@ -208,7 +216,12 @@ class Sampler(threading.Thread):
                     self._next_pss = t + PSS_PERIOD_S
                 for child in children:
                     self._sample(self._trace(child), t, with_pss)
-            self.halt.wait(LOG_PERIOD_S if not running else SAMPLE_PERIOD_S / 2)
+            self.wake.wait(LOG_PERIOD_S if not running else SAMPLE_PERIOD_S / 2)
+            self.wake.clear()
+
+    def stop(self) -> None:
+        self.halt.set()
+        self.wake.set()
 
     def _trace(self, child: Child) -> ChildTrace:
         pid = child.process.pid
@@ -351,7 +364,8 @@ def run_swarm(config_path: Path, config: Any, mode: str, *, seed: int = 0,
         telemetry.append((tel.drone, tel.step, tel.step_us, c.neighbour_age_ms, c.late_steps,
                           c.steps))
 
-    sampler = Sampler(launcher, lambda: any(s == "running" for _t, _k, s in tap.events[-1:]))
+    sampler = Sampler(launcher, lambda: any(s == "running" for _t, _k, s in tap.events[-1:]),
+                      wake=tap.state_changed)
     load_before = load_average()
     launched = now_s()
     sampler.start()
@@ -361,7 +375,7 @@ def run_swarm(config_path: Path, config: Any, mode: str, *, seed: int = 0,
     except MissionError as err:
         error = str(err)
     finally:
-        sampler.halt.set()
+        sampler.stop()
         sampler.join()
     result = _summarise(config, mode, launcher, tap, sampler, telemetry, launcher_lines,
                         launched)

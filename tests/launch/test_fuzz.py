@@ -494,9 +494,9 @@ def _core_boundaries(config: Any, bad: float, guarded_qp: list[int]) -> None:
         for _ in range(agents[0].n_rounds):
             inboxes = [{j: messages[j] for j in graph.neighbours[i]} for i in range(n)]
             good = inboxes[0][neighbour]
-            information = good.information.copy()
-            information.flat[3] = bad
-            inboxes[0][neighbour] = dataclasses.replace(good, information=information)
+            data = good.data.copy()
+            data[3] = bad  # V[0, 0, 3] of the packed block (swarm.core.consensus_message)
+            inboxes[0][neighbour] = dataclasses.replace(good, data=data)
             messages = [agents[i].consensus_round(inboxes[i]) for i in range(n)]
         beacons = dict(enumerate(positions))
         poisoned = dict(beacons)
