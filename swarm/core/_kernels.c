@@ -790,6 +790,37 @@ sequence_length(PyObject *seq)
     return PyList_Check(seq) || PyTuple_Check(seq) ? PySequence_Fast_GET_SIZE(seq) : -1;
 }
 
+/* One list or tuple argument of a kernel: which of the call's arguments and its name. */
+typedef struct {
+    int arg;
+    const char *name;
+} SequenceSpec;
+
+/* The floats of `count` sequences (args[specs[i].arg], lengths[i] floats each), one after the
+ * other in one new block that the caller frees with PyMem_Free; NULL with a one-line error
+ * naming the first that is not a list or tuple of that many numbers. */
+static double *
+read_floats(PyObject *const *args, const SequenceSpec *specs, const Py_ssize_t *lengths,
+            int count)
+{
+    Py_ssize_t total = 1;
+    for (int i = 0; i < count; i++) total += lengths[i];
+    double *block = PyMem_Malloc(sizeof(double) * (size_t)total);
+    if (block == NULL) {
+        PyErr_NoMemory();
+        return NULL;
+    }
+    double *at = block;
+    for (int i = 0; i < count; i++) {
+        if (float_sequence(args[specs[i].arg], at, lengths[i], specs[i].name) != 0) {
+            PyMem_Free(block);
+            return NULL;
+        }
+        at += lengths[i];
+    }
+    return block;
+}
+
 PyDoc_STRVAR(qp_load_doc,
 "qp_load(columns, lower, nominal, low, high, weights, slack_weight, weight_floor, rows,\n"
 " bounds_lower, bounds_upper, linear, hessian) -> bool\n--\n\n"
@@ -827,24 +858,20 @@ py_qp_load(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
         release(v, 5);
         return NULL;
     }
-    double *scratch = PyMem_Malloc(sizeof(double) * (size_t)(4 * n_rows + 9 + n_weights + 1));
-    PyObject *result = NULL;
-    if (scratch == NULL) {
-        PyErr_NoMemory();
-    } else {
-        double *columns = scratch, *lower = columns + 3 * n_rows, *nominal = lower + n_rows;
-        double *low = nominal + 3, *high = low + 3, *weights = high + 3;
-        if (float_sequence(args[0], columns, 3 * n_rows, "columns") == 0
-                && float_sequence(args[1], lower, n_rows, "lower") == 0
-                && float_sequence(args[2], nominal, 3, "nominal") == 0
-                && float_sequence(args[3], low, 3, "low") == 0
-                && float_sequence(args[4], high, 3, "high") == 0
-                && float_sequence(args[5], weights, n_weights, "weights") == 0)
-            result = PyBool_FromLong(qp_load(columns, lower, n_rows, nominal, low, high, weights,
-                                             slack_weight, weight_floor, n_z, v[0].buf,
-                                             v[1].buf, v[2].buf, v[3].buf, v[4].buf));
+    static const SequenceSpec inputs[6] = {{0, "columns"}, {1, "lower"}, {2, "nominal"},
+                                           {3, "low"}, {4, "high"}, {5, "weights"}};
+    const Py_ssize_t sizes[6] = {3 * n_rows, n_rows, 3, 3, 3, n_weights};
+    double *columns = read_floats(args, inputs, sizes, 6);
+    if (columns == NULL) {
+        release(v, 5);
+        return NULL;
     }
-    PyMem_Free(scratch);
+    double *lower = columns + 3 * n_rows, *nominal = lower + n_rows, *low = nominal + 3;
+    double *high = low + 3, *weights = high + 3;
+    PyObject *result = PyBool_FromLong(qp_load(
+        columns, lower, n_rows, nominal, low, high, weights, slack_weight, weight_floor, n_z,
+        v[0].buf, v[1].buf, v[2].buf, v[3].buf, v[4].buf));
+    PyMem_Free(columns);
     release(v, 5);
     return result;
 }
@@ -866,19 +893,14 @@ py_qp_max_violation(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
                         "least 3 floats and lower a list or tuple of floats");
         return NULL;
     }
-    /* One scratch block: z, columns (3R), lower (R), low (3), high (3). */
-    double *z = PyMem_Malloc(sizeof(double) * (size_t)(n_z + 4 * n_rows + 6));
-    if (z == NULL) return PyErr_NoMemory();
+    static const SequenceSpec inputs[5] = {{0, "z"}, {1, "columns"}, {2, "lower"},
+                                           {3, "low"}, {4, "high"}};
+    const Py_ssize_t sizes[5] = {n_z, 3 * n_rows, n_rows, 3, 3};
+    double *z = read_floats(args, inputs, sizes, 5);
+    if (z == NULL) return NULL;
     double *columns = z + n_z, *lower = columns + 3 * n_rows, *low = lower + n_rows;
-    double *high = low + 3;
-    PyObject *result = NULL;
-    if (float_sequence(args[0], z, n_z, "z") == 0
-            && float_sequence(args[1], columns, 3 * n_rows, "columns") == 0
-            && float_sequence(args[2], lower, n_rows, "lower") == 0
-            && float_sequence(args[3], low, 3, "low") == 0
-            && float_sequence(args[4], high, 3, "high") == 0)
-        result = PyFloat_FromDouble(qp_max_violation(z, n_z, columns, lower, n_rows, low,
-                                                     high));
+    PyObject *result = PyFloat_FromDouble(qp_max_violation(z, n_z, columns, lower, n_rows, low,
+                                                           low + 3));
     PyMem_Free(z);
     return result;
 }
@@ -950,21 +972,19 @@ py_initial_information(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     }
     const Py_ssize_t lengths[3] = {m * n * n, m * n, m * n * n + m * n};
     if (check_lengths(v, specs, lengths, 3)) return NULL;
-    double *scratch = PyMem_Malloc(sizeof(double) * (size_t)(3 + 3 * m));
-    PyObject *result = NULL;
-    if (scratch == NULL) {
-        PyErr_NoMemory();
-    } else if (float_sequence(args[4], scratch, 3, "seen_from") == 0
-               && float_sequence(args[5], scratch + 3, 2 * m, "image_points") == 0
-               && float_sequence(args[6], scratch + 3 + 2 * m, m, "detected") == 0) {
-        initial_information(v[0].buf, v[1].buf, (int)m, (int)n, n_agents, gain, scratch,
-                            scratch + 3, scratch + 3 + 2 * m, v[2].buf);
-        result = Py_None;
-        Py_INCREF(result);
+    static const SequenceSpec inputs[3] = {{4, "seen_from"}, {5, "image_points"},
+                                           {6, "detected"}};
+    const Py_ssize_t sizes[3] = {3, 2 * m, m};
+    double *seen_from = read_floats(args, inputs, sizes, 3);
+    if (seen_from == NULL) {
+        release(v, 3);
+        return NULL;
     }
-    PyMem_Free(scratch);
+    initial_information(v[0].buf, v[1].buf, (int)m, (int)n, n_agents, gain, seen_from,
+                        seen_from + 3, seen_from + 3 + 2 * m, v[2].buf);
+    PyMem_Free(seen_from);
     release(v, 3);
-    return result;
+    Py_RETURN_NONE;
 }
 
 PyDoc_STRVAR(consensus_sums_doc,
@@ -1072,15 +1092,14 @@ py_consensus_step(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     const char *format = index.format ? index.format : "B";
     int integers = index.itemsize == (Py_ssize_t)sizeof(Py_ssize_t)
                    && strchr("lLqQn", format[strlen(format) - 1]) != NULL;
-    double *u = PyMem_Malloc(sizeof(double) * (size_t)(n_u + 1));
+    static const SequenceSpec inputs[1] = {{2, "u"}};
+    double *u = NULL;
     PyObject *result = NULL;
-    if (u == NULL) {
-        PyErr_NoMemory();
-    } else if (!integers || n == 0 || terms % n != 0 || index.len / index.itemsize != terms) {
+    if (!integers || n == 0 || terms % n != 0 || index.len / index.itemsize != terms) {
         PyErr_Format(PyExc_ValueError, "consensus_step: index (%zd items of format '%s') and "
                      "coefficients (%zd) must both be (rows, n = %zd), index of intp", index.len
                      / (index.itemsize ? index.itemsize : 1), format, terms, n);
-    } else if (float_sequence(args[2], u, n_u, "u") == 0) {
+    } else if ((u = read_floats(args, inputs, &n_u, 1)) != NULL) {
         const Py_ssize_t *at = index.buf;
         int in_range = 1;
         for (Py_ssize_t k = 0; k < terms; k++)
