@@ -150,36 +150,17 @@ class ConsensusMessage:
         return {name: self.data[start:stop].reshape(shape) for name, shape, start, stop
                 in message_layout(self.n_targets, self.n_state, self.has_states)}
 
-    @property
-    def information(self) -> Array:  # V^κ, (M, n, n)
-        return self.data[:self.n_targets * self.n_state ** 2].reshape(
-            self.n_targets, self.n_state, self.n_state)
-
-    @property
-    def information_vector(self) -> Array:  # v^κ, (M, n)
-        start = self.n_targets * self.n_state ** 2
-        return self.data[start:start + self.n_targets * self.n_state].reshape(
-            self.n_targets, self.n_state)
-
-    @property
-    def projector_mean(self) -> Array | None:  # s for wΠ̂, (M, 3, 3)
-        return self.array("projector_mean")
-
-    @property
-    def weight_mean(self) -> Array | None:  # s for w, (M,)
-        return self.array("weight_mean")
-
-    @property
-    def projector_integral(self) -> Array | None:  # η for wΠ̂, (M, 3, 3)
-        return self.array("projector_integral")
-
-    @property
-    def weight_integral(self) -> Array | None:  # η for w, (M,)
-        return self.array("weight_integral")
-
-    @property
-    def gramian(self) -> Array | None:  # G copies, (M, 3, 3)
-        return self.array("gramian")
+    # The arrays by name, views of ``data`` (the states None after round 0).
+    information = property(lambda self: self.array("information"), doc="V^κ, (M, n, n)")
+    information_vector = property(lambda self: self.array("information_vector"),
+                                  doc="v^κ, (M, n)")
+    projector_mean = property(lambda self: self.array("projector_mean"),
+                              doc="s for wΠ̂, (M, 3, 3)")
+    weight_mean = property(lambda self: self.array("weight_mean"), doc="s for w, (M,)")
+    projector_integral = property(lambda self: self.array("projector_integral"),
+                                  doc="η for wΠ̂, (M, 3, 3)")
+    weight_integral = property(lambda self: self.array("weight_integral"), doc="η for w, (M,)")
+    gramian = property(lambda self: self.array("gramian"), doc="G copies, (M, 3, 3)")
 
     def is_finite(self) -> bool:
         return bool(np.isfinite(self.data).all())
