@@ -188,12 +188,10 @@ class DroneAgent:
         # ICF pair (V, v) packed as one vector: V (M·n·n) then v (M·n).
         self._n_info = m * n * n
         self._icf = np.zeros(self._n_info + m * n)
-        # Consensus states packed as one list of floats (SPEC §6, ``ConsensusLayout``).
+        # Consensus states packed as one vector (SPEC §6, ``ConsensusLayout``).
         self._layout = layout = ConsensusLayout(m)
-        cons = [0.0] * layout.size
-        cons[layout.gramian] = initial_gramian(gram.epsilon).ravel().tolist() * m
-        self._cons = cons
-        self._cons_array = np.array(self._cons)
+        self._cons_array = np.zeros(layout.size)
+        self._cons_array[layout.gramian] = np.tile(initial_gramian(gram.epsilon).ravel(), m)
         self._consensus_started = False  # s_i(0) = u_i(0) is set on the first step
         self._disagreement = np.zeros(layout.size)  # Σ_j (x_i − x_j) of the round-0 states
         self._operator = _consensus_operator(layout, setup.dt_s, gram,
@@ -487,7 +485,7 @@ class DroneAgent:
         terms, barriers = kernels.perception_barrier(
             self._position, estimates, target_velocities, cons_array[layout.gramian],
             cons_array[layout.projector_mean], self._barrier_constants)
-        weight_sums = [self._swarm_size * w for w in self._cons[layout.weight_mean]]
+        weight_sums = [self._swarm_size * w for w in cons_array[layout.weight_mean].tolist()]
         return terms, barriers, weight_sums
 
     def _kernel_constants(self, n_agents: int) -> Array:
@@ -601,19 +599,17 @@ class DroneAgent:
         local_input += weights  # u_i = [w Π̂ (9M), w (M)]
         self._cons_array = consensus_step(self._operator, self._cons_array, self._disagreement,
                                           local_input)
-        self._cons = self._cons_array.tolist()
 
     def _initialise_consensus_states(self) -> None:
         """s_i(0) = u_i(0) from the initial estimate, η_i(0) = 0 (SPEC §6)."""
         m, layout = self.setup.n_targets, self._layout
         terms = [perception_terms(self._position, self._prior_state[r, :3],
                                   self.setup.perception) for r in range(m)]
-        cons = list(self._cons)
+        cons = self._cons_array.copy()
         cons[layout.projector_mean] = np.array([t.weight * t.projector
-                                                for t in terms]).ravel().tolist()
+                                                for t in terms]).ravel()
         cons[layout.weight_mean] = [t.weight for t in terms]
-        self._cons = cons
-        self._cons_array = np.array(cons)
+        self._cons_array = cons
         self._consensus_started = True
 
     def _nominal_velocity(
