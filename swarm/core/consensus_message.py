@@ -53,17 +53,17 @@ def array_shapes(n_targets: int, n_state: int) -> dict[str, tuple[int, ...]]:
 @functools.lru_cache(maxsize=64)
 def message_layout(n_targets: int, n_state: int, with_states: bool
                    ) -> tuple[tuple[str, tuple[int, ...], int, int], ...]:
-    """(name, shape, start, stop) of each array in ``data``, in floats."""
+    """(name, shape, start, stop) of each array in ``data``, in floats: the ICF pair, then
+    the states where the agent's packed state (``ConsensusLayout``) keeps them."""
     shapes = array_shapes(n_targets, n_state)
-    layout = []
-    start = 0
-    for name in ARRAY_NAMES if with_states else PAIR_NAMES:
-        stop = start + math.prod(shapes[name])
-        layout.append((name, shapes[name], start, stop))
-        start = stop
-    if with_states:  # the states part is the agent's packed state, entry for entry
+    pair = math.prod(shapes["information"])
+    size = pair + math.prod(shapes["information_vector"])
+    layout = [("information", shapes["information"], 0, pair),
+              ("information_vector", shapes["information_vector"], pair, size)]
+    if with_states:
         states = ConsensusLayout(n_targets)
-        assert start - layout[2][2] == states.size
+        layout += [(name, shapes[name], size + getattr(states, name).start,
+                    size + getattr(states, name).stop) for name in STATE_NAMES]
     return tuple(layout)
 
 
