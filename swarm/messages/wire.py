@@ -727,6 +727,14 @@ assert TelemetryWire.__struct_fields__[1:] == (
     "rate_limit_released", "safety_conflict")
 
 
+def _finite_block(data: bytes, layout: tuple[tuple[str, Any, int, int], ...]) -> None:
+    """Every float of a packed block finite (one compiled pass), or fail naming the first
+    array of ``layout`` (name, shape, start, stop in floats) that holds one that is not."""
+    if not (_NATIVE_LE and native_finite(data)):
+        finite_floats([(name, data[8 * start:8 * stop]) for name, _, start, stop in layout],
+                      native=False)
+
+
 def _telemetry_block(sizes: Mapping[str, int | None]) -> Check:
     """The rule of ``TelemetryWire.data`` (its ``"packed"`` marker): the arrays of this
     swarm's M and n (``telemetry_layout``), every float finite."""
@@ -740,9 +748,7 @@ def _telemetry_block(sizes: Mapping[str, int | None]) -> Check:
         if len(data) != expected:
             fail(f"telemetry data carries {len(data)} bytes, expected {expected} for M = {M}, "
                  f"n = {n}", "shape")
-        if not (_NATIVE_LE and native_finite(data)):
-            finite_floats([(name, data[8 * start:8 * stop])
-                           for name, _, start, stop in layout], native=False)
+        _finite_block(data, layout)
     return check
 
 
@@ -766,9 +772,7 @@ def _consensus_block(sizes: Mapping[str, int | None]) -> Check:
                      + " missing", "shape")
             fail(f"round-{rnd} consensus data carries {len(data)} bytes, expected {expected} "
                  f"for M = {M}, n = {n}", "shape")
-        if not (_NATIVE_LE and native_finite(data)):
-            finite_floats([(name, data[8 * start:8 * stop])
-                           for name, _, start, stop in layouts[rnd == 0]], native=False)
+        _finite_block(data, layouts[rnd == 0])
     return check
 
 
