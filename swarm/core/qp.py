@@ -172,14 +172,17 @@ class _DaqpModel:
     ``bounds_upper`` = [z_max, +inf per row] (the first n bound z, the rest the rows). Set up
     on the first solve, updated after: DAQP keeps the active set of the last solve as its
     starting guess. DAQP reads the arrays it is given at each update (it holds on to them
-    until the next one), so the caller keeps them alive and unchanged until then."""
+    until the next one): the model keeps a reference to them until then, so a caller may
+    pass temporaries; it must not change them between solves."""
 
     def __init__(self) -> None:
         self._model: daqp.Model | None = None
+        self._held: tuple[Array, ...] = ()  # what DAQP points into, alive until the next solve
 
     def solve(self, hessian: Array, linear: Array, rows: Array, bounds_lower: Array,
               bounds_upper: Array, *, hessian_changed: bool = True) -> tuple[Array, int, int]:
         """(z, DAQP exit flag, iterations) of the QP with these matrices (C-contiguous)."""
+        self._held = (hessian, linear, rows, bounds_lower, bounds_upper)
         if self._model is None:
             model = daqp.Model()
             exit_flag, _ = model.setup(hessian, linear, rows, bounds_upper, bounds_lower,
