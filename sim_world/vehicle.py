@@ -541,6 +541,7 @@ class EmulatedVehicle:
         self._sysid = self._drone_id + 1
         self._flavour: Flavour = flavour
         self._origin = origin
+        self._origin_xyz = frames.as_xyz(origin, "origin_w")
         self._u_max = float(u_max_m_s)
         self._response = response
         self._flight = FLIGHT_MODELS[flavour] if flight_model is None else flight_model
@@ -1240,10 +1241,12 @@ class EmulatedVehicle:
                 self._climb = None
             self.ignored_setpoints += 1
         else:
-            position = frames.world_from_local_ned([msg.x, msg.y, msg.z], self._origin) \
+            position = np.array(frames.world_from_local_ned_xyz(
+                (float(msg.x), float(msg.y), float(msg.z)), self._origin_xyz)) \
                 if has_position else None
-            velocity = clamp_velocity(frames.ned_to_enu([msg.vx, msg.vy, msg.vz]),
-                                      self._u_max) if has_velocity else None
+            velocity = clamp_velocity(np.array(frames.ned_to_enu_xyz(
+                float(msg.vx), float(msg.vy), float(msg.vz))), self._u_max) \
+                if has_velocity else None
             self._setpoint = _Setpoint(position, velocity, now_s)
             self._last_setpoint_s = now_s
             self.accepted_setpoints += 1
@@ -1517,9 +1520,9 @@ class EmulatedVehicle:
         return self._tx.statustext_encode(severity, text.encode()[:50])
 
     def _local_position_fields(self) -> tuple[float, ...]:
-        x, y, z = (float(c) for c in frames.local_ned_from_world(self._position, self._origin))
-        vx, vy, vz = (float(c) for c in frames.enu_to_ned(self._velocity))
-        return x, y, z, vx, vy, vz
+        px, py, pz = self._position.tolist()
+        x, y, z = frames.local_ned_from_world_xyz((px, py, pz), self._origin_xyz)
+        return (x, y, z, *frames.enu_to_ned_xyz(*self._velocity.tolist()))
 
     def _local_position_packet(self) -> bytes | None:
         """LOCAL_POSITION_NED packed on the fast path (None: pymavlink must pack it)."""

@@ -68,8 +68,10 @@ class Peers:
     camera_latest: LatestValues[CameraFrameWire]
     check_clock: Callable[[], None]
     log: Callable[[str], None]
-    # Take what waits in the subscriptions' rings (realtime: ``DrainedSubscriber.drain``).
-    drain: Callable[[], None]
+    # Take what waits in the subscriptions' rings (realtime: ``DrainedSubscriber.drain``):
+    # ``drain()`` every ring, ``drain("consensus")`` / ``drain("beacons")`` only the rings of
+    # the neighbours' consensus messages / of the world's beacon relay.
+    drain: Callable[..., None]
 
 
 class Exchange(Protocol):
@@ -192,8 +194,9 @@ class RealtimeExchange:
     """The newest of everything, on the wall clock (module docstring)."""
 
     # Samples wait in bounded rings inside zenoh (``ring``: a few steps' worth of every
-    # source; no Python, no GIL) and the loop takes them where it reads them (``drain``: at
-    # each tick, before each round's inbox and before the beacons), so receiving never
+    # source; no Python, no GIL) and the loop takes them where it reads them (``drain``: every
+    # ring at each tick, the consensus rings before each round's inbox and the relay's before
+    # the beacons; an empty ring's drain costs ~10 µs of a cold loop), so receiving never
     # preempts the step. Direct callbacks preempted it (Case 2 scaled to N = 12: 21-38 % late
     # steps), a Python thread per ring less so (11-13 % that day; on another, side by side,
     # 44 % with a thread per ring against 7 % drained here). Zenoh's own unbounded queue
@@ -285,8 +288,9 @@ class RealtimeExchange:
                   f"{len(members)} now")
 
     def inbox(self, step: int, rnd: int) -> dict[int, ConsensusMessage]:
-        """Each neighbour's newest message of this round, if fresh enough."""
-        self.peers.drain()
+        """Each neighbour's newest message of this round, if fresh enough (what came since the
+        loop's tick is taken first: only the consensus rings, the others are read later)."""
+        self.peers.drain("consensus")
         stale_after = self.peers.config.runtime.stale_timeout_s
         inbox: dict[int, ConsensusMessage] = {}
         ages = []
@@ -317,7 +321,7 @@ class RealtimeExchange:
         A beacon older than the stale timeout belongs to a drone that is late or lost; its
         vehicle flies the last setpoint until its failsafe holds it, so it is carried forward
         for at most that long and kept there: nobody flies into a hovering drone."""
-        self.peers.drain()
+        self.peers.drain("beacons")
         latest = self.beacon_latest.fresh_with_ages(math.inf)
         if not latest:
             return {}

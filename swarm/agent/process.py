@@ -139,7 +139,9 @@ class AgentProcess:
         self.watch = VehicleWatch(self.link.setpoint_mode)
         self.localization = LocalizationWatch(len(cfg.targets), cfg.gramian.epsilon,
                                               cfg.checks.lambda_tolerance)
-        self._rings: list[DrainedSubscriber] = []  # the realtime subscriptions, drained by the loop
+        # The realtime subscriptions, drained by the loop: all of them, and by stream.
+        self._rings: list[DrainedSubscriber] = []
+        self._rings_of: dict[str, list[DrainedSubscriber]] = {}
         # Before the subscriptions: their callbacks store through it.
         self.exchange = exchange = exchange_for(options.mode, Peers(
             self.id, self.neighbours, self.others, cfg, self.agent, self.link,
@@ -160,19 +162,23 @@ class AgentProcess:
                       self._on_clock, self.rejections, "clock", direct=direct,
                       keep_latest=ring(1)),
         ]
-        if exchange.relayed_beacons:
-            subs.append(subscribe(
-                self.session, self.keys.beacon_relay, self.codec.decode_beacon_relay,
-                self._on_beacon_relay, self.rejections, "beacon relay", direct=direct,
-                keep_latest=ring(1)))
-        subs += [subscribe(self.session, self.keys.consensus(j), self.codec.decode_consensus,
-                           self._on_consensus, self.rejections, "consensus", direct=direct,
-                           on_sent_time=exchange.consensus_sent if exchange.sent_times
-                           else None,
-                           keep_latest=ring(rounds))
-                 for j in sorted(self.neighbours)]
-        self._subscribers = subs
-        self._rings = [sub for sub in subs if isinstance(sub, DrainedSubscriber)]
+        relay = [subscribe(
+            self.session, self.keys.beacon_relay, self.codec.decode_beacon_relay,
+            self._on_beacon_relay, self.rejections, "beacon relay", direct=direct,
+            keep_latest=ring(1))] if exchange.relayed_beacons else []
+        consensus = [subscribe(self.session, self.keys.consensus(j), self.codec.decode_consensus,
+                               self._on_consensus, self.rejections, "consensus", direct=direct,
+                               on_sent_time=exchange.consensus_sent if exchange.sent_times
+                               else None,
+                               keep_latest=ring(rounds))
+                     for j in sorted(self.neighbours)]
+        self._subscribers = subs = subs + relay + consensus
+
+        def rings(group: list) -> list[DrainedSubscriber]:
+            return [sub for sub in group if isinstance(sub, DrainedSubscriber)]
+
+        self._rings = rings(subs)
+        self._rings_of = {"consensus": rings(consensus), "beacons": rings(relay)}
         # Consensus: blocking or dropping, as the exchange says. Beacons and telemetry never
         # drop: the recorder keeps every one (in realtime, ~2-4 %
         # of the telemetry used to be dropped in zenoh's tx queues on a loaded machine), and
@@ -221,8 +227,10 @@ class AgentProcess:
 
     # -- subscriptions (zenoh threads) ------------------------------------------------------
 
-    def _drain_rings(self) -> None:
-        for ring in self._rings:
+    def _drain_rings(self, stream: str | None = None) -> None:
+        """Take what waits in the rings: every ring, or those of ``stream`` ("consensus",
+        "beacons")."""
+        for ring in self._rings if stream is None else self._rings_of[stream]:
             ring.drain()
 
     def _on_clock(self, _key: str, clock: ClockWire, arrived_s: float | None = None) -> None:

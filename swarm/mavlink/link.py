@@ -249,6 +249,7 @@ class AutopilotLink:
         self._sysid = self._drone_id + 1
         self._flavour: Flavour = flavour
         self._origin = np.array(origin_w, dtype=np.float64).reshape(3).copy()
+        self._origin_xyz = frames.as_xyz(self._origin, "origin_w")
         self._log_fn = log
         self._clock = clock
         self._source_system = self._sysid if source_system is None else int(source_system)
@@ -444,8 +445,9 @@ class AutopilotLink:
         stamp = _stamp(time_boot_ms)
         self._hold_position_w = None
         self._commanded = True
-        self._send_setpoint(VELOCITY_ONLY_TYPE_MASK, np.zeros(3),
-                            frames.to_link_float(frames.enu_to_ned(velocity_w)), stamp)
+        self._send_setpoint(VELOCITY_ONLY_TYPE_MASK, _ZERO,
+                            frames.link_float_xyz(*frames.enu_to_ned_xyz(
+                                *frames.as_xyz(velocity_w, "velocity_w"))), stamp)
 
     def send_tracked(self, position_w: ArrayLike, velocity_w: ArrayLike,
                      acceleration_w: ArrayLike, time_boot_ms: int) -> None:
@@ -456,16 +458,19 @@ class AutopilotLink:
         stamp = _stamp(time_boot_ms)
         self._hold_position_w = None
         self._commanded = True
+        as_xyz, link_float, to_ned = frames.as_xyz, frames.link_float_xyz, frames.enu_to_ned_xyz
         self._send_setpoint(
             TRACKED_TYPE_MASK[self._flavour],
-            frames.to_link_float(frames.local_ned_from_world(position_w, self._origin)),
-            frames.to_link_float(frames.enu_to_ned(velocity_w)), stamp,
-            frames.to_link_float(frames.enu_to_ned(acceleration_w)))
+            link_float(*frames.local_ned_from_world_xyz(as_xyz(position_w, "position_w"),
+                                                        self._origin_xyz)),
+            link_float(*to_ned(*as_xyz(velocity_w, "velocity_w"))), stamp,
+            link_float(*to_ned(*as_xyz(acceleration_w, "acceleration_w"))))
 
     def send_position(self, position_w: ArrayLike, time_boot_ms: int) -> None:
         """One position setpoint (W, m; the vehicle's local NED over the link)."""
-        local = frames.to_link_float(frames.local_ned_from_world(position_w, self._origin))
-        self._send_setpoint(POSITION_ONLY_TYPE_MASK, local, np.zeros(3), _stamp(time_boot_ms))
+        local = frames.link_float_xyz(*frames.local_ned_from_world_xyz(
+            frames.as_xyz(position_w, "position_w"), self._origin_xyz))
+        self._send_setpoint(POSITION_ONLY_TYPE_MASK, local, _ZERO, _stamp(time_boot_ms))
 
     def keepalive(self, now_s: float | None = None) -> None:
         """Drain, and send an idle setpoint (stamped IDLE_STAMP_MS) if none was sent in the
@@ -864,17 +869,17 @@ class AutopilotLink:
         if self._hold_position_w is not None:
             self.send_position(self._hold_position_w, IDLE_STAMP_MS)
         else:
-            self._send_setpoint(VELOCITY_ONLY_TYPE_MASK, np.zeros(3), np.zeros(3),
-                                IDLE_STAMP_MS)
+            self._send_setpoint(VELOCITY_ONLY_TYPE_MASK, _ZERO, _ZERO, IDLE_STAMP_MS)
 
-    def _send_setpoint(self, type_mask: int, position_ned: Array, velocity_ned: Array,
-                       stamp: int, acceleration_ned: Array | None = None) -> None:
+    def _send_setpoint(self, type_mask: int, position_ned: frames.Xyz,
+                       velocity_ned: frames.Xyz, stamp: int,
+                       acceleration_ned: frames.Xyz = (0.0, 0.0, 0.0)) -> None:
+        """Values already as the link carries them (``frames.link_float_xyz``)."""
         if self._second_autopilot is not None and not self._commanded:
             return  # which vehicle is ours was in doubt before we flew one: command none
-        x, y, z = (float(c) for c in position_ned)
-        vn, ve, vd = (float(c) for c in velocity_ned)
-        an, ae, ad = (0.0, 0.0, 0.0) if acceleration_ned is None else (
-            float(c) for c in acceleration_ned)
+        x, y, z = position_ned
+        vn, ve, vd = velocity_ned
+        an, ae, ad = acceleration_ned
         mav = self._conn.mav
         # Fields in wire order (SET_POSITION_TARGET_LOCAL_NED.fields); pymavlink's own send
         # when the fast path does not apply (signing, a send callback).
@@ -1097,15 +1102,18 @@ class AutopilotLink:
             self.rejections["nonfinite_position"] += 1
             return
         self._autopilot_frames += 1
-        sample = PositionSample(int(time_boot_ms),
-                                frames.world_from_local_ned((x, y, z), self._origin),
-                                frames.ned_to_enu((vx, vy, vz)), self._clock())
+        sample = PositionSample(int(time_boot_ms), np.array(frames.world_from_local_ned_xyz(
+            (float(x), float(y), float(z)), self._origin_xyz)),
+            np.array(frames.ned_to_enu_xyz(float(vx), float(vy), float(vz))), self._clock())
         self._latest = sample
         self._samples_received += 1
         self._by_stamp[sample.time_boot_ms] = sample
         self._by_stamp.move_to_end(sample.time_boot_ms)
         while len(self._by_stamp) > _MAX_STAMPED_SAMPLES:
             self._by_stamp.popitem(last=False)
+
+
+_ZERO: frames.Xyz = (0.0, 0.0, 0.0)
 
 
 def _stamp(time_boot_ms: int) -> int:

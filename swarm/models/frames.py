@@ -18,26 +18,43 @@ in-process reference simulator can reproduce a multi-process run bit for bit:
 * ``velocity_over_link(u)`` is what a vehicle decodes from a SET_POSITION_TARGET_LOCAL_NED
   velocity setpoint of W-velocity ``u``.
 
-All functions take array-likes of shape (3,) and return new float64 arrays of shape (3,);
-they are pure and deterministic (no global state, no in-place updates of their inputs).
+Each conversion is written once, on three floats (``*_xyz``, tuples in and out: what the
+MAVLink paths call, once or more per vehicle and step, where a numpy call costs more than the
+arithmetic); the array functions take array-likes of shape (3,), check them and return new
+float64 arrays of shape (3,) from those. All are pure and deterministic (no global state, no
+in-place updates of their inputs), and both forms give the same floats bit for bit.
 """
 
 from __future__ import annotations
+
+import math
+import struct
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 Array = NDArray[np.float64]
+Xyz = tuple[float, float, float]
 
 __all__ = [
+    "Xyz",
+    "as_xyz",
     "enu_to_ned",
+    "enu_to_ned_xyz",
+    "link_float_xyz",
     "local_ned_from_world",
+    "local_ned_from_world_xyz",
     "ned_to_enu",
+    "ned_to_enu_xyz",
     "position_over_link",
     "to_link_float",
     "velocity_over_link",
     "world_from_local_ned",
+    "world_from_local_ned_xyz",
 ]
+
+_FLOAT32 = struct.Struct("<f")
+_FLOAT32_XYZ = struct.Struct("<3f")
 
 
 def _vec3(v: ArrayLike, name: str) -> Array:
@@ -47,38 +64,79 @@ def _vec3(v: ArrayLike, name: str) -> Array:
     return a
 
 
-def enu_to_ned(v: ArrayLike) -> Array:
+def as_xyz(v: ArrayLike, name: str = "v") -> Xyz:
+    """``v`` as three Python floats: a tuple of three floats as it is, anything else checked
+    as the array functions check it (ValueError unless it is a 3-vector)."""
+    if type(v) is tuple and len(v) == 3 and all(type(c) is float for c in v):
+        return v  # type: ignore[return-value]
+    x, y, z = _vec3(v, name).tolist()
+    return x, y, z
+
+
+def enu_to_ned_xyz(x: float, y: float, z: float) -> Xyz:
     """W (x, y, z-up) → NED: (north, east, down) = (y, x, -z). Exact (no rounding)."""
-    a = _vec3(v, "v")
-    return np.array([a[1], a[0], -a[2]], dtype=np.float64)
+    return y, x, -z
+
+
+def ned_to_enu_xyz(north: float, east: float, down: float) -> Xyz:
+    """NED (north, east, down) → W: (x, y, z) = (east, north, -down). Exact (no rounding)."""
+    return east, north, -down
+
+
+def _link_float(value: float) -> float:
+    try:
+        return _FLOAT32.unpack(_FLOAT32.pack(value))[0]
+    except OverflowError:  # rounds beyond the float32 range: what the C cast gives, ±inf
+        return math.copysign(math.inf, value)
+
+
+def link_float_xyz(a: float, b: float, c: float) -> Xyz:
+    """Each value rounded to float32 and back: what a MAVLink ``float`` field carries (round
+    to nearest, ties to even). Values beyond the float32 range become ±inf (``struct``, which
+    pymavlink packs with, would raise OverflowError); NaN stays NaN."""
+    try:
+        return _FLOAT32_XYZ.unpack(_FLOAT32_XYZ.pack(a, b, c))  # type: ignore[return-value]
+    except OverflowError:
+        return _link_float(a), _link_float(b), _link_float(c)
+
+
+def local_ned_from_world_xyz(position_w: Xyz, origin_w: Xyz) -> Xyz:
+    """The vehicle's local NED coordinates of W-position ``position_w`` (exact differences)."""
+    return enu_to_ned_xyz(position_w[0] - origin_w[0], position_w[1] - origin_w[1],
+                          position_w[2] - origin_w[2])
+
+
+def world_from_local_ned_xyz(ned: Xyz, origin_w: Xyz) -> Xyz:
+    """W-position of local NED coordinates ``ned`` of a vehicle whose origin is ``origin_w``."""
+    x, y, z = ned_to_enu_xyz(ned[0], ned[1], ned[2])
+    return origin_w[0] + x, origin_w[1] + y, origin_w[2] + z
+
+
+def enu_to_ned(v: ArrayLike) -> Array:
+    """``enu_to_ned_xyz`` of a 3-vector."""
+    return np.array(enu_to_ned_xyz(*as_xyz(v)))
 
 
 def ned_to_enu(v: ArrayLike) -> Array:
-    """NED (north, east, down) → W: (x, y, z) = (east, north, -down). Exact (no rounding)."""
-    a = _vec3(v, "v")
-    return np.array([a[1], a[0], -a[2]], dtype=np.float64)
+    """``ned_to_enu_xyz`` of a 3-vector."""
+    return np.array(ned_to_enu_xyz(*as_xyz(v)))
 
 
 def to_link_float(v: ArrayLike) -> Array:
-    """Round each component to float32 and back: what a MAVLink ``float`` field carries.
-
-    Values beyond the float32 range become ±inf (pymavlink itself would raise OverflowError
-    when packing them; senders should pass the result of this function instead). NaN stays
-    NaN.
-    """
-    a = _vec3(v, "v")
-    with np.errstate(over="ignore"):
-        return a.astype(np.float32).astype(np.float64)
+    """``link_float_xyz`` of a 3-vector: what MAVLink ``float`` fields carry of it (senders
+    pass the result, whose values beyond float32 are already ±inf)."""
+    return np.array(link_float_xyz(*as_xyz(v)))
 
 
 def local_ned_from_world(position_w: ArrayLike, origin_w: ArrayLike) -> Array:
-    """The vehicle's local NED coordinates of W-position ``position_w`` (float64, exact)."""
-    return enu_to_ned(_vec3(position_w, "position_w") - _vec3(origin_w, "origin_w"))
+    """``local_ned_from_world_xyz`` of two 3-vectors."""
+    return np.array(local_ned_from_world_xyz(as_xyz(position_w, "position_w"),
+                                             as_xyz(origin_w, "origin_w")))
 
 
 def world_from_local_ned(ned: ArrayLike, origin_w: ArrayLike) -> Array:
-    """W-position of local NED coordinates ``ned`` of a vehicle whose origin is ``origin_w``."""
-    return _vec3(origin_w, "origin_w") + ned_to_enu(ned)
+    """``world_from_local_ned_xyz`` of two 3-vectors."""
+    return np.array(world_from_local_ned_xyz(as_xyz(ned, "ned"), as_xyz(origin_w, "origin_w")))
 
 
 def position_over_link(position_w: ArrayLike, origin_w: ArrayLike) -> Array:
@@ -86,8 +144,9 @@ def position_over_link(position_w: ArrayLike, origin_w: ArrayLike) -> Array:
 
     ``origin_w + ned_to_enu(to_link_float(enu_to_ned(position_w - origin_w)))``.
     """
-    return world_from_local_ned(
-        to_link_float(local_ned_from_world(position_w, origin_w)), origin_w)
+    origin = as_xyz(origin_w, "origin_w")
+    local = link_float_xyz(*local_ned_from_world_xyz(as_xyz(position_w, "position_w"), origin))
+    return np.array(world_from_local_ned_xyz(local, origin))
 
 
 def velocity_over_link(velocity_w: ArrayLike) -> Array:
@@ -96,4 +155,4 @@ def velocity_over_link(velocity_w: ArrayLike) -> Array:
     ``ned_to_enu(to_link_float(enu_to_ned(velocity_w)))``; the same rounding applies to the
     vx, vy, vz of LOCAL_POSITION_NED.
     """
-    return ned_to_enu(to_link_float(enu_to_ned(velocity_w)))
+    return np.array(ned_to_enu_xyz(*link_float_xyz(*enu_to_ned_xyz(*as_xyz(velocity_w)))))

@@ -56,7 +56,7 @@ def link() -> Iterator[AutopilotLink]:
         link.close()
 
 
-def peers(link: AutopilotLink, *, ended: bool = False, drains: list[int] | None = None,
+def peers(link: AutopilotLink, *, ended: bool = False, drains: list[str | None] | None = None,
           **runtime: float) -> Peers:
     config = load_config(CASE1)
     config = dataclasses.replace(config, runtime=dataclasses.replace(config.runtime, **runtime))
@@ -66,9 +66,9 @@ def peers(link: AutopilotLink, *, ended: bool = False, drains: list[int] | None 
             raise Ended
 
     lines: list[str] = []
-    def drain() -> None:  # stands for the process's rings (DrainedSubscriber.drain)
+    def drain(stream: str | None = None) -> None:  # the process's rings (DrainedSubscriber)
         if drains is not None:
-            drains.append(1)
+            drains.append(stream)
 
     return Peers(0, set(config.swarm.graph.neighbours[0]), set(range(1, 6)), config,
                  build_agent(config, 0, 0), link, LatestValues(), check_clock, lines.append,
@@ -179,10 +179,10 @@ def test_realtime_beacons_are_each_beacons_formula_to_the_bit(link: AutopilotLin
 
 def test_realtime_reads_take_the_rings_first_and_date_beacons_from_their_arrival(
         link: AutopilotLink) -> None:
-    """Realtime samples wait in rings until the loop reads (``Peers.drain``): a beacon
-    taken from its ring 15 ms after it arrived is carried forward from its arrival, not
-    from when it was taken."""
-    drains: list[int] = []
+    """Realtime samples wait in rings until the loop reads (``Peers.drain``), each read
+    taking its own stream's rings: a beacon taken from its ring 15 ms after it arrived is
+    carried forward from its arrival, not from when it was taken."""
+    drains: list[str | None] = []
     exchange = RealtimeExchange(peers(link, drains=drains))
     exchange.beacon_latest = LatestValues(clock=(clock := Clock()))
     clock.now = 10.0
@@ -194,9 +194,9 @@ def test_realtime_reads_take_the_rings_first_and_date_beacons_from_their_arrival
     beacons = exchange.beacons(4, 0.0, np.zeros(3))
     np.testing.assert_allclose(beacons[2], [1.0 + 0.020, 2.0, 3.0])
     np.testing.assert_allclose(beacons[3], [5.0 + 0.005, 2.0, 3.0])
-    assert len(drains) == 1
+    assert drains == ["beacons"]
     exchange.inbox(4, 0)
-    assert len(drains) == 2
+    assert drains == ["beacons", "consensus"]
     # An arrival stamped after now (a skewed clock) counts as now: no negative age.
     exchange.put_beacons([(BeaconWire.build(2, 4, 0.08, (1.0, 2.0, 3.0),
                                             velocity_m_s=(1, 0, 0)), clock.now + 1.0)])

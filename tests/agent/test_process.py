@@ -20,7 +20,7 @@ import pytest
 from swarm.agent.process import AgentOptions, AgentProcess
 from swarm.core.agent import ConsensusMessage
 from swarm.messages.wire import BeaconRelayWire, BeaconWire, CameraFrameWire, RelayedBeacon
-from swarm.net.transport import Keys, open_session, zenoh_config
+from swarm.net.transport import Keys, LatestValues, open_session, zenoh_config
 from swarm.scenario.config import load_config
 from tests.helpers.process_tools import free_tcp_port
 
@@ -150,3 +150,45 @@ def test_realtime_beacons_come_from_the_worlds_relay_dated_from_their_arrival_th
             agent, lambda: agent.exchange.beacon_latest.get(1) is not None))
         assert agent.exchange.beacon_latest.get(4) is None
         assert agent.rejections.total() == 0
+
+
+def test_realtime_reads_drain_only_the_rings_of_their_stream() -> None:
+    """The inbox of a round drains the consensus rings, the beacons the relay's ring
+    (``Peers.drain(stream)``); the loop's tick drains every ring."""
+    with agent_on_a_router("realtime", "streams") as (agent, router):
+        keys, codec, exchange = Keys("streams"), agent.codec, agent.exchange
+        drain = exchange.peers.drain
+        relay = codec.encode(BeaconRelayWire(step=9, beacons=(
+            RelayedBeacon(BeaconWire.build(2, 8, 0.16, (2.0, 0.0, 3.0)), 0.0),)))
+        message = codec.encode(consensus(1, 1, 6))
+
+        def routed() -> bool:  # the subscriptions are declared at the router
+            router.put(keys.beacon_relay, relay)
+            router.put(keys.consensus(1), message)
+            drain()
+            return (exchange.beacon_latest.get(2) is not None
+                    and exchange.consensus_latest.get((1, 1)) is not None)
+
+        assert wait_until(routed)
+        # One link, in order: once the later sample is taken, the earlier one is in its ring,
+        # and only its own stream's drain takes it.
+        def beacon() -> object:
+            return exchange.beacon_latest.get(2)
+
+        def round_1() -> object:
+            return exchange.consensus_latest.get((1, 1))
+
+        for (first_key, first, first_taken, first_stream), (later_key, later, later_taken,
+                                                             later_stream) in (
+                ((keys.beacon_relay, relay, beacon, "beacons"),
+                 (keys.consensus(1), message, round_1, "consensus")),
+                ((keys.consensus(1), message, round_1, "consensus"),
+                 (keys.beacon_relay, relay, beacon, "beacons"))):
+            exchange.beacon_latest, exchange.consensus_latest = LatestValues(), LatestValues()
+            router.put(first_key, first)
+            router.put(later_key, later)
+            assert wait_until(lambda s=later_stream, t=later_taken: (drain(s), t())[1]
+                              is not None)
+            assert first_taken() is None
+            drain(first_stream)
+            assert first_taken() is not None

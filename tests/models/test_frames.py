@@ -62,6 +62,53 @@ def test_rejects_non_3_vectors(bad: object) -> None:
         frames.enu_to_ned(bad)  # type: ignore[arg-type]
 
 
+# ---------------------------------------------------------------- the float forms
+any_float = st.floats(width=64)  # NaN and ±inf included
+xyz = st.tuples(any_float, any_float, any_float)
+
+
+def same_bits(a: object, b: object) -> bool:
+    """Equal float64 bits, NaN where the other is NaN (any payload)."""
+    x, y = np.array(a, dtype=np.float64), np.array(b, dtype=np.float64)
+    nan = np.isnan(x)
+    return bool(np.array_equal(nan, np.isnan(y))
+                and np.array_equal(bits(x[~nan]), bits(y[~nan])))
+
+
+@given(xyz, xyz)
+def test_float_forms_are_the_array_forms_bit_for_bit(v: tuple, o: tuple) -> None:
+    """What the MAVLink paths call (three floats) is what the array API returns."""
+    assert same_bits(frames.enu_to_ned_xyz(*v), frames.enu_to_ned(np.array(v)))
+    assert same_bits(frames.ned_to_enu_xyz(*v), frames.ned_to_enu(list(v)))
+    assert same_bits(frames.link_float_xyz(*v), frames.to_link_float(np.array(v)))
+    assert same_bits(frames.local_ned_from_world_xyz(v, o),
+                     frames.local_ned_from_world(np.array(v), np.array(o)))
+    assert same_bits(frames.world_from_local_ned_xyz(v, o),
+                     frames.world_from_local_ned(np.array(v), np.array(o)))
+    for out in (frames.link_float_xyz(*v), frames.world_from_local_ned_xyz(v, o)):
+        assert type(out) is tuple and all(type(c) is float for c in out)
+
+
+@given(st.lists(finite, min_size=3, max_size=3))
+def test_link_float_xyz_is_numpys_float32_cast(v: list[float]) -> None:
+    """Rounding as numpy's float64 → float32 cast does (±inf beyond the range), which the
+    array form used before it was written on floats."""
+    with np.errstate(over="ignore"):
+        cast = np.array(v).astype(np.float32).astype(np.float64)
+    np.testing.assert_array_equal(bits(np.array(frames.link_float_xyz(*v))), bits(cast))
+
+
+def test_as_xyz_keeps_float_tuples_and_checks_the_rest() -> None:
+    t = (1.0, -0.0, 3.5)
+    assert frames.as_xyz(t) is t
+    assert frames.as_xyz(np.array([1, 2, 3])) == (1.0, 2.0, 3.0)
+    assert frames.as_xyz((1, 2, 3)) == (1.0, 2.0, 3.0)
+    assert all(type(c) is float for c in frames.as_xyz((np.float32(1.5), 2, 3.0)))
+    for bad in ((1.0, 2.0), [[1.0, 2.0, 3.0]], 1.0, (1.0, 2.0, 3.0, 4.0)):
+        with pytest.raises(ValueError, match="position_w must be a 3-vector"):
+            frames.as_xyz(bad, "position_w")  # type: ignore[arg-type]
+
+
 # ---------------------------------------------------------------- exact round trips
 @given(vec)
 def test_enu_ned_round_trip_is_bit_exact(v: np.ndarray) -> None:
