@@ -8,12 +8,13 @@ overridden, component MAV_COMP_ID_ONBOARD_COMPUTER (191), MAVLink 2 framing, ard
 dialect. It sends a companion HEARTBEAT at 1 Hz whenever it sends anything else.
 
 Positions come from LOCAL_POSITION_NED and are brought into the world frame W with
-``frames.world_from_local_ned(ned, origin_w)`` (``origin_w``: the configured per-drone origin
-offset, i.e. the vehicle's local NED origin in W); velocities with ``frames.ned_to_enu``.
-Setpoints are SET_POSITION_TARGET_LOCAL_NED in MAV_FRAME_LOCAL_NED: velocity only (type_mask
-0x0DC7, ``frames.to_link_float(frames.enu_to_ned(velocity_w))``), position + velocity +
-acceleration along the command reference (``send_tracked``, ``TRACKED_TYPE_MASK``), or
-position only (0x0DF8) for holds and climbs.
+``frames.world_from_local_ned_xyz(ned, origin_w)`` (``origin_w``: the configured per-drone
+origin offset, i.e. the vehicle's local NED origin in W); velocities with
+``frames.ned_to_enu_xyz`` (the float forms of the frame conversions: one per sample and
+setpoint). Setpoints are SET_POSITION_TARGET_LOCAL_NED in MAV_FRAME_LOCAL_NED: velocity only
+(type_mask 0x0DC7, ``frames.link_float_xyz(*frames.enu_to_ned_xyz(*velocity_w))``),
+position + velocity + acceleration along the command reference (``send_tracked``,
+``TRACKED_TYPE_MASK``), or position only (0x0DF8) for holds and climbs.
 
 One vehicle per agent. The link binds to the first autopilot it hears with the vehicle's
 system id (component 1) — over ``udpin`` also to that sender's address, the only address it
