@@ -1242,10 +1242,10 @@ class EmulatedVehicle:
             self.ignored_setpoints += 1
         else:
             position = np.array(frames.world_from_local_ned_xyz(
-                (float(msg.x), float(msg.y), float(msg.z)), self._origin_xyz)) \
+                (msg.x, msg.y, msg.z), self._origin_xyz), dtype=np.float64) \
                 if has_position else None
-            velocity = clamp_velocity(np.array(frames.ned_to_enu_xyz(
-                float(msg.vx), float(msg.vy), float(msg.vz))), self._u_max) \
+            velocity = clamp_velocity(np.array(frames.ned_to_enu_xyz(msg.vx, msg.vy, msg.vz),
+                                               dtype=np.float64), self._u_max) \
                 if has_velocity else None
             self._setpoint = _Setpoint(position, velocity, now_s)
             self._last_setpoint_s = now_s
@@ -1520,8 +1520,8 @@ class EmulatedVehicle:
         return self._tx.statustext_encode(severity, text.encode()[:50])
 
     def _local_position_fields(self) -> tuple[float, ...]:
-        px, py, pz = self._position.tolist()
-        x, y, z = frames.local_ned_from_world_xyz((px, py, pz), self._origin_xyz)
+        x, y, z = frames.local_ned_from_world_xyz(tuple(self._position.tolist()),
+                                                  self._origin_xyz)
         return (x, y, z, *frames.enu_to_ned_xyz(*self._velocity.tolist()))
 
     def _local_position_packet(self) -> bytes | None:

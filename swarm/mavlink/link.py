@@ -145,6 +145,7 @@ _MODE_NAME: Final = {("ardupilot", "guided"): "GUIDED", ("ardupilot", "hold"): "
                      ("px4", "land"): "LAND", ("px4", "rtl"): "RTL"}
 _SETPOINT_PERIOD_S = 0.05  # idle setpoints during the handshake: 20 Hz
 _KEEPALIVE_PERIOD_S = 0.1
+_ZERO: frames.Xyz = (0.0, 0.0, 0.0)  # a setpoint's unused position, velocity or acceleration
 _COMPANION_HEARTBEAT_PERIOD_S = 1.0
 # PX4 takes OFFBOARD once setpoints arrive (a 2 Hz "proof of life" within COM_OF_LOSS_T).
 _PRE_STREAM_S = 0.2
@@ -874,7 +875,7 @@ class AutopilotLink:
 
     def _send_setpoint(self, type_mask: int, position_ned: frames.Xyz,
                        velocity_ned: frames.Xyz, stamp: int,
-                       acceleration_ned: frames.Xyz = (0.0, 0.0, 0.0)) -> None:
+                       acceleration_ned: frames.Xyz = _ZERO) -> None:
         """Values already as the link carries them (``frames.link_float_xyz``)."""
         if self._second_autopilot is not None and not self._commanded:
             return  # which vehicle is ours was in doubt before we flew one: command none
@@ -1104,17 +1105,14 @@ class AutopilotLink:
             return
         self._autopilot_frames += 1
         sample = PositionSample(int(time_boot_ms), np.array(frames.world_from_local_ned_xyz(
-            (float(x), float(y), float(z)), self._origin_xyz)),
-            np.array(frames.ned_to_enu_xyz(float(vx), float(vy), float(vz))), self._clock())
+            (x, y, z), self._origin_xyz), dtype=np.float64),
+            np.array(frames.ned_to_enu_xyz(vx, vy, vz), dtype=np.float64), self._clock())
         self._latest = sample
         self._samples_received += 1
         self._by_stamp[sample.time_boot_ms] = sample
         self._by_stamp.move_to_end(sample.time_boot_ms)
         while len(self._by_stamp) > _MAX_STAMPED_SAMPLES:
             self._by_stamp.popitem(last=False)
-
-
-_ZERO: frames.Xyz = (0.0, 0.0, 0.0)
 
 
 def _stamp(time_boot_ms: int) -> int:
