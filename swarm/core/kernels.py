@@ -18,26 +18,16 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from swarm.compiled import check_built_from_current_source, not_built
 from swarm.core.params import PerceptionParams
 from swarm.core.smooth_min import EIGENVALUE_FLOOR, NEAR_REPEATED_LOG_GAP
-from swarm.errors import VigilError
 
 try:
     from swarm.core import _kernels
 except ImportError as exc:  # pragma: no cover - a source tree that was never installed
-    raise VigilError("swarm.core._kernels is not built: install the project with "
-                     "`pip install -e .` (it compiles swarm/core/_kernels.c)") from exc
+    raise not_built("swarm.core._kernels", "swarm/core/_kernels.c") from exc
 
-
-def _check_built_from_current_source(binary: Path, source: Path) -> None:
-    """In a source tree (an editable install), the extension must not be older than its
-    source: an edit of ``_kernels.c`` not yet compiled would otherwise run the old kernels."""
-    if source.exists() and source.stat().st_mtime > binary.stat().st_mtime:
-        raise VigilError(f"{binary.name} is older than {source.name}: rebuild it with "
-                         "`pip install -e .`")
-
-
-_check_built_from_current_source(Path(_kernels.__file__), Path(__file__).with_name("_kernels.c"))
+check_built_from_current_source(Path(_kernels.__file__), Path(__file__).with_name("_kernels.c"))
 
 Array = NDArray[np.float64]
 Vec3 = tuple[float, float, float]

@@ -5,6 +5,7 @@ from __future__ import annotations
 import struct
 from collections import Counter
 
+import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
@@ -157,3 +158,38 @@ def test_fast_pack_gives_way_to_pymavlink_when_signing() -> None:
     tx.signing.sign_outgoing = True
     assert LOCAL_POSITION_NED.pack(tx, 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0) is None
     assert tx.seq == 0
+
+
+@given(st.integers(0, 255), st.integers(0, 255), st.data())
+def test_every_single_byte_corruption_of_a_fast_frame_is_refused(
+        seq: int, byte: int, data: st.DataObject) -> None:
+    """The compiled framing checks magic, flags, length, id and checksum: a frame with any one
+    byte changed (CRC-16 catches every burst of up to 16 bits) is not taken."""
+    good = _pymavlink_frame("local_position_ned_send", seq, 1, 1, 1000, 1.0, 2.0, 3.0, 0.5,
+                            0.0, 0.0)
+    at = data.draw(st.integers(0, len(good) - 1))
+    corrupted = bytearray(good)
+    corrupted[at] ^= byte or 1
+    assert LOCAL_POSITION_NED.unpack(bytes(corrupted)) is None
+    assert LOCAL_POSITION_NED.unpack(memoryview(good)) is not None  # any bytes-like
+
+
+@given(st.binary(max_size=80))
+def test_fast_unpack_of_any_bytes_is_a_frame_or_none(junk: bytes) -> None:
+    got = SET_POSITION_TARGET_LOCAL_NED.unpack(junk)
+    assert got is None or parse_bytes(parser(), junk, Counter(), datagram=True)
+
+
+def test_the_compiled_framing_refuses_out_of_range_arguments() -> None:
+    from swarm.mavlink import _frame
+
+    with pytest.raises(ValueError, match="a payload holds 1 to 255 bytes, got 0"):
+        _frame.frame_v2(b"", 0, 1, 1, 32, 185)
+    with pytest.raises(ValueError, match="seq must be in \\[0, 255\\], got 256"):
+        _frame.frame_v2(b"\x01", 256, 1, 1, 32, 185)
+    with pytest.raises(ValueError, match="message_id must be in \\[0, 16777215\\], got -1"):
+        _frame.payload_v2(b"", -1, 0, 28)
+    with pytest.raises(TypeError, match="frame_v2 takes 6 arguments, got 1"):
+        _frame.frame_v2(b"\x01")
+    with pytest.raises(TypeError):
+        _frame.frame_v2("text", 0, 1, 1, 32, 185)  # not bytes-like
