@@ -18,6 +18,8 @@
  *                     from its row inputs (LocalQpWorkspace's feasibility checks)
  *   native_finite     np.isfinite(...).all() of native float64 bytes (the wire rules' check
  *                     of every received float, swarm.messages.rules)
+ *   join_native       b"".join(a.tobytes() ...) of native float64 arrays of given shapes (the
+ *                     telemetry's packed arrays, swarm.messages.wire), None if one is not
  *   initial_information  icf.initial_information for M targets from the measured  SPEC §4-§5
  *                     image points (projector.bearing_from_image_point)          2.4-2.5, 2.15
  *   consensus_sums    icf.consensus_iteration of the packed ICF pair, and the    SPEC §5-§6
@@ -940,6 +942,72 @@ py_native_finite(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     Py_RETURN_TRUE;
 }
 
+PyDoc_STRVAR(join_native_doc,
+"join_native(arrays, shapes) -> bytes or None\n--\n\n"
+"b''.join(a.tobytes() for a in arrays) when every array is a C-contiguous native float64\n"
+"buffer of its shape in ``shapes`` (tuples of ints, one per array); None otherwise (the\n"
+"caller converts, and names what does not fit). The wire's packing of a step's arrays.");
+
+static PyObject *
+py_join_native(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (check_nargs(nargs, 2, "join_native")) return NULL;
+    PyObject *arrays = args[0], *shapes = args[1];
+    if (!PyTuple_Check(arrays) || !PyTuple_Check(shapes)
+            || PyTuple_GET_SIZE(arrays) != PyTuple_GET_SIZE(shapes)) {
+        PyErr_SetString(PyExc_TypeError, "join_native: arrays and shapes must be tuples of "
+                        "the same length");
+        return NULL;
+    }
+    enum { MAX_PARTS = 32 };
+    Py_ssize_t parts = PyTuple_GET_SIZE(arrays);
+    if (parts > MAX_PARTS) {
+        PyErr_Format(PyExc_ValueError, "join_native: at most %d arrays, got %zd", MAX_PARTS,
+                     parts);
+        return NULL;
+    }
+    Py_buffer views[MAX_PARTS];
+    Py_ssize_t held = 0, total = 0;
+    PyObject *result = NULL;
+    int native = 1;
+    for (Py_ssize_t i = 0; i < parts && native; i++) {
+        PyObject *shape = PyTuple_GET_ITEM(shapes, i);
+        if (!PyTuple_Check(shape)) {
+            PyErr_Format(PyExc_TypeError, "join_native: shape %zd is not a tuple", i);
+            goto done;
+        }
+        if (PyObject_GetBuffer(PyTuple_GET_ITEM(arrays, i), &views[held],
+                               PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) != 0) {
+            PyErr_Clear(); /* not a buffer, or not contiguous: the caller converts */
+            native = 0;
+            break;
+        }
+        Py_buffer *view = &views[held++];
+        native = view->format != NULL && strcmp(view->format, "d") == 0
+                 && view->itemsize == 8 && view->ndim == PyTuple_GET_SIZE(shape);
+        for (int d = 0; native && d < view->ndim; d++) {
+            Py_ssize_t expected = PyLong_AsSsize_t(PyTuple_GET_ITEM(shape, d));
+            if (expected == -1 && PyErr_Occurred()) goto done;
+            native = view->shape[d] == expected;
+        }
+        total += view->len;
+    }
+    if (!native) {
+        result = Py_NewRef(Py_None);
+        goto done;
+    }
+    result = PyBytes_FromStringAndSize(NULL, total);
+    if (result == NULL) goto done;
+    char *out = PyBytes_AS_STRING(result);
+    for (Py_ssize_t i = 0; i < held; i++) {
+        memcpy(out, views[i].buf, (size_t)views[i].len);
+        out += views[i].len;
+    }
+done:
+    for (Py_ssize_t i = 0; i < held; i++) PyBuffer_Release(&views[i]);
+    return result;
+}
+
 PyDoc_STRVAR(initial_information_doc,
 "initial_information(prior_information, prior_state, n_agents, info_gain, seen_from,\n"
 " image_points, detected, out)\n--\n\n"
@@ -1133,6 +1201,8 @@ static PyMethodDef methods[] = {
      qp_max_violation_doc},
     {"native_finite", (PyCFunction)(void (*)(void))py_native_finite, METH_FASTCALL,
      native_finite_doc},
+    {"join_native", (PyCFunction)(void (*)(void))py_join_native, METH_FASTCALL,
+     join_native_doc},
     {"initial_information", (PyCFunction)(void (*)(void))py_initial_information,
      METH_FASTCALL, initial_information_doc},
     {"consensus_sums", (PyCFunction)(void (*)(void))py_consensus_sums, METH_FASTCALL,

@@ -158,6 +158,10 @@ qp_load = _kernels.qp_load
 # Whether every float64 of native-order bytes is finite: ``native_finite(*parts)``, the wire
 # rules' check of every float a peer sends (``swarm.messages.rules``).
 native_finite = _kernels.native_finite
+# ``b"".join(a.tobytes() for a in arrays)`` when every array is a C-contiguous native float64
+# array of its shape in ``shapes``, else None: ``join_native(arrays, shapes)``, the telemetry's
+# packing of a step's arrays (``swarm.messages.wire``; ``tests/core/test_kernels.py``).
+join_native = _kernels.join_native
 # The agent's consensus arithmetic on its packed vectors (``DroneAgent.consensus_round``,
 # ``agent.consensus_step``): ``consensus_sums(own_icf, own_cons, blocks, weights, icf_out,
 # disagreement_out) -> dropped`` is ``icf.consensus_iteration`` of the ICF pair (and the

@@ -50,7 +50,7 @@ from swarm.core.consensus_message import (
     message_layout,
     message_size,
 )
-from swarm.core.kernels import native_finite
+from swarm.core.kernels import join_native, native_finite
 from swarm.core.records import record
 from swarm.messages.rules import (
     Check,
@@ -529,38 +529,28 @@ class TelemetryWire(_Wire, tag="telemetry", kw_only=True):
 
 
 @functools.lru_cache(maxsize=64)
-def _telemetry_form(n_targets: int, n_state: int
-                    ) -> tuple[tuple[tuple[int, ...], ...], tuple[np.dtype[Any], ...]]:
-    """The shapes and the dtypes (native float64) of a telemetry message's arrays."""
-    layout = telemetry_layout(n_targets, n_state)
-    return tuple(shape for _, shape, _, _ in layout), (_F64,) * len(layout)
-
-
-_shape_of: Final = operator.attrgetter("shape")
-_dtype_of: Final = operator.attrgetter("dtype")
+def _telemetry_shapes(n_targets: int, n_state: int) -> tuple[tuple[int, ...], ...]:
+    """The shape of each of a telemetry message's arrays, in packing order."""
+    return tuple(shape for _, shape, _, _ in telemetry_layout(n_targets, n_state))
 
 
 def _pack_telemetry(arrays: tuple[Any, ...]) -> tuple[int, int, bytes]:
     """(M, n, data) of the ``TELEMETRY_ARRAYS`` in order: M and n from ``estimates``, every
     shape checked against the layout, the bytes joined as they are for native float64
-    arrays (the agent's own), converted otherwise. Raises ``WireError`` (shape)."""
+    arrays (the agent's own: one compiled call, ``join_native``), converted otherwise. Raises
+    ``WireError`` (shape)."""
     estimates = arrays[2]
     shape = (estimates.shape if type(estimates) is _ndarray
              else np.shape(estimates) if estimates is not None else ())
     if len(shape) != 2:
         raise WireError(f"estimates has shape {shape!s:.60}, expected (M, n)", rule="shape")
     m, n = int(shape[0]), int(shape[1])
-    layout = telemetry_layout(m, n)
-    shapes, dtypes = _telemetry_form(m, n)
-    try:  # the core's own arrays: their bytes as they are
-        native = (_NATIVE_LE and tuple(map(_dtype_of, arrays)) == dtypes
-                  and tuple(map(_shape_of, arrays)) == shapes)
-    except AttributeError:  # not arrays: converted below
-        native = False
-    if native:
-        return m, n, b"".join([array.tobytes() for array in arrays])
+    if _NATIVE_LE:
+        data = join_native(arrays, _telemetry_shapes(m, n))
+        if data is not None:
+            return m, n, data
     chunks = []
-    for array, (name, expected, _, _) in zip(arrays, layout, strict=True):
+    for array, (name, expected, _, _) in zip(arrays, telemetry_layout(m, n), strict=True):
         got, raw = _le_bytes(array)
         if got != expected:
             raise WireError(f"{name} has shape {got!s:.60}, expected {expected}",

@@ -456,3 +456,41 @@ def test_native_finite_names_a_part_that_is_not_floats() -> None:
         kernels.native_finite(b"", b"x" * 12)
     with pytest.raises(TypeError, match="part 0 is not bytes-like"):
         kernels.native_finite([1.0])
+
+
+_SHAPES = st.lists(st.lists(st.integers(0, 4), min_size=0, max_size=3).map(tuple),
+                   min_size=0, max_size=12)
+
+
+@given(_SHAPES, st.data())
+def test_join_native_is_the_join_of_the_arrays_bytes(shapes: list[tuple[int, ...]],
+                                                    data: st.DataObject) -> None:
+    """``join_native`` (the telemetry's packing) is ``b"".join(a.tobytes())`` of native
+    float64 arrays of the given shapes, and None as soon as one array is anything else: another
+    dtype or byte order, not C-contiguous, another shape, not an array."""
+    arrays = [np.asarray(data.draw(st.lists(st.floats(allow_nan=True), min_size=math.prod(s),
+                                            max_size=math.prod(s))),
+                         dtype=np.float64).reshape(s) for s in shapes]
+    expected = b"".join(a.tobytes() for a in arrays)
+    assert kernels.join_native(tuple(arrays), tuple(shapes)) == expected
+    if not arrays:
+        return
+    k = data.draw(st.integers(0, len(arrays) - 1))
+    a = arrays[k]
+    with np.errstate(over="ignore"):  # float32 of a large float64: inf, still not native
+        single = a.astype(np.float32)
+    for odd, its_shape in ((single, shapes[k]), (a.astype(">f8"), shapes[k]),
+                           (a.tolist(), shapes[k]), (a, (*shapes[k], 1)),
+                           (np.zeros((2, 3))[:, ::2], (2, 2))):
+        swapped = [*arrays]
+        swapped[k] = odd
+        shape_list = [*shapes]
+        shape_list[k] = its_shape
+        assert kernels.join_native(tuple(swapped), tuple(shape_list)) is None, (odd, its_shape)
+
+
+def test_join_native_refuses_what_is_not_two_tuples() -> None:
+    with pytest.raises(TypeError, match="arrays and shapes must be tuples of the same length"):
+        kernels.join_native([np.zeros(3)], ((3,),))
+    with pytest.raises(TypeError, match="shape 0 is not a tuple"):
+        kernels.join_native((np.zeros(3),), ([3],))
