@@ -49,6 +49,7 @@ from swarm.runs.checks import check_invariants, summarize_targets
 
 CLK_TCK = os.sysconf("SC_CLK_TCK")
 SAMPLE_PERIOD_S = 0.2
+SECOND_SAMPLE_S = 0.05  # after the window's first sample, the next one [s]
 PSS_PERIOD_S = 2.0
 LOG_PERIOD_S = 0.02
 # Agent log lines that mark its start-up phases (first match): set up (imports, config,
@@ -200,23 +201,28 @@ class Sampler(threading.Thread):
 
     def run(self) -> None:
         next_sample = 0.0
-        was_running = False
+        was_running = just_opened = False
         while not self.halt.is_set():
             t = now_s()
             children = list(self.launcher.children)
             running = self.mission_running()
             if running != was_running:  # the mission's window opens or closes: sample now
-                was_running, next_sample = running, t
+                was_running, next_sample, just_opened = running, t, running
             for child in children:  # every loop: a line's time is when it was first seen
                 self._read_log(child, self._trace(child), t)
             if t >= next_sample:
-                next_sample = t + SAMPLE_PERIOD_S
+                # The sample after the window's first comes soon: a window shorter than the
+                # period still holds two samples of every process (the processes may be gone
+                # by the sample at its close).
+                next_sample = t + (SECOND_SAMPLE_S if just_opened else SAMPLE_PERIOD_S)
+                just_opened = False
                 with_pss = t >= self._next_pss
                 if with_pss:
                     self._next_pss = t + PSS_PERIOD_S
                 for child in children:
                     self._sample(self._trace(child), t, with_pss)
-            self.wake.wait(LOG_PERIOD_S if not running else SAMPLE_PERIOD_S / 2)
+            self.wake.wait(LOG_PERIOD_S if not running
+                           else min(SAMPLE_PERIOD_S / 2, max(0.0, next_sample - now_s())))
             self.wake.clear()
 
     def stop(self) -> None:
