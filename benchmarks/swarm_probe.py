@@ -8,8 +8,8 @@ Besides the launcher's own record and counters, a run measures, from outside the
   wall time between consecutive steps;
 - the processes: a sampler thread reads ``/proc/<pid>/stat`` (utime + stime) and
   ``/proc/<pid>/status`` (VmRSS, VmHWM) of every child the launcher spawned, every
-  ``SAMPLE_PERIOD_S``; CPU per process is its CPU time over the mission window divided by the
-  window;
+  ``SAMPLE_PERIOD_S`` (at the window's opening, ``SECOND_SAMPLE_S`` later, and at its close);
+  CPU per process is its CPU time over the mission window divided by the window;
 - start-up: each child's start time (``/proc/<pid>/stat`` starttime) and the arrival of each
   line in its log file (polled every ``LOG_PERIOD_S`` until the mission runs, then every
   ``SAMPLE_PERIOD_S`` / 2: the world can see a drone armed before its log says so), so an
