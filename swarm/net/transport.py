@@ -807,11 +807,14 @@ class DrainedSubscriber:
         With ``arrival_times``, each sample's arrival (``time.monotonic``) is estimated from
         its Zenoh timestamp (``put_stamped``: the sender's clock at the put) and bounded to
         the interval it can have arrived in, after the previous drain began and before this
-        one: exact on one host, and off by at most that interval across hosts whatever their
-        clocks say. A sample without a timestamp counts as arrived now."""
+        one: on one host never before the put and late by at most the time between this
+        drain's two clock reads (the wall clock is read first, so that a preemption between
+        them makes the estimate late, not early), and off by at most that interval across
+        hosts whatever their clocks say. A sample without a timestamp counts as arrived now."""
         if not self._declared:
             return 0
-        now_s, now_unix = time.monotonic(), time.time()
+        now_unix = time.time()
+        now_s = time.monotonic()
         since_s, self._last_drain_s = self._last_drain_s, now_s
         taken = 0
         limit = self._max_per_drain if max_samples is None else min(max_samples,

@@ -30,6 +30,7 @@ from hypothesis import strategies as st
 from swarm.messages.wire import WIRE_VERSION, BeaconWire, WireCodec
 from swarm.net.transport import (
     ZENOH_RUNTIME_DEFAULT,
+    DrainedSubscriber,
     FaultyPublisher,
     Keys,
     LatestValues,
@@ -936,6 +937,50 @@ def test_a_ring_dates_a_stamped_sample_from_its_put_not_from_its_drain() -> None
         ring.drain()
         assert before_s <= arrivals[1] <= before_s + 0.05, arrivals[1] - before_s
         assert drained_s <= arrivals[2] <= time.monotonic()
+
+
+def test_a_preemption_between_the_drains_clock_reads_dates_a_sample_late_never_early(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """The drain dates a stamped sample from two clocks read one after the other; here every
+    read takes 1 ms (a preemption between them, as a loaded CI machine had it): the sample,
+    put at monotonic 100.5 s, is dated at or after its put and no later than the drain, never
+    before the put (read in the other order it came out 1 ms early)."""
+    offset_s = 1.7e9  # wall clock − monotonic clock
+    clock = [101.0]
+
+    def tick() -> float:
+        clock[0] += 0.001
+        return clock[0]
+
+    class Stamp:
+        def get_time_as_ntp64(self) -> Stamp:
+            return self
+
+        def as_secs_f64(self) -> float:
+            return 100.5 + offset_s
+
+    class Sample:
+        timestamp = Stamp()
+
+    class Handler:
+        def __init__(self) -> None:
+            self.samples = [Sample()]
+
+        def try_recv(self) -> Sample | None:
+            return self.samples.pop() if self.samples else None
+
+    class Subscriber:
+        def __init__(self) -> None:
+            self.handler = Handler()
+
+    arrivals: list[float] = []
+    ring = DrainedSubscriber(Subscriber(), lambda _sample, arrived_s: arrivals.append(arrived_s))
+    ring._last_drain_s = 100.0  # the previous drain began before the put
+    monkeypatch.setattr(time, "monotonic", tick)
+    monkeypatch.setattr(time, "time", lambda: tick() + offset_s)
+    assert ring.drain() == 1
+    monkeypatch.undo()
+    assert 100.5 <= arrivals[0] <= 100.5 + 0.002, arrivals
 
 
 def test_a_process_left_with_ring_subscriptions_exits_cleanly() -> None:
