@@ -16,7 +16,7 @@ import pytest
 
 import sim_world.world as world_module
 from sim_world.world import CLOCK_PERIOD_S, World, WorldOptions
-from swarm.launch.launcher import choose_mavlink_base, free_tcp_port
+from swarm.launch.launcher import free_tcp_port, reserve_mavlink_base
 from swarm.messages.wire import BeaconWire
 from swarm.net.transport import open_session, zenoh_config
 from swarm.scenario.config import load_config
@@ -34,15 +34,21 @@ class FakeClock:
 
 @pytest.fixture
 def world() -> Iterator[World]:
+    """A lockstep world whose vehicles send to a MAVLink block it holds as a launcher does
+    (``reserve_mavlink_base``'s lock): a launch-swarm in a test beside it never takes the same
+    block (seen in CI: an agent of that swarm heard this world's vehicle 2 as a second
+    autopilot on its port and refused to fly)."""
     config = load_config(CASE1)
-    made = World(WorldOptions(
-        config=config, seed=0, run_id="clocktest",
-        listen=(f"tcp/127.0.0.1:{free_tcp_port()}",),
-        mavlink_base=choose_mavlink_base(0, config.swarm.n_drones), log=lambda _line: None))
-    try:
-        yield made
-    finally:
-        made.close()
+    base, lock = reserve_mavlink_base(0, config.swarm.n_drones)
+    with lock:
+        made = World(WorldOptions(
+            config=config, seed=0, run_id="clocktest",
+            listen=(f"tcp/127.0.0.1:{free_tcp_port()}",), mavlink_base=base,
+            log=lambda _line: None))
+        try:
+            yield made
+        finally:
+            made.close()
 
 
 @contextlib.contextmanager
