@@ -45,6 +45,14 @@ frame_checksum(const uint8_t *after_magic, Py_ssize_t size, uint8_t crc_extra)
 }
 
 static int
+check_nargs(Py_ssize_t nargs, Py_ssize_t expected, const char *name)
+{
+    if (nargs == expected) return 0;
+    PyErr_Format(PyExc_TypeError, "%s takes %zd arguments, got %zd", name, expected, nargs);
+    return -1;
+}
+
+static int
 read_long(PyObject *arg, const char *name, long lower, long upper, long *out)
 {
     long value = PyLong_AsLong(arg);
@@ -65,10 +73,7 @@ PyDoc_STRVAR(frame_v2_doc,
 static PyObject *
 py_frame_v2(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
-    if (nargs != 6) {
-        PyErr_Format(PyExc_TypeError, "frame_v2 takes 6 arguments, got %zd", nargs);
-        return NULL;
-    }
+    if (check_nargs(nargs, 6, "frame_v2")) return NULL;
     Py_buffer payload;
     if (PyObject_GetBuffer(args[0], &payload, PyBUF_SIMPLE) < 0) return NULL;
     long seq, system, component, message, extra;
@@ -118,10 +123,7 @@ PyDoc_STRVAR(payload_v2_doc,
 static PyObject *
 py_payload_v2(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 {
-    if (nargs != 4) {
-        PyErr_Format(PyExc_TypeError, "payload_v2 takes 4 arguments, got %zd", nargs);
-        return NULL;
-    }
+    if (check_nargs(nargs, 4, "payload_v2")) return NULL;
     long message, extra, size;
     if (read_long(args[1], "message_id", 0, 0xFFFFFF, &message) < 0
             || read_long(args[2], "crc_extra", 0, 255, &extra) < 0
