@@ -42,6 +42,7 @@ the bands the stock boot meets in every CI run; so the stock boot it is).
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import math
 import os
 import shutil
@@ -208,11 +209,42 @@ class SitlSpec:
             raise SitlError(f"boot speedup {self.boot_speedup} out of range 1..100")
 
 
+# Ports handed out by ``free_udp_port``: below Linux's ephemeral range (32768-60999 by
+# default), where the kernel never picks a port for a socket that binds none, and below the
+# launcher's MAVLink blocks (from 24540).
+PICKED_UDP_PORTS = range(20000, 24500)
+_held_port_locks: list[Any] = []  # this process's claims, released when it exits
+
+
+def udp_port_lock_path(port: int) -> Path:
+    return Path(tempfile.gettempdir()) / f"vigil-udp-{port}.lock"
+
+
 def free_udp_port() -> int:
-    """A UDP port on 127.0.0.1 that nobody has bound now (the kernel's choice)."""
-    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
+    """A UDP port on 127.0.0.1 that nobody has bound now and nobody else will be handed.
+
+    The port is only bound later, often much later (a SITL boot takes up to a minute), so it
+    must stay free meanwhile. A port of the kernel's choice did not: the kernel hands the
+    same ephemeral range to every socket that sends before binding (each autopilot's and
+    MAVProxy's outgoing links), and one took a dialogue's port during a boot ("Address
+    already in use" in CI). So it comes from ``PICKED_UDP_PORTS``, outside that range, and
+    the process holds a lock on it (``<tmp>/vigil-udp-<port>.lock``) until it exits, so no
+    other caller, in this process or another, is handed it.
+    """
+    first = (os.getpid() * 97) % len(PICKED_UDP_PORTS)  # processes start apart
+    for step in range(len(PICKED_UDP_PORTS)):
+        port = PICKED_UDP_PORTS[(first + step) % len(PICKED_UDP_PORTS)]
+        handle = open(udp_port_lock_path(port), "ab")  # noqa: SIM115 - held
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            handle.close()
+            continue
+        if _udp_port_free(port):
+            _held_port_locks.append(handle)
+            return port
+        handle.close()
+    raise SitlError(f"no free UDP port in {PICKED_UDP_PORTS.start}..{PICKED_UDP_PORTS.stop - 1}")
 
 
 def _udp_port_free(port: int, host: str = "0.0.0.0") -> bool:

@@ -9,6 +9,8 @@ import os
 import shutil
 import socket
 import stat
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +30,7 @@ from swarm.mavlink.sitl import (
     default_params,
     firmware_from_env,
     free_instances,
+    free_udp_port,
 )
 
 pytestmark = pytest.mark.wallclock
@@ -132,6 +135,54 @@ def test_ardupilot_instances_skip_a_taken_rc_port() -> None:
         chosen = free_instances("ardupilot", 2)
     assert first not in chosen and len(set(chosen)) == 2
     assert free_instances("px4", 3) == [0, 1, 2]
+
+
+def _ephemeral_ports() -> range:
+    low, high = Path("/proc/sys/net/ipv4/ip_local_port_range").read_text().split()
+    return range(int(low), int(high) + 1)
+
+
+def test_a_picked_udp_port_is_never_one_the_kernel_or_another_process_hands_out() -> None:
+    """The kernel hands ephemeral ports to every socket that sends unbound (an autopilot's
+    outgoing links), and a port picked for a SITL boot is bound only a minute later: it
+    comes from outside that range, and no other process (xdist's other worker) gets it."""
+    child = subprocess.Popen(
+        [sys.executable, "-c", "import sys\n"
+         "from swarm.mavlink.sitl import free_udp_port\n"
+         "print(*[free_udp_port() for _ in range(30)], flush=True)\n"
+         "sys.stdin.read()"],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert child.stdout is not None
+        theirs = {int(word) for word in child.stdout.readline().split()}
+        ours = {free_udp_port() for _ in range(30)}
+    finally:
+        child.communicate("")
+    assert len(theirs) == 30 and len(ours) == 30
+    assert not theirs & ours
+    ephemeral = _ephemeral_ports()
+    assert not any(port in ephemeral for port in ours | theirs)
+
+
+def test_a_bound_udp_port_is_passed_over_and_running_out_is_one_line(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    def bindable(port: int) -> bool:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+            try:
+                sock.bind(("0.0.0.0", port))
+            except OSError:
+                return False
+        return True
+
+    # a 3-port range above the ephemeral one, where nothing else picks
+    base = next(port for port in range(_ephemeral_ports().stop, 65500, 3)
+                if all(bindable(port + i) for i in range(3)))
+    monkeypatch.setattr("swarm.mavlink.sitl.PICKED_UDP_PORTS", range(base, base + 3))
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as taken:
+        taken.bind(("127.0.0.1", base + 1))
+        assert {free_udp_port(), free_udp_port()} == {base, base + 2}
+        with pytest.raises(SitlError, match=f"no free UDP port in {base}..{base + 2}$"):
+            free_udp_port()
 
 
 def test_spec_bounds() -> None:
