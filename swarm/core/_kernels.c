@@ -12,6 +12,9 @@
  *                     for M targets in one call (what the agent runs)
  *   filter_stack      icf.posterior, posterior_covariance and predict  SPEC §5, 2.8-2.11
  *                     for M targets (n = 3 or 6)
+ *   qp_rows           the local QP's rows: barrier.weight_sum_row,             SPEC §8
+ *                     collision_row and robust_lower_bound after the localization 3.32-3.36
+ *                     rows, then the envelope's (DroneAgent's assembly)           4.1-4.2
  *   qp_load           the local QP (3.36-3.37) of one solve written into the     SPEC §9
  *                     workspace's arrays, as qp.build_local_qp assembles it
  *   qp_max_violation  qp.LocalQp.max_violation of the local QP (3.36-3.37), SPEC §9
@@ -907,6 +910,145 @@ py_qp_max_violation(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     return result;
 }
 
+/* Row constants of qp_rows, in this order. */
+enum { R_N, R_GAMMA, R_RADIUS, R_DELTA, R_GAIN, R_BOUND, N_ROW_CONSTANTS };
+
+/* The float triples of a list or tuple of `count` triples, into out (3 count); -1 with a
+ * one-line error naming `what` and the entry otherwise. */
+static int
+triples(PyObject *seq, Py_ssize_t count, double *out, const char *what)
+{
+    PyObject **items = PySequence_Fast_ITEMS(seq);
+    for (Py_ssize_t i = 0; i < count; i++)
+        if (float_sequence(items[i], out + 3 * i, 3, what) != 0) {
+            char name[64];  /* the same error again, naming the entry */
+            snprintf(name, sizeof name, "%s[%zd]", what, i);
+            PyErr_Clear();
+            float_sequence(items[i], out + 3 * i, 3, name);
+            return -1;
+        }
+    return 0;
+}
+
+/* A new list of the n floats at values; NULL (error set) if Python runs out of memory. */
+static PyObject *
+float_list(const double *values, Py_ssize_t n)
+{
+    PyObject *list = PyList_New(n);
+    if (list == NULL) return NULL;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        PyObject *item = PyFloat_FromDouble(values[i]);
+        if (item == NULL) {
+            Py_DECREF(list);
+            return NULL;
+        }
+        PyList_SET_ITEM(list, i, item);
+    }
+    return list;
+}
+
+PyDoc_STRVAR(qp_rows_doc,
+"qp_rows(terms, velocities, weight_sums, position, others, envelope_rows, envelope_lower,\n"
+" constants) -> (columns, lower)\n--\n\n"
+"The rows a.u >= b of the local QP (SPEC 8), as LocalQpWorkspace.solve takes them: the\n"
+"velocity parts column-major (every row's x, then y, then z) and the lower bounds, both new\n"
+"lists. Rows in order: localization (3.32: L_g psi1 and the bound of perception_barrier's\n"
+"rows, `terms`, M x 24 float64), weight-sum (3.34-3.36: dw/dp_i and -(S_w - gamma)/N +\n"
+"dw/dp_i.v, with `velocities` M x 3 float64 and the M `weight_sums` S_w), one collision row\n"
+"(4.1-4.2: 2(p_i - p_j) and -alpha h/2) per entry of `others` (float triples, in their order)\n"
+"within the collision radius of `position`, then the `envelope_rows` (triples) with their\n"
+"`envelope_lower`. Every bound is then tightened to b + e||a|| when e > 0 (robust_lower_bound).\n"
+"`constants`: N, gamma, collision radius, collision distance, collision gain, e.");
+
+static PyObject *
+py_qp_rows(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (check_nargs(nargs, 8, "qp_rows")) return NULL;
+    Py_ssize_t m = sequence_length(args[2]), n_others = sequence_length(args[4]),
+               n_envelope = sequence_length(args[5]);
+    if (m < 0 || n_others < 0 || n_envelope < 0) {
+        PyErr_SetString(PyExc_TypeError, "qp_rows: weight_sums, others and envelope_rows must "
+                        "be lists or tuples");
+        return NULL;
+    }
+    static const BufferSpec specs[2] = {{0, "terms", -1, 0}, {1, "velocities", -1, 0}};
+    Py_buffer v[2];
+    if (acquire(args, specs, 2, v)) return NULL;
+    const Py_ssize_t lengths[2] = {m * (N_PERCEPTION + N_BARRIER), 3 * m};
+    if (check_lengths(v, specs, lengths, 2)) return NULL;
+    static const SequenceSpec inputs[4] = {{2, "weight_sums"}, {3, "position"},
+                                           {6, "envelope_lower"}, {7, "constants"}};
+    const Py_ssize_t sizes[4] = {m, 3, n_envelope, N_ROW_CONSTANTS};
+    double *block = read_floats(args, inputs, sizes, 4);
+    /* work: the triples of others and envelope rows, then the rows (3 R) and bounds (R) */
+    Py_ssize_t most = 2 * m + n_others + n_envelope;
+    double *work = block == NULL ? NULL
+                   : PyMem_Malloc(sizeof(double) * (size_t)(3 * (n_others + n_envelope)
+                                                            + 4 * most + 1));
+    PyObject *result = NULL;
+    if (work == NULL) {
+        if (block != NULL) PyErr_NoMemory();
+        goto done;
+    }
+    const double *weight_sums = block, *position = block + m, *envelope_lower = position + 3,
+                 *c = envelope_lower + n_envelope;
+    double *others = work, *envelope = others + 3 * n_others, *a = envelope + 3 * n_envelope,
+           *lower = a + 3 * most;
+    if (triples(args[4], n_others, others, "others")
+            || triples(args[5], n_envelope, envelope, "envelope_rows"))
+        goto done;
+    const double *terms = v[0].buf, *velocity = v[1].buf;
+    Py_ssize_t r = 0;
+    for (Py_ssize_t t = 0; t < m; t++, r++) {  /* localization (3.32) */
+        const double *barrier = terms + t * (N_PERCEPTION + N_BARRIER) + N_PERCEPTION;
+        for (int k = 0; k < 3; k++) a[3 * r + k] = barrier[B_LIE + k];
+        lower[r] = barrier[B_LOWER];
+    }
+    for (Py_ssize_t t = 0; t < m; t++, r++) {  /* weight sum (3.34-3.36) */
+        const double *grad = terms + t * (N_PERCEPTION + N_BARRIER) + P_GRAD,
+                     *vel = velocity + 3 * t;
+        for (int k = 0; k < 3; k++) a[3 * r + k] = grad[k];
+        lower[r] = -(weight_sums[t] - c[R_GAMMA]) / c[R_N]
+                   + (grad[0] * vel[0] + grad[1] * vel[1] + grad[2] * vel[2]);
+    }
+    for (Py_ssize_t j = 0; j < n_others; j++) {  /* collision (4.1-4.2), within R_ca */
+        double ox = position[0] - others[3 * j], oy = position[1] - others[3 * j + 1],
+               oz = position[2] - others[3 * j + 2];
+        double square = ox * ox + oy * oy + oz * oz;
+        if (!(sqrt(square) <= c[R_RADIUS])) continue;
+        a[3 * r] = 2.0 * ox, a[3 * r + 1] = 2.0 * oy, a[3 * r + 2] = 2.0 * oz;
+        lower[r++] = -0.5 * c[R_GAIN] * (square - c[R_DELTA] * c[R_DELTA]);
+    }
+    for (Py_ssize_t e = 0; e < n_envelope; e++, r++) {  /* the safety envelope's rows */
+        for (int k = 0; k < 3; k++) a[3 * r + k] = envelope[3 * e + k];
+        lower[r] = envelope_lower[e];
+    }
+    if (c[R_BOUND] > 0.0)  /* robust_lower_bound: b + e||a|| */
+        for (Py_ssize_t i = 0; i < r; i++) {
+            const double *row = a + 3 * i;
+            lower[i] = lower[i] + c[R_BOUND] * sqrt(row[0] * row[0] + row[1] * row[1]
+                                                    + row[2] * row[2]);
+        }
+    double *columns = PyMem_Malloc(sizeof(double) * (size_t)(3 * r + 1));
+    if (columns == NULL) {
+        PyErr_NoMemory();
+        goto done;
+    }
+    for (Py_ssize_t i = 0; i < r; i++)
+        for (int k = 0; k < 3; k++) columns[k * r + i] = a[3 * i + k];
+    PyObject *column_list = float_list(columns, 3 * r);
+    PyMem_Free(columns);
+    PyObject *lower_list = column_list == NULL ? NULL : float_list(lower, r);
+    if (lower_list != NULL) result = PyTuple_Pack(2, column_list, lower_list);
+    Py_XDECREF(column_list);
+    Py_XDECREF(lower_list);
+done:
+    PyMem_Free(work);
+    PyMem_Free(block);
+    release(v, 2);
+    return result;
+}
+
 PyDoc_STRVAR(native_finite_doc,
 "native_finite(*parts) -> bool\n--\n\n"
 "Whether every float64 (native byte order) in the bytes-like parts is finite; each part's\n"
@@ -1199,6 +1341,7 @@ static PyMethodDef methods[] = {
     {"qp_load", (PyCFunction)(void (*)(void))py_qp_load, METH_FASTCALL, qp_load_doc},
     {"qp_max_violation", (PyCFunction)(void (*)(void))py_qp_max_violation, METH_FASTCALL,
      qp_max_violation_doc},
+    {"qp_rows", (PyCFunction)(void (*)(void))py_qp_rows, METH_FASTCALL, qp_rows_doc},
     {"native_finite", (PyCFunction)(void (*)(void))py_native_finite, METH_FASTCALL,
      native_finite_doc},
     {"join_native", (PyCFunction)(void (*)(void))py_join_native, METH_FASTCALL,

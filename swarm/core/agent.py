@@ -25,12 +25,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from swarm.core import icf, kernels
-from swarm.core.barrier import robust_lower_bound
 from swarm.core.consensus_layout import ConsensusLayout
 from swarm.core.consensus_message import ConsensusMessage, message_size
 from swarm.core.formation import bearing_formation_scalars
 from swarm.core.gramian import initial_gramian
-from swarm.core.kernels import BarrierScalars, PerceptionScalars
+from swarm.core.kernels import ROW
 from swarm.core.params import ControlParams, EstimationParams, GramianParams, PerceptionParams
 from swarm.core.perception import perception_terms
 from swarm.core.qp import (
@@ -160,10 +159,11 @@ class DroneAgent:
     The step runs on stacks over the M targets and on plain floats for 3-vectors, because on
     arrays this small each numpy call costs far more than its arithmetic: the ICF local steps
     and the perception and barrier terms of all targets in one call each of the compiled
-    kernels (``swarm.core.kernels``: ``icf.StackedFilter``, ``perception_barrier``), the
-    neighbours' data of a round gathered in one array with the own state as its first row,
-    the consensus states (SPEC §6) packed in one vector and advanced by one precomputed linear
-    operator, the QP in preallocated matrices (``LocalQpWorkspace``). The array functions of
+    kernels (``swarm.core.kernels``: ``icf.StackedFilter``, ``perception_barrier_rows``), the
+    QP's rows from those in one more (``qp_rows``), the neighbours' data of a round gathered
+    in one array with the own state as its first row, the consensus states (SPEC §6) packed
+    in one vector and advanced by one precomputed linear operator, the QP in preallocated
+    matrices (``LocalQpWorkspace``). The array functions of
     ``swarm.core`` compute the same quantities up to round-off (the ICF consensus sums are even
     bit-identical to ``consensus_iteration``: same terms, same order; the perception terms bit
     for bit too).
@@ -202,6 +202,7 @@ class DroneAgent:
                                   for j, g in setup.desired_bearings.items()}
         self._neighbours = setup.neighbours
         self._barrier_constants = self._kernel_constants(setup.n_drones)
+        self._row_constants = self._qp_row_constants(setup.n_drones)
         self._single_integrator = est.model == "single_integrator"
         # Rows for the drones within R_ca only: the QP's size depends on them, not on N.
         self._qp_relaxed = LocalQpWorkspace(
@@ -274,6 +275,7 @@ class DroneAgent:
         self._operator = _consensus_operator(self._layout, setup.dt_s, gram,
                                              est.info_gain * n_live)
         self._barrier_constants = self._kernel_constants(n_live)
+        self._row_constants = self._qp_row_constants(n_live)
 
     def begin_step(
         self,
@@ -391,15 +393,15 @@ class DroneAgent:
         estimates, target_velocities = self._estimate()
         clock.lap(ESTIMATION)
 
-        terms, barriers, weight_sums = self._barrier_terms(estimates, target_velocities)
-        weights = [t.weight for t in terms]
+        terms, rows, weight_sums = self._barrier_terms(estimates, target_velocities)
+        weights = [row[ROW.WEIGHT] for row in rows]
         nominal, formation_error = self._nominal_velocity(own, clean_beacons)
         control_active = time_s >= ctrl.start_s
         box = (rate_limited_box(self._last_command, self._max_change, ctrl.u_max_m_s)
                if self._max_change > 0.0 else None)
         if control_active:
-            u_rows, lower = self._qp_rows(barriers, terms, target_velocities.tolist(),
-                                          weight_sums, own, clean_beacons)
+            u_rows, lower = self._qp_rows(terms, target_velocities, weight_sums, own,
+                                          clean_beacons)
             clock.lap(BARRIER)
             solution, fallback, released = self._solve(nominal, u_rows, lower, weights, box)
             clock.lap(QP)
@@ -428,7 +430,7 @@ class DroneAgent:
 
         # Advance the dynamic consensus (3.30) and the Gramian copies (3.29) to step k + 1,
         # with the neighbours' states at step k from round 0.
-        self._advance_consensus(terms, weights)
+        self._advance_consensus(rows, weights)
         clock.lap(CONSENSUS)
 
         self.qp_fallbacks += int(fallback)
@@ -437,8 +439,9 @@ class DroneAgent:
         self.missing_neighbour_messages += self._missing
         self.rejected_inputs += self._rejected
         self._phase = "idle"
-        series = np.array([b.lambda_bar for b in barriers] + [b.psi0 for b in barriers]
-                          + [b.psi1 for b in barriers] + weights + weight_sums)
+        series = np.array([row[ROW.LAMBDA_BAR] for row in rows]
+                          + [row[ROW.PSI0] for row in rows] + [row[ROW.PSI1] for row in rows]
+                          + weights + weight_sums)
         diagnostics = record(StepDiagnostics, dict(
             drone_id=setup.drone_id, step=self._step, time_s=time_s,
             velocity=velocity,
@@ -476,23 +479,30 @@ class DroneAgent:
         return posterior_state, np.zeros((m, 3))
 
     def _barrier_terms(self, estimates: Array, target_velocities: Array
-                       ) -> tuple[list[PerceptionScalars], list[BarrierScalars], list[float]]:
-        """Perception weights and barrier terms from the estimates (SPEC §3, §8), one per
-        target, through the compiled kernel, and the weight sums S_w = N · s_w of the
+                       ) -> tuple[Array, list[list[float]], list[float]]:
+        """Perception weights and barrier terms from the estimates (SPEC §3, §8), one row per
+        target through the compiled kernel (``kernels.perception_barrier_rows``: the array and
+        its rows as lists, read by ``kernels.ROW``), and the weight sums S_w = N · s_w of the
         consensus."""
         layout = self._layout
         cons_array = self._cons_array
-        terms, barriers = kernels.perception_barrier(
+        terms = kernels.perception_barrier_rows(
             self._position, estimates, target_velocities, cons_array[layout.gramian],
             cons_array[layout.projector_mean], self._barrier_constants)
         weight_sums = [self._swarm_size * w for w in cons_array[layout.weight_mean].tolist()]
-        return terms, barriers, weight_sums
+        return terms, terms.tolist(), weight_sums
 
     def _kernel_constants(self, n_agents: int) -> Array:
         est, gram = self.setup.estimation, self.setup.gramian
         return kernels.barrier_constants(
             self.setup.perception, n_agents=n_agents, forgetting=gram.forgetting,
             epsilon=gram.epsilon, exponent=gram.smooth_min_exponent, info_gain=est.info_gain)
+
+    def _qp_row_constants(self, n_agents: int) -> list[float]:
+        """``kernels.qp_rows``' constants (``kernels.ROW_CONSTANTS``) for N = ``n_agents``."""
+        ctrl = self.setup.control
+        return [float(n_agents), ctrl.gamma, ctrl.collision_radius_m, ctrl.collision_distance_m,
+                ctrl.collision_gain, ctrl.tracking_error_bound_m_s]
 
     # -- helpers ------------------------------------------------------------------------
 
@@ -586,7 +596,7 @@ class DroneAgent:
             clean[j] = xyz
         return clean
 
-    def _advance_consensus(self, terms: list, weights: list[float]) -> None:
+    def _advance_consensus(self, rows: list[list[float]], weights: list[float]) -> None:
         """One Euler step of the PI consensus (3.30) for wΠ̂ and w and of the Gramian copies
         (3.29), symmetrized, on the packed state.
 
@@ -595,7 +605,8 @@ class DroneAgent:
         (``_consensus_operator``): one gather, one product, one sum, the same update as
         ``pi_consensus_step`` and ``gramian_step`` up to round-off.
         """
-        local_input = [w * x for w, t in zip(weights, terms, strict=True) for x in t.projector]
+        local_input = [w * x for w, row in zip(weights, rows, strict=True)
+                       for x in row[ROW.PROJECTOR]]
         local_input += weights  # u_i = [w Π̂ (9M), w (M)]
         self._cons_array = consensus_step(self._operator, self._cons_array, self._disagreement,
                                           local_input)
@@ -622,39 +633,23 @@ class DroneAgent:
         neighbours = [(beacons[j], desired[j]) for j in self._neighbours if j in beacons]
         return bearing_formation_scalars(position, neighbours, ctrl.formation_gain)
 
-    def _qp_rows(self, barriers, terms, target_velocities, weight_sums, position, beacons):
+    def _qp_rows(self, terms: Array, target_velocities: Array, weight_sums: list[float],
+                 position: list[float], beacons: Mapping[int, list[float]]
+                 ) -> tuple[list[float], list[float]]:
         """Velocity parts (column-major: x, y, z coefficients of every row) and lower bounds
         of the QP rows: localization (3.32), weight-sum (3.34-3.36), one collision row
-        (4.1-4.2) per drone within R_ca, and the safety envelope's rows last
-        (``swarm.core.safety``), each bound tightened by ē‖a‖ for the vehicle's tracking
-        error (``robust_lower_bound``; ē = ``control.tracking_error_bound_m_s``). Collision
-        and envelope rows carry no slack: hard in either QP."""
-        ctrl, n = self.setup.control, self._swarm_size
-        rows = [b.lie_g for b in barriers] + [t.weight_grad_drone for t in terms]
-        lower = [b.lower_bound for b in barriers]
-        gamma = ctrl.gamma
-        for t, v, s_w in zip(terms, target_velocities, weight_sums, strict=True):
-            grad = t.weight_grad_drone
-            lower.append(-(s_w - gamma) / n + (grad[0] * v[0] + grad[1] * v[1] + grad[2] * v[2]))
-        px, py, pz = position
-        radius, delta, gain = (ctrl.collision_radius_m, ctrl.collision_distance_m,
-                               ctrl.collision_gain)
-        for j in sorted(beacons):
-            qx, qy, qz = beacons[j]
-            ox, oy, oz = px - qx, py - qy, pz - qz
-            square = ox * ox + oy * oy + oz * oz
-            if math.sqrt(square) <= radius:
-                rows.append((2.0 * ox, 2.0 * oy, 2.0 * oz))
-                lower.append(-0.5 * gain * (square - delta * delta))
+        (4.1-4.2) per drone within R_ca (in the order of their ids), and the safety
+        envelope's rows last (``swarm.core.safety``), each bound tightened by ē‖a‖ for the
+        vehicle's tracking error (``robust_lower_bound``; ē =
+        ``control.tracking_error_bound_m_s``). Collision and envelope rows carry no slack:
+        hard in either QP. Assembled in one compiled call (``kernels.qp_rows``)."""
+        others = [beacons[j] for j in sorted(beacons)]
         if self._n_safety_rows:
             envelope_rows, envelope_lower = safety_rows(position, self.setup.safety)
-            rows += envelope_rows
-            lower += envelope_lower
-        bound = ctrl.tracking_error_bound_m_s
-        if bound > 0.0:
-            lower = [robust_lower_bound(b, a, bound) for a, b in zip(rows, lower, strict=True)]
-        xs, ys, zs = zip(*rows, strict=True)
-        return [*xs, *ys, *zs], lower
+        else:
+            envelope_rows = envelope_lower = []
+        return kernels.qp_rows(terms, target_velocities, weight_sums, position, others,
+                               envelope_rows, envelope_lower, self._row_constants)
 
     def _solve(self, nominal: tuple[float, float, float], u_columns: list[float],
                lower: list[float], weights: list[float],

@@ -37,6 +37,20 @@ BARRIER_SIZE: int = _kernels.BARRIER_SIZE  # floats of one target's barrier term
 ROW_SIZE = PERCEPTION_SIZE + BARRIER_SIZE
 
 
+class ROW:
+    """Where each quantity sits in a row of ``perception_barrier_rows`` (as the named tuples
+    below take them apart)."""
+
+    WEIGHT = 0  # w_ir
+    WEIGHT_GRAD = slice(1, 4)  # ∂w/∂p_i
+    PROJECTOR = slice(8, 17)  # Π̂, row-major
+    LAMBDA_BAR = 17
+    PSI0 = 18
+    PSI1 = 19
+    LIE_G = slice(20, 23)
+    LOWER = 23
+
+
 class PerceptionScalars(NamedTuple):
     """``perception_terms`` of one drone-target pair as plain floats (Π̂ row-major)."""
 
@@ -81,18 +95,20 @@ def barrier_constants(params: PerceptionParams, *, n_agents: int, forgetting: fl
 
 
 def _perception_of(row: list[float]) -> PerceptionScalars:
-    return PerceptionScalars(row[0], (row[1], row[2], row[3]), (row[4], row[5], row[6]),
-                             row[7], tuple(row[8:17]))
+    return PerceptionScalars(row[ROW.WEIGHT], tuple(row[ROW.WEIGHT_GRAD]), tuple(row[4:7]),
+                             row[7], tuple(row[ROW.PROJECTOR]))
 
 
 def _barrier_of(row: list[float]) -> BarrierScalars:
-    return BarrierScalars(row[17], row[18], row[19], (row[20], row[21], row[22]), row[23])
+    return BarrierScalars(row[ROW.LAMBDA_BAR], row[ROW.PSI0], row[ROW.PSI1],
+                          tuple(row[ROW.LIE_G]), row[ROW.LOWER])
 
 
-def perception_barrier(drone: Array, estimates: Array, velocities: Array, gramians: Array,
-                       projector_means: Array, constants: Array
-                       ) -> tuple[list[PerceptionScalars], list[BarrierScalars]]:
-    """Perception terms (SPEC §3) and localization barrier (SPEC §8) of every target.
+def perception_barrier_rows(drone: Array, estimates: Array, velocities: Array,
+                            gramians: Array, projector_means: Array, constants: Array) -> Array:
+    """Perception terms (SPEC §3) and localization barrier (SPEC §8) of every target, one row
+    of ``ROW_SIZE`` floats per target: ``PerceptionScalars`` then ``BarrierScalars``, flat
+    (``ROW`` names the entries). The agent reads these rows as they are.
 
     ``drone`` (3,); per target r: the estimate ``estimates[r, :3]`` (M × n), its velocity
     ``velocities[r]`` (M × 3), the Gramian copy ``gramians`` (M·9) and the consensus mean s of
@@ -104,7 +120,15 @@ def perception_barrier(drone: Array, estimates: Array, velocities: Array, gramia
     if not _kernels.perception_barrier(drone, estimates, velocities, gramians,
                                        projector_means, constants, out):
         raise np.linalg.LinAlgError("a Gramian copy has a non-finite entry")
-    rows = out.tolist()
+    return out
+
+
+def perception_barrier(drone: Array, estimates: Array, velocities: Array, gramians: Array,
+                       projector_means: Array, constants: Array
+                       ) -> tuple[list[PerceptionScalars], list[BarrierScalars]]:
+    """``perception_barrier_rows`` as named tuples, per target."""
+    rows = perception_barrier_rows(drone, estimates, velocities, gramians, projector_means,
+                                   constants).tolist()
     return [_perception_of(r) for r in rows], [_barrier_of(r) for r in rows]
 
 
@@ -155,6 +179,15 @@ qp_max_violation = _kernels.qp_max_violation
 # slack penalties on P's diagonal): ``qp_load(...) -> P changed``. ``tests/core/test_qp.py``
 # holds the workspace's matrices to ``build_local_qp`` after every solve.
 qp_load = _kernels.qp_load
+# The rows of the local QP (SPEC §8) from ``perception_barrier_rows`` and the drone's
+# surroundings, as ``LocalQpWorkspace.solve`` takes them: ``qp_rows(terms, velocities,
+# weight_sums, position, others, envelope_rows, envelope_lower, constants) -> (columns,
+# lower)``; ``ROW_CONSTANTS`` names the constants. ``tests/core/test_kernels.py`` binds it to
+# ``localization_barrier``, ``weight_sum_row``, ``collision_row``, ``safety_rows`` and
+# ``robust_lower_bound``.
+qp_rows = _kernels.qp_rows
+ROW_CONSTANTS = ("n_agents", "gamma", "collision_radius_m", "collision_distance_m",
+                 "collision_gain", "tracking_error_bound_m_s")
 # Whether every float64 of native-order bytes is finite: ``native_finite(*parts)``, the wire
 # rules' check of every float a peer sends (``swarm.messages.rules``).
 native_finite = _kernels.native_finite

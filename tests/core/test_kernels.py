@@ -9,6 +9,8 @@ forms the finite-difference tests check, and their own derivatives by central di
   below the clipping floor;
 - ``perception_barrier`` ↔ ``perception_terms`` then ``localization_barrier`` (SPEC §8), one
   target and a stack;
+- ``qp_rows`` ↔ the rows of ``weight_sum_row``, ``collision_row`` and ``robust_lower_bound``
+  (SPEC §8) after the localization rows of ``perception_barrier_rows``, and the envelope's;
 - ``icf.StackedFilter`` (``filter_stack``) ↔ ``posterior``, ``posterior_covariance`` and
   ``predict`` per target (SPEC §5, 2.8-2.11, 2.21-2.22), and its pseudo-inverse fallback;
 - bad buffers are refused with a one-line error.
@@ -32,9 +34,14 @@ from hypothesis import strategies as st
 from scipy.stats import special_ortho_group
 
 from swarm.core import icf, kernels
-from swarm.core.barrier import localization_barrier
+from swarm.core.barrier import (
+    collision_row,
+    localization_barrier,
+    robust_lower_bound,
+    weight_sum_row,
+)
 from swarm.core.params import PerceptionParams
-from swarm.core.perception import perception_terms
+from swarm.core.perception import PerceptionTerms, perception_terms
 from swarm.core.smooth_min import EIGENVALUE_FLOOR, smooth_min_eigenvalue
 
 from .finite_difference import REGIMES, central_gradient, drone_at, random_drone_in_regime
@@ -282,6 +289,97 @@ def test_perception_barrier_refuses_a_non_finite_gramian() -> None:
     with pytest.raises(np.linalg.LinAlgError, match="non-finite"):
         kernels.perception_barrier(np.zeros(3), np.ones((2, 6)), np.zeros((2, 3)), gramians,
                                    np.zeros(18), _constants(4, 0.5, 0.05, -10.0, 1.3))
+
+
+# -- the QP's rows --------------------------------------------------------------------------
+
+
+def _readable_rows(terms, velocities, weight_sums, position, others, envelope_rows,
+                   envelope_lower, constants):
+    """The rows of SPEC §8 from the readable functions, one by one: (rows (R × 3), lower)."""
+    n, gamma, radius, delta, gain, bound = constants
+    rows = [row[kernels.ROW.LIE_G] for row in terms]
+    lower = [float(row[kernels.ROW.LOWER]) for row in terms]
+    for row, velocity, s_w in zip(terms, velocities, weight_sums, strict=True):
+        pair = PerceptionTerms(row[kernels.ROW.WEIGHT], row[kernels.ROW.WEIGHT_GRAD], row[4:7],
+                               row[7], row[kernels.ROW.PROJECTOR].reshape(3, 3))
+        a, b = weight_sum_row(pair, velocity, s_w, gamma, n)
+        rows.append(a)
+        lower.append(b)
+    for other in others:
+        if np.linalg.norm(np.subtract(position, other)) <= radius:
+            a, b = collision_row(np.array(position), np.array(other), delta, gain)
+            rows.append(a)
+            lower.append(b)
+    rows += [np.array(a) for a in envelope_rows]
+    lower += list(envelope_lower)
+    if bound > 0.0:
+        lower = [robust_lower_bound(b, tuple(a), bound) for a, b in zip(rows, lower, strict=True)]
+    return np.array(rows).reshape(-1, 3), np.array(lower)
+
+
+@settings(max_examples=200, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), m=st.integers(1, 3), n_others=st.integers(0, 8),
+       n_envelope=st.integers(0, 4), bound=st.sampled_from([0.0, 0.1, 0.2]))
+def test_the_qp_rows_are_the_rows_of_the_readable_functions(seed, m, n_others, n_envelope,
+                                                            bound) -> None:
+    """``kernels.qp_rows`` on the agent's inputs (the barrier kernel's rows of M targets,
+    others near and far) gives the rows the readable functions give, in the agent's order."""
+    rng = np.random.default_rng(seed)
+    drone = rng.normal(size=3) + np.array([0.0, 0.0, 3.0])
+    estimates, velocities = rng.normal(size=(m, 6)), rng.normal(size=(m, 3))
+    gramians = np.array([_gramian(rng.uniform(0.01, 3.0, 3), rng.uniform(0, 6, 3))
+                         for _ in range(m)])
+    means = np.array([_gramian(rng.uniform(0.0, 1.0, 3), rng.uniform(0, 6, 3))
+                      for _ in range(m)])
+    terms = kernels.perception_barrier_rows(drone, estimates, velocities, gramians.reshape(-1),
+                                            means.reshape(-1), _constants(4, 0.5, 0.05, -10.0,
+                                                                          1.3))
+    weight_sums = rng.uniform(0.0, 4.0, m).tolist()
+    position = drone.tolist()
+    others = (drone + rng.normal(scale=1.5, size=(n_others, 3))).tolist()
+    envelope_rows = [tuple(a) for a in rng.normal(size=(n_envelope, 3)).tolist()]
+    envelope_lower = rng.normal(size=n_envelope).tolist()
+    constants = [4.0, 0.3, 1.5, 0.5, 1.2, bound]
+    columns, lower = kernels.qp_rows(terms, velocities, weight_sums, position, others,
+                                     envelope_rows, envelope_lower, constants)
+    rows, readable_lower = _readable_rows(terms, velocities, weight_sums, position, others,
+                                          envelope_rows, envelope_lower, constants)
+    assert len(lower) == rows.shape[0] and len(columns) == 3 * len(lower)
+    np.testing.assert_array_equal(np.array(columns).reshape(3, -1).T, rows)
+    np.testing.assert_allclose(lower, readable_lower, rtol=1e-12, atol=1e-12)
+
+
+def test_a_drone_exactly_at_the_collision_radius_has_a_row_and_one_beyond_has_none() -> None:
+    terms = kernels.perception_barrier_rows(
+        np.array([0.0, 0.0, 3.0]), np.zeros((1, 6)), np.zeros((1, 3)), np.eye(3).reshape(-1),
+        np.zeros(9), _constants(4, 0.5, 0.05, -10.0, 1.3))
+    beside = [1.5, 0.0, 3.0]
+    beyond = [math.nextafter(1.5, 2.0), 0.0, 3.0]
+    columns, lower = kernels.qp_rows(terms, np.zeros((1, 3)), [1.0], [0.0, 0.0, 3.0],
+                                     [beyond, beside, beyond], [], [],
+                                     [4.0, 0.3, 1.5, 0.5, 1.0, 0.0])
+    assert len(lower) == 3  # localization, weight sum, the one at R_ca
+    assert columns[2::3] == [-3.0, 0.0, 0.0]  # x, y, z of the collision row: 2(p_i − p_j)
+    assert lower[2] == -0.5 * (1.5**2 - 0.5**2)
+
+
+@pytest.mark.parametrize(("change", "error", "message"), [
+    ({"terms": np.zeros((1, 23))}, ValueError, "terms"),
+    ({"velocities": np.zeros((2, 3))}, ValueError, "velocities"),
+    ({"weight_sums": np.zeros(1)}, TypeError, "weight_sums, others and envelope_rows"),
+    ({"others": [[1.0, 2.0, 3.0], [1.0, 2.0]]}, ValueError, r"others\[1\]: expected 3"),
+    ({"others": [[1.0, 2.0, "3"]]}, TypeError, r"others\[0\]\[2\]: expected a float"),
+    ({"envelope_lower": [0.0]}, ValueError, "envelope_lower: expected 0 floats"),
+    ({"constants": [1.0] * 5}, ValueError, "constants: expected 6 floats"),
+])
+def test_qp_rows_names_what_it_was_given_wrong(change, error, message) -> None:
+    args = {"terms": np.zeros((1, kernels.ROW_SIZE)), "velocities": np.zeros((1, 3)),
+            "weight_sums": [1.0], "position": [0.0, 0.0, 3.0], "others": [],
+            "envelope_rows": [], "envelope_lower": [], "constants": [1.0] * 6} | change
+    with pytest.raises(error, match=message) as err:
+        kernels.qp_rows(*args.values())
+    assert "\n" not in str(err.value)
 
 
 # -- derivatives on the agent's path ------------------------------------------------------------
