@@ -43,6 +43,8 @@ class ROW:
 
     WEIGHT = 0  # w_ir
     WEIGHT_GRAD = slice(1, 4)  # ∂w/∂p_i
+    UNIT_BEARING = slice(4, 7)  # β̂
+    DISTANCE = 7  # d̂
     PROJECTOR = slice(8, 17)  # Π̂, row-major
     LAMBDA_BAR = 17
     PSI0 = 18
@@ -95,8 +97,9 @@ def barrier_constants(params: PerceptionParams, *, n_agents: int, forgetting: fl
 
 
 def _perception_of(row: list[float]) -> PerceptionScalars:
-    return PerceptionScalars(row[ROW.WEIGHT], tuple(row[ROW.WEIGHT_GRAD]), tuple(row[4:7]),
-                             row[7], tuple(row[ROW.PROJECTOR]))
+    return PerceptionScalars(row[ROW.WEIGHT], tuple(row[ROW.WEIGHT_GRAD]),
+                             tuple(row[ROW.UNIT_BEARING]), row[ROW.DISTANCE],
+                             tuple(row[ROW.PROJECTOR]))
 
 
 def _barrier_of(row: list[float]) -> BarrierScalars:
@@ -182,12 +185,10 @@ qp_load = _kernels.qp_load
 # The rows of the local QP (SPEC §8) from ``perception_barrier_rows`` and the drone's
 # surroundings, as ``LocalQpWorkspace.solve`` takes them: ``qp_rows(terms, velocities,
 # weight_sums, position, others, envelope_rows, envelope_lower, constants) -> (columns,
-# lower)``; ``ROW_CONSTANTS`` names the constants. ``tests/core/test_kernels.py`` binds it to
+# lower)``, constants = [N, γ, R_ca, Δ, α_ca, ē]. ``tests/core/test_kernels.py`` binds it to
 # ``localization_barrier``, ``weight_sum_row``, ``collision_row``, ``safety_rows`` and
 # ``robust_lower_bound``.
 qp_rows = _kernels.qp_rows
-ROW_CONSTANTS = ("n_agents", "gamma", "collision_radius_m", "collision_distance_m",
-                 "collision_gain", "tracking_error_bound_m_s")
 # Whether every float64 of native-order bytes is finite: ``native_finite(*parts)``, the wire
 # rules' check of every float a peer sends (``swarm.messages.rules``).
 native_finite = _kernels.native_finite

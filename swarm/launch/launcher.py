@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import fcntl
 import math
 import os
 import secrets
@@ -44,6 +43,7 @@ from swarm.mavlink.sitl import (
     SitlError,
     SitlFleet,
     VehicleView,
+    try_exclusive_lock,
 )
 from swarm.messages.wire import (
     BeaconWire,
@@ -240,14 +240,11 @@ def reserve_mavlink_base(requested: int, count: int, skip: frozenset[int] = froz
     for base in candidates:
         if not requested and not udp_ports_free(base, count):
             continue
-        handle = open(mavlink_lock_path(base), "ab")  # noqa: SIM115 - held
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            handle.close()
+        handle = try_exclusive_lock(mavlink_lock_path(base))
+        if handle is None:
             if requested:
                 raise MissionError(f"UDP ports {base}..{base + count - 1} are reserved by "
-                                   f"another launch-swarm; pick another --mavlink-base") from None
+                                   f"another launch-swarm; pick another --mavlink-base")
             continue
         if not requested:
             if udp_ports_free(base, count, listen_s=TRAFFIC_LISTEN_S):

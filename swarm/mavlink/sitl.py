@@ -56,7 +56,7 @@ from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import IO, Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -213,11 +213,24 @@ class SitlSpec:
 # default), where the kernel never picks a port for a socket that binds none, and below the
 # launcher's MAVLink blocks (from 24540).
 PICKED_UDP_PORTS = range(20000, 24500)
-_held_port_locks: list[Any] = []  # this process's claims, released when it exits
+_held_port_locks: list[IO[bytes]] = []  # this process's claims, released when it exits
 
 
 def udp_port_lock_path(port: int) -> Path:
     return Path(tempfile.gettempdir()) / f"vigil-udp-{port}.lock"
+
+
+def try_exclusive_lock(path: Path) -> IO[bytes] | None:
+    """The file at ``path``, opened and exclusively locked (``flock``) until the returned handle
+    is closed or this process exits (the kernel then drops the lock); None if another handle,
+    in this process or another, holds it."""
+    handle = open(path, "ab")  # noqa: SIM115 - held by the caller
+    try:
+        fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        handle.close()
+        return None
+    return handle
 
 
 def free_udp_port() -> int:
@@ -234,11 +247,8 @@ def free_udp_port() -> int:
     first = (os.getpid() * 97) % len(PICKED_UDP_PORTS)  # processes start apart
     for step in range(len(PICKED_UDP_PORTS)):
         port = PICKED_UDP_PORTS[(first + step) % len(PICKED_UDP_PORTS)]
-        handle = open(udp_port_lock_path(port), "ab")  # noqa: SIM115 - held
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            handle.close()
+        handle = try_exclusive_lock(udp_port_lock_path(port))
+        if handle is None:
             continue
         if _udp_port_free(port):
             _held_port_locks.append(handle)

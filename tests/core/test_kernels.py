@@ -301,8 +301,9 @@ def _readable_rows(terms, velocities, weight_sums, position, others, envelope_ro
     rows = [row[kernels.ROW.LIE_G] for row in terms]
     lower = [float(row[kernels.ROW.LOWER]) for row in terms]
     for row, velocity, s_w in zip(terms, velocities, weight_sums, strict=True):
-        pair = PerceptionTerms(row[kernels.ROW.WEIGHT], row[kernels.ROW.WEIGHT_GRAD], row[4:7],
-                               row[7], row[kernels.ROW.PROJECTOR].reshape(3, 3))
+        pair = PerceptionTerms(row[kernels.ROW.WEIGHT], row[kernels.ROW.WEIGHT_GRAD],
+                               row[kernels.ROW.UNIT_BEARING], row[kernels.ROW.DISTANCE],
+                               row[kernels.ROW.PROJECTOR].reshape(3, 3))
         a, b = weight_sum_row(pair, velocity, s_w, gamma, n)
         rows.append(a)
         lower.append(b)
