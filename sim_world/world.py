@@ -27,6 +27,7 @@ beacon, so the agents can fly real autopilots against virtual targets.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
@@ -44,7 +45,6 @@ from swarm.messages.wire import (
     CameraFrameWire,
     ClockWire,
     F64Array,
-    RelayedBeacon,
     TruthWire,
 )
 from swarm.net.rate import RateLimiter, freeze_heap
@@ -243,13 +243,9 @@ class World:
         long the world has held it, so that an agent dates it from its arrival here."""
         if self._pub_relay is None:  # lockstep: the frames carry the positions
             return
-        relayed = []
-        for i in range(self.n):
-            latest = self.beacons.get(i)
-            if latest is not None:
-                relayed.append(RelayedBeacon(latest[0], latest[1]))
+        held = self.beacons.fresh_with_ages(math.inf)
         put_stamped(self.session, self._pub_relay, self.codec.encode(
-            BeaconRelayWire(step=step, beacons=tuple(relayed))))
+            BeaconRelayWire.build(step, (held[i] for i in sorted(held)))))
 
     def _not_ready(self) -> list[int]:
         if self.fleet is None:

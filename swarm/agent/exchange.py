@@ -5,11 +5,12 @@ the publishers, the checks on who sent what) and runs one step the same way in e
 (``AgentProcess.step``). What a mode decides is here, behind ``Exchange``:
 
 * how messages are received and kept (``direct``, ``ring``, ``sent_times``) and stored
-  (``put_camera``, ``put_consensus``, and with ``relayed_beacons`` ``put_beacons``: the
-  beacons of the world's relay, ``world/beacons``, which carries every drone's in one
-  message, stored all at once);
+  (``put_camera``, ``put_consensus``, and with ``relayed_beacons`` ``put_relay``: the world's
+  relay, ``world/beacons``, which carries every drone's beacon packed in one message, kept
+  whole as arrays);
 * what a step sees of its neighbours (``inbox``: the consensus messages of a round) and of
-  every other drone (``beacons``: positions for the collision rows), and the swarm size N
+  the other drones (``beacons``: positions for the collision rows and formation bearings,
+  ``around`` the own position only those the step can use), and the swarm size N
   (``begin``);
 * the time between two setpoints (``setpoint_interval_s``), what is sent before the mission
   starts (``announce``) and the loop that paces the steps (``run``).
@@ -29,21 +30,26 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal, Protocol
 
 import numpy as np
+from numpy.typing import NDArray
 
+from swarm.core import kernels
 from swarm.core.agent import ConsensusMessage, DroneAgent
 from swarm.errors import UsageError
 from swarm.mavlink.link import AutopilotLink, LinkError, PositionSample
-from swarm.messages.wire import BeaconWire, CameraFrameWire
+from swarm.messages.wire import RELAY_HELD, RELAY_WIDTH, BeaconRelayWire, CameraFrameWire
 from swarm.net.rate import RateLimiter
 from swarm.net.transport import LatestValues, StepMailbox
 from swarm.scenario.config import ScenarioConfig
 
 Mode = Literal["lockstep", "realtime"]
+# ``beacons(..., around=p)`` hands the core the drones within R_ca plus this of p: the core
+# applies R_ca itself (``kernels.qp_rows``), so the margin only has to cover rounding [m].
+VICINITY_MARGIN_M = 0.5
 WAIT_SLICE_S = 0.25  # lockstep waits wake at least this often to check their deadline
 FIRST_FRAME_POLL_S = 0.01  # realtime, before the mission: how often the rings are looked at
 
@@ -74,11 +80,23 @@ class Peers:
     drain: Callable[..., None]
 
 
+class Vicinity:
+    """Which other drones a step can use: those within R_ca (+ ``VICINITY_MARGIN_M``) of
+    the own position, for the collision rows, and the graph neighbours wherever they are,
+    for the formation bearings. Everything else the core would leave out anyway, so the
+    step's Python work grows with the drones around, not with N: the selection is one
+    compiled pass over all N (``kernels.nearby``)."""
+
+    def __init__(self, peers: Peers) -> None:
+        n = peers.config.swarm.n_drones
+        self.radius_m = peers.config.control.collision_radius_m + VICINITY_MARGIN_M
+        self.always = bytes(j in peers.neighbours for j in range(n))
+
 class Exchange(Protocol):
     """The mode of an agent's exchange (module docstring)."""
 
     direct: bool  # subscription callbacks on zenoh's thread (True) or a thread of their own
-    relayed_beacons: bool  # the others' positions come in the world's relay (put_beacons)
+    relayed_beacons: bool  # the others' positions come in the world's relay (put_relay)
     block_consensus: bool  # a consensus put waits for room (True) or drops (False)
     sent_times: bool  # read each consensus message's Zenoh timestamp (neighbour age)
     late_steps: int
@@ -90,14 +108,14 @@ class Exchange(Protocol):
     def put_camera(self, frame: CameraFrameWire) -> None: ...
     def put_consensus(self, msg: ConsensusMessage, arrived_s: float | None = None) -> None: ...
     def consensus_sent(self, msg: ConsensusMessage, sent_unix_s: float) -> None: ...
-    def put_beacons(self, beacons: Iterable[tuple[BeaconWire, float | None]]) -> None: ...
+    def put_relay(self, relay: BeaconRelayWire, arrived_s: float | None = None) -> None: ...
     def close(self) -> None: ...
     def announce(self) -> PositionSample | None: ...
     def wait_first_frame(self, timeout_s: float) -> None: ...
     def begin(self, step: int) -> None: ...
     def inbox(self, step: int, rnd: int) -> dict[int, ConsensusMessage]: ...
-    def beacons(self, step: int, sample_age_s: float,
-                flying: np.ndarray) -> dict[int, list[float]]: ...
+    def beacons(self, step: int, sample_age_s: float, flying: np.ndarray, *,
+                around: np.ndarray | None = None) -> dict[int, list[float]]: ...
     def setpoint_interval_s(self) -> float: ...
     def run(self, step: StepFunction) -> None: ...
 
@@ -113,6 +131,7 @@ class LockstepExchange:
 
     def __init__(self, peers: Peers) -> None:
         self.peers = peers
+        self.vicinity = Vicinity(peers)
         self.camera_steps: StepMailbox[CameraFrameWire] = StepMailbox()
         self.consensus_steps: StepMailbox[ConsensusMessage] = StepMailbox()
         self.late_steps = self.unpaired_frames = self.stale_messages = 0
@@ -130,7 +149,7 @@ class LockstepExchange:
     def consensus_sent(self, msg: ConsensusMessage, sent_unix_s: float) -> None:
         return None
 
-    def put_beacons(self, beacons: Iterable[tuple[BeaconWire, float | None]]) -> None:
+    def put_relay(self, relay: BeaconRelayWire, arrived_s: float | None = None) -> None:
         raise ExchangeError("a lockstep agent takes the other drones' positions from its "
                             "camera frame, not from a relay of beacons")
 
@@ -151,16 +170,21 @@ class LockstepExchange:
         return self._wait(self.consensus_steps, step, rnd, self.peers.neighbours,
                           f"round-{rnd} consensus")
 
-    def beacons(self, step: int, sample_age_s: float,
-                flying: np.ndarray) -> dict[int, list[float]]:
-        """Every other drone's position at step k, all of the same instant: those the camera
-        frame of step k carries (its vehicle's report, as its beacon of step k would say)."""
+    def beacons(self, step: int, sample_age_s: float, flying: np.ndarray, *,
+                around: np.ndarray | None = None) -> dict[int, list[float]]:
+        """The other drones' positions at step k (``around`` a position: those the step can
+        use, ``Vicinity``), all of the same instant: those the camera frame of step k carries
+        (its vehicle's report, as its beacon of step k would say), as lists of floats,
+        bit-exact."""
         frame = self._wait(self.camera_steps, step, 0, {0}, "camera frame")[0]
-        rows = frame.drone_position_rows()  # floats, bit-exact: the core takes lists as they are
-        if rows is None:
+        positions = frame.drone_positions
+        if positions is None:
             raise LinkError(f"drone {self.peers.drone_id}: step {step}: the camera frame "
                             "carries no drone positions (a lockstep world sends them)")
-        return {j: rows[j] for j in self.peers.others}
+        vicinity = self.vicinity
+        return kernels.nearby(positions.native(), 3, None, self.peers.drone_id, None,
+                              None if around is None else around.tolist(), vicinity.radius_m,
+                              vicinity.always)
 
     def setpoint_interval_s(self) -> float:
         return self.peers.config.scenario.dt_s
@@ -207,13 +231,18 @@ class RealtimeExchange:
     block_consensus = False  # the newest message is what counts: drop when the queue is full
     sent_times = True
 
-    def __init__(self, peers: Peers) -> None:
+    def __init__(self, peers: Peers, *, clock: Callable[[], float] = time.monotonic) -> None:
         self.peers = peers
         n = peers.config.swarm.n_drones
+        self.vicinity = Vicinity(peers)
+        self._clock = clock
         # One store per mode: a step mailbox nobody waits on is never pruned (realtime agents
         # piled up to its 65 536 entries, ~100 MB, over a long mission).
-        self.consensus_latest: LatestValues[ConsensusMessage] = LatestValues()
-        self.beacon_latest: LatestValues[BeaconWire] = LatestValues()
+        self.consensus_latest: LatestValues[ConsensusMessage] = LatestValues(clock=clock)
+        # The world's newest relay, whole: it carries every drone the world has heard, so a
+        # newer one replaces it entirely (``put_relay``).
+        self.relay: HeldRelay | None = None
+        self._members_key = b""
         # When each neighbour's newest consensus message of each round left it (its Zenoh
         # timestamp, Unix s): the reported neighbour age includes the hop, not only the wait.
         self._consensus_sent: dict[tuple[int, int], float] = {}
@@ -236,9 +265,26 @@ class RealtimeExchange:
         if msg.sender in self.peers.neighbours:
             self._consensus_sent[(msg.sender, msg.round)] = sent_unix_s
 
-    def put_beacons(self, beacons: Iterable[tuple[BeaconWire, float | None]]) -> None:
-        """Each beacon with when it arrived (None: now)."""
-        self.beacon_latest.put_many((b.sender, b, None, arrived_s) for b, arrived_s in beacons)
+    def put_relay(self, relay: BeaconRelayWire, arrived_s: float | None = None) -> None:
+        """The world's relay, which arrived at ``arrived_s`` (None: now; never later than
+        now), in place of the one held, unless it is older (a lower step). Our own beacon,
+        which comes back with everyone's, is left out."""
+        held = self.relay
+        if held is not None and relay.step < held.step:
+            return
+        now = self._clock()
+        ids = relay.sender_ids()
+        self.relay = HeldRelay(relay.step, ids, ids.tolist(), relay.rows(),
+                               now if arrived_s is None else min(arrived_s, now))
+
+    def beacon_ages(self) -> dict[int, float]:
+        """How old each held beacon is [s]: since its arrival at the world."""
+        relay = self.relay
+        if relay is None:
+            return {}
+        own = self.peers.drone_id
+        return {j: age for j, age in zip(relay.id_list, relay.ages_s(self._clock()).tolist(),
+                                         strict=True) if j != own}
 
     def close(self) -> None:
         return None  # nothing waits: the loop checks the clock every tick
@@ -267,13 +313,23 @@ class RealtimeExchange:
         ``member_timeout_s`` after our first step."""
         peers = self.peers
         timeout = peers.config.runtime.member_timeout_s
-        now = time.monotonic()
+        now = self._clock()
         if self._first_step_s is None:
             self._first_step_s = now
-        heard = set(self.beacon_latest.fresh(timeout))
+        present = np.zeros(peers.config.swarm.n_drones, dtype=bool)
+        relay = self.relay
         if now - self._first_step_s <= timeout:
-            heard |= {j for j in peers.others if self.beacon_latest.get(j) is None}
-        members = frozenset(heard) | {peers.drone_id}
+            present[:] = True
+            if relay is not None:  # heard once: present while heard recently
+                present[relay.ids] = False
+        if relay is not None:
+            present[relay.ids[relay.ages_s(now) <= timeout]] = True
+        present[peers.drone_id] = True
+        key = present.tobytes()  # one comparison of N bytes, not a set of N ids, per step
+        if key == self._members_key:
+            return
+        self._members_key = key
+        members = frozenset(np.flatnonzero(present).tolist())
         if members == self.members:
             return
         left, joined = sorted(self.members - members), sorted(members - self.members)
@@ -311,29 +367,29 @@ class RealtimeExchange:
         self.neighbour_age_ms = 1000.0 * min(ages) if ages else math.nan
         return inbox
 
-    def beacons(self, step: int, sample_age_s: float,
-                flying: np.ndarray) -> dict[int, list[float]]:
-        """The other drones' latest beacons, each position carried forward to the instant of
-        our own position sample (p_j + v_j·a_j − v_i·a_i, a = age of the sample; ``flying``
-        = v_i, the velocity last sent): the collision rows see the relative position as it
-        is, not as it was up to a step ago.
+    def beacons(self, step: int, sample_age_s: float, flying: np.ndarray, *,
+                around: np.ndarray | None = None) -> dict[int, list[float]]:
+        """The other drones' latest beacons (``around`` a position: those the step can use,
+        ``Vicinity``), each position carried forward to the instant of our own position
+        sample (p_j + v_j·a_j − v_i·a_i, a = age of the sample; ``flying`` = v_i, the
+        velocity last sent): the collision rows see the relative position as it is, not as
+        it was up to a step ago.
 
         A beacon older than the stale timeout belongs to a drone that is late or lost; its
         vehicle flies the last setpoint until its failsafe holds it, so it is carried forward
         for at most that long and kept there: nobody flies into a hovering drone."""
         self.peers.drain("beacons")
-        latest = self.beacon_latest.fresh_with_ages(math.inf)
-        if not latest:
+        relay = self.relay
+        if relay is None:
             return {}
-        hold_after = self.peers.config.vehicles.failsafe_timeout_s
-        # One array operation for all N − 1 (the same float64 operations, row by row, as
-        # p + lead·v − v_i·a_i for each).
-        held = latest.values()
-        lead_s = np.minimum([b.sample_age_s + age for b, age in held], hold_after)
-        positions = np.array([b.position_m for b, _ in held], dtype=float)
-        velocities = np.array([b.velocity_m_s for b, _ in held], dtype=float)
-        carried = positions + lead_s[:, None] * velocities - sample_age_s * flying
-        return dict(zip(latest, carried.tolist(), strict=True))
+        # One compiled pass over the relay: each row p + min(a_j + age_j, hold)·v − a_i·v_i
+        # (age_j = the relay's age + how long the world held it), then the vicinity.
+        carry = [max(self._clock() - relay.arrived_s, 0.0), sample_age_s, *flying.tolist(),
+                 self.peers.config.vehicles.failsafe_timeout_s]
+        vicinity = self.vicinity
+        return kernels.nearby(relay.rows, RELAY_WIDTH, relay.id_list, self.peers.drone_id,
+                              carry, None if around is None else around.tolist(),
+                              vicinity.radius_m, vicinity.always)
 
     def setpoint_interval_s(self) -> float:
         """Measured: the wall time since the last setpoint (ΔT before the first)."""
@@ -390,6 +446,23 @@ class RealtimeExchange:
                 k += 1
             if limiter.sleep():
                 self.late_steps += 1
+
+
+@dataclass(frozen=True)
+class HeldRelay:
+    """The world's relay as a realtime agent holds it: the senders (as an array and a list)
+    and their ``BeaconRelayWire`` rows, and when it arrived [s, the exchange's clock]."""
+
+    step: int
+    ids: NDArray[np.intp]
+    id_list: list[int]
+    rows: np.ndarray
+    arrived_s: float
+
+    def ages_s(self, now_s: float) -> np.ndarray:
+        """Each beacon's age at ``now_s``: since it reached the world (the relay's age plus
+        how long the world had held it), never negative."""
+        return max(now_s - self.arrived_s, 0.0) + self.rows[:, RELAY_HELD]
 
 
 def loop_phase_s(drone_id: int, n_drones: int, period_s: float) -> float:

@@ -259,11 +259,8 @@ class AgentProcess:
     def _on_beacon_relay(self, _key: str, relay: BeaconRelayWire,
                          arrived_s: float | None = None) -> None:
         """Every drone's beacon as the world relays it (the world checked that each came on
-        its sender's key); each dated from its arrival at the world (realtime)."""
-        now_s = time.monotonic() if arrived_s is None else arrived_s
-        own = self.id  # our own comes back with everyone's
-        self.exchange.put_beacons([(entry.beacon, now_s - entry.held_s)
-                                   for entry in relay.beacons if entry.beacon.sender != own])
+        its sender's key), kept whole (realtime)."""
+        self.exchange.put_relay(relay, arrived_s)
 
     # -- helpers ------------------------------------------------------------------------------
 
@@ -329,7 +326,8 @@ class AgentProcess:
         for rnd in range(agent.n_rounds):
             msg = agent.consensus_round(exchange.inbox(step, rnd))
             self._publish_consensus(msg)
-        result = agent.finish_step(exchange.beacons(step, sample_age_s, self._flying))
+        result = agent.finish_step(exchange.beacons(step, sample_age_s, self._flying,
+                                                    around=position))
         self.steps_run += 1
         for failed in agent.qp_failures:
             self.qp_failures.report(failed)

@@ -29,6 +29,8 @@
  *                     disagreement of the round-0 consensus states (DroneAgent)  2.6-2.7
  *   consensus_step    the packed PI consensus and Gramian step, agent._consensus_operator
  *                     (pi_consensus_step, gramian_step)                          3.29-3.30
+ *   nearby            the other drones a step can use, their relayed beacons carried
+ *                     forward (swarm.agent.exchange: Vicinity, RealtimeExchange.beacons)
  *
  * Why hand-written Cholesky and Jacobi: LAPACK from C would have to come from scipy (its
  * cython_lapack capsules), whose import costs each agent ~0.3 s of the 2 s launch budget, and
@@ -1329,6 +1331,102 @@ py_consensus_step(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     return result;
 }
 
+/* -- the other drones a step can use (swarm.agent.exchange.Vicinity) ----------------------- */
+
+enum { CARRY_RELAY_AGE, CARRY_SAMPLE_AGE, CARRY_FLYING, CARRY_HOLD = CARRY_FLYING + 3,
+       N_CARRY };
+/* BeaconRelayWire's columns: position (3), velocity (3), sample age, held. */
+enum { RELAY_VELOCITY = 3, RELAY_SAMPLE_AGE = 6, RELAY_HELD = 7, RELAY_WIDTH = 8 };
+
+PyDoc_STRVAR(nearby_doc,
+"nearby(rows, width, ids, skip, carry, around, radius, always) -> dict\n--\n\n"
+"{id: [x, y, z]} of the other drones a step can use (exchange.Vicinity). Row k of rows\n"
+"(n x width float64) is drone ids[k]'s (ids None: drone k), its position in columns 0-2.\n"
+"carry None, or [relay age, own sample age a_i, flying (3), hold] with width 8 (the\n"
+"BeaconRelayWire columns): each position carried forward as p + min(a_j + (relay age +\n"
+"held_j), hold) v - a_i flying (RealtimeExchange.beacons). Drone skip is left out; with\n"
+"around = [x, y, z], so is each drone farther than radius from it that always (bytes,\n"
+"by id; past its end: unmarked) does not mark. A position that is not finite is kept (the\n"
+"core counts it).");
+
+static PyObject *
+py_nearby(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
+{
+    if (check_nargs(nargs, 8, "nearby")) return NULL;
+    Py_ssize_t width = PyLong_AsSsize_t(args[1]), skip = PyLong_AsSsize_t(args[3]);
+    double radius = PyFloat_AsDouble(args[6]);
+    if (PyErr_Occurred()) return NULL;
+    double carry[N_CARRY], around[3];
+    int carried = args[4] != Py_None, centred = args[5] != Py_None;
+    if ((carried && float_sequence(args[4], carry, N_CARRY, "carry"))
+        || (centred && float_sequence(args[5], around, 3, "around")))
+        return NULL;
+    if (width < 3 || (carried && width != RELAY_WIDTH)) {
+        PyErr_Format(PyExc_ValueError, "nearby: width %zd: expected >= 3 (8 with carry)",
+                     width);
+        return NULL;
+    }
+    PyObject *ids = args[2], *always = args[7];
+    if (!PyBytes_Check(always)) {
+        PyErr_Format(PyExc_TypeError, "nearby: always: expected bytes, got %s",
+                     Py_TYPE(always)->tp_name);
+        return NULL;
+    }
+    Py_buffer rows;
+    if (float64_buffer(args[0], &rows, 0, -1, "rows")) return NULL;
+    Py_ssize_t n = rows.len / 8 / width;
+    PyObject *out = NULL;
+    if (n * width * 8 != rows.len) {
+        PyErr_Format(PyExc_ValueError, "nearby: rows: %zd floats are not rows of %zd",
+                     rows.len / 8, width);
+        goto done;
+    }
+    if (ids != Py_None && (!PyList_Check(ids) || PyList_GET_SIZE(ids) != n)) {
+        PyErr_Format(PyExc_ValueError, "nearby: ids: expected None or a list of %zd ints", n);
+        goto done;
+    }
+    const unsigned char *marked = (const unsigned char *)PyBytes_AS_STRING(always);
+    Py_ssize_t n_marked = PyBytes_GET_SIZE(always);
+    const double limit = radius * radius;
+    out = PyDict_New();
+    for (Py_ssize_t k = 0; out != NULL && k < n; k++) {
+        Py_ssize_t id = k;
+        if (ids != Py_None) {
+            id = PyLong_AsSsize_t(PyList_GET_ITEM(ids, k));
+            if (id == -1 && PyErr_Occurred()) goto fail;
+        }
+        if (id == skip) continue;
+        if (id < 0) {
+            PyErr_Format(PyExc_ValueError, "nearby: ids[%zd]: drone %zd is negative", k, id);
+            goto fail;
+        }
+        const double *row = (const double *)rows.buf + k * width;
+        double p[3] = {row[0], row[1], row[2]};
+        if (carried) {
+            double lead = row[RELAY_SAMPLE_AGE] + (carry[CARRY_RELAY_AGE] + row[RELAY_HELD]);
+            if (lead > carry[CARRY_HOLD]) lead = carry[CARRY_HOLD];  /* np.minimum: NaN stays */
+            for (int i = 0; i < 3; i++)
+                p[i] = p[i] + lead * row[RELAY_VELOCITY + i]
+                       - carry[CARRY_SAMPLE_AGE] * carry[CARRY_FLYING + i];
+        }
+        if (centred && !(id < n_marked && marked[id])) {
+            double dx = p[0] - around[0], dy = p[1] - around[1], dz = p[2] - around[2];
+            if (dx * dx + dy * dy + dz * dz > limit) continue;  /* NaN: kept */
+        }
+        PyObject *key = PyLong_FromSsize_t(id), *value = float_list(p, 3);
+        int failed = key == NULL || value == NULL || PyDict_SetItem(out, key, value) != 0;
+        Py_XDECREF(key);
+        Py_XDECREF(value);
+        if (failed) goto fail;
+    }
+    goto done;
+fail:
+    Py_CLEAR(out);
+done:
+    PyBuffer_Release(&rows);
+    return out;
+}
+
 static PyMethodDef methods[] = {
     {"perception", (PyCFunction)(void (*)(void))py_perception, METH_FASTCALL, perception_doc},
     {"symmetric_eigen", (PyCFunction)(void (*)(void))py_symmetric_eigen, METH_FASTCALL,
@@ -1352,6 +1450,7 @@ static PyMethodDef methods[] = {
      consensus_sums_doc},
     {"consensus_step", (PyCFunction)(void (*)(void))py_consensus_step, METH_FASTCALL,
      consensus_step_doc},
+    {"nearby", (PyCFunction)(void (*)(void))py_nearby, METH_FASTCALL, nearby_doc},
     {NULL, NULL, 0, NULL},
 };
 

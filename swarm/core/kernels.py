@@ -210,6 +210,11 @@ consensus_sums = _kernels.consensus_sums
 # message to it.
 initial_information = _kernels.initial_information
 consensus_step = _kernels.consensus_step
+# The other drones a step can use, as the core takes them (``swarm.agent.exchange``):
+# ``nearby(rows, width, ids, skip, carry, around, radius, always) -> {id: [x, y, z]}``.
+# ``tests/agent/test_exchange.py`` binds it to each relayed beacon's carry-forward formula
+# computed alone, bit for bit, and to the QP rows the core builds from every drone.
+nearby = _kernels.nearby
 
 
 def filter_stack(information: Array, vector: Array, transition: Array, process_noise: float,

@@ -36,7 +36,7 @@ import functools
 import math
 import operator
 import sys
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Annotated, Any, Final, Literal, TypeVar
 
 import msgspec
@@ -76,7 +76,8 @@ _W = TypeVar("_W")
 #    of the relay of the drones' beacons: a lockstep agent of an older build would wait for a
 #    relay that no longer comes.
 # 7: telemetry packs its arrays in one block (TelemetryWire.data, with n_targets and n_state).
-WIRE_VERSION: Final = 7
+# 8: the beacon relay is packed (BeaconRelayWire.senders, .data): no struct per drone.
+WIRE_VERSION: Final = 8
 
 MAX_DRONES: Final = 1024  # codec limits: a swarm larger than this is a configuration error
 MAX_TARGETS: Final = 1024
@@ -135,6 +136,13 @@ class F64Array(msgspec.Struct, frozen=True, array_like=True, forbid_unknown_fiel
     def to_array(self) -> Array:
         """A new, writable native float64 array (no validation: decoded messages are checked)."""
         return np.frombuffer(self.data, dtype=_LE_F64).reshape(self.shape).astype(np.float64)
+
+    def native(self) -> memoryview | Array:
+        """The values as a C-contiguous native float64 buffer, flat (no validation: decoded
+        messages are checked): on a little-endian machine the bytes themselves, read-only."""
+        if _NATIVE_LE:
+            return memoryview(self.data).cast("d")
+        return self.to_array().reshape(-1)
 
     def to_list(self) -> list[Any]:
         """The values as (nested) lists of floats, bit-exact (no validation: decoded messages
@@ -222,24 +230,53 @@ class BeaconWire(_Wire, tag="beacon", kw_only=True):
         return np.array(self.position_m, dtype=np.float64)
 
 
-class RelayedBeacon(msgspec.Struct, frozen=True, array_like=True, forbid_unknown_fields=True,
-                    gc=False):
-    """One drone's newest beacon as the world relays it, and how long the world had held it
-    when the relay left [s] (measured on the world's clock: a duration, whatever the hosts'
-    clocks say)."""
-
-    beacon: BeaconWire
-    held_s: NonNegativeFinite
+# A relayed beacon's row in ``BeaconRelayWire.data``: position (3), velocity (3), the
+# sample's age when the drone sent it, and how long the world had held it when the relay left.
+RELAY_POSITION: Final = slice(0, 3)
+RELAY_VELOCITY: Final = slice(3, 6)
+RELAY_SAMPLE_AGE: Final = 6
+RELAY_HELD: Final = 7
+RELAY_WIDTH: Final = 8
+_LE_U16: Final = np.dtype("<u2")
 
 
 class BeaconRelayWire(_Wire, tag="beacons", kw_only=True):
-    """Every drone's beacon, relayed by the world on ``world/beacons`` (lockstep: step k's
-    once all are in; realtime: the newest at each tick): one message per agent and step
-    instead of one per other drone."""
+    """Every drone's newest beacon as the world holds it, relayed on ``world/beacons`` at each
+    realtime tick: one message per agent and tick instead of one per other drone, packed so
+    that a receiver decodes it without a Python object per drone.
+
+    ``senders``: the drones' ids as little-endian uint16, distinct, each below N. ``data``: one
+    row of little-endian float64 per sender (``RELAY_*`` columns): the beacon's position and
+    velocity [m, m/s, W], its ``sample_age_s``, and ``held_s``, how long the world had held it
+    when the relay left [s] (the world's clock: a duration, whatever the hosts' clocks say)."""
 
     step: NonNegativeInt  # the world's step when it relayed them
-    beacons: Annotated[tuple[RelayedBeacon, ...], msgspec.Meta(
-        max_length=MAX_DRONES, extra={"max_items": "drones", "distinct": "beacon.sender"})] = ()
+    senders: Annotated[bytes, msgspec.Meta(max_length=2 * MAX_DRONES)] = b""
+    data: Annotated[bytes, msgspec.Meta(max_length=8 * RELAY_WIDTH * MAX_DRONES,
+                                        extra={"packed": "beacon_relay"})] = b""
+
+    @classmethod
+    def build(cls, step: int, beacons: Iterable[tuple[BeaconWire, float]]) -> BeaconRelayWire:
+        """The relay of ``(beacon, held_s)`` pairs, in the order given."""
+        entries = list(beacons)
+        ids = [b.sender for b, _ in entries]
+        if not all(type(j) is int and 0 <= j <= 0xFFFF for j in ids):
+            raise WireError(f"relay senders must be drone ids in [0, 65535], got {ids!r:.60}",
+                            rule="range")
+        rows = np.array([(*b.position_m, *b.velocity_m_s, b.sample_age_s, held_s)
+                         for b, held_s in entries], dtype=_LE_F64).reshape(-1, RELAY_WIDTH)
+        return cls(step=int(step), senders=np.array(ids, dtype=_LE_U16).tobytes(),
+                   data=rows.tobytes())
+
+    def sender_ids(self) -> NDArray[np.intp]:
+        """``senders`` as a new array of ids."""
+        return np.frombuffer(self.senders, dtype=_LE_U16).astype(np.intp)
+
+    def rows(self) -> Array:
+        """``data`` as an (n, ``RELAY_WIDTH``) native float64 array (read-only on a
+        little-endian machine: a view of the message's bytes)."""
+        rows = np.frombuffer(self.data, dtype=_LE_F64).reshape(-1, RELAY_WIDTH)
+        return rows if _NATIVE_LE else rows.astype(np.float64)
 
 
 class DetectionWire(msgspec.Struct, frozen=True, array_like=True, forbid_unknown_fields=True,
@@ -742,6 +779,38 @@ def _telemetry_block(sizes: Mapping[str, int | None]) -> Check:
     return check
 
 
+def _relay_block(sizes: Mapping[str, int | None]) -> Check:
+    """The rule of ``BeaconRelayWire.data`` (its ``"packed"`` marker): two bytes per sender,
+    one row per sender, every sender a distinct drone of this swarm, every float finite, the
+    two ages >= 0 (checked on arrays, not per drone in Python)."""
+    n_drones = sizes["drones"]
+    assert n_drones is not None
+
+    def check(m: BeaconRelayWire) -> None:
+        senders, data = m.senders, m.data
+        if len(senders) % 2:
+            fail(f"senders carries {len(senders)} bytes, not 2 per drone id", "shape")
+        n = len(senders) // 2
+        if n > n_drones:
+            fail(f"senders holds {n} ids, more than this swarm's {n_drones} drones", "length")
+        if len(data) != 8 * RELAY_WIDTH * n:
+            fail(f"data carries {len(data)} bytes, expected {8 * RELAY_WIDTH * n} for {n} "
+                 "senders", "shape")
+        if n == 0:
+            return
+        ids = np.frombuffer(senders, dtype=_LE_U16)
+        if (top := int(ids.max())) >= n_drones:
+            fail(f"sender {top} out of range (this swarm has {n_drones} drones)", "range")
+        counts = np.bincount(ids)
+        if counts.max() > 1:
+            fail(f"sender {int(counts.argmax())} appears twice in senders", "duplicate")
+        _finite_block(data, (("data", None, 0, RELAY_WIDTH * n),))
+        ages = np.frombuffer(data, dtype=_LE_F64).reshape(n, RELAY_WIDTH)[:, RELAY_SAMPLE_AGE:]
+        if ages.min() < 0.0:
+            fail("data holds a negative sample age or held time", "range")
+    return check
+
+
 def _consensus_block(sizes: Mapping[str, int | None]) -> Check:
     """The rule of ``ConsensusWire.data`` (its ``"packed"`` marker): the block of one round
     for this swarm's M and n — round 0 with the consensus states, later rounds without —
@@ -801,7 +870,8 @@ class WireCodec:
                  "rounds": n_rounds}
         self._rules: dict[type, Check] = SwarmRules(
             sizes, tuple(_KINDS), array_type=F64Array,
-            packings={"consensus": _consensus_block, "telemetry": _telemetry_block}).checks
+            packings={"consensus": _consensus_block, "telemetry": _telemetry_block,
+                      "beacon_relay": _relay_block}).checks
 
     # -- encode --------------------------------------------------------------------------
 

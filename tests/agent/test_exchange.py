@@ -24,9 +24,10 @@ from swarm.agent.exchange import (
     exchange_for,
     loop_phase_s,
 )
+from swarm.core import kernels
 from swarm.core.agent import ConsensusMessage
 from swarm.mavlink.link import AutopilotLink, LinkError
-from swarm.messages.wire import BeaconWire, CameraFrameWire
+from swarm.messages.wire import BeaconRelayWire, BeaconWire, CameraFrameWire
 from swarm.net.transport import LatestValues
 from swarm.scenario.config import load_config
 from swarm.scenario.setup import build_agent
@@ -113,7 +114,8 @@ def test_lockstep_beacons_are_the_frames_positions_and_a_mission_end_ends_the_wa
     with pytest.raises(LinkError, match=r"step 10: no camera frame from \[0\] within 0.3 s"):
         exchange.beacons(10, 0.0, np.ones(3))
     with pytest.raises(ExchangeError, match="from its camera frame, not from a relay"):
-        exchange.put_beacons([(BeaconWire.build(1, 7, 0.14, (1.0, 0.0, 3.0)), None)])
+        exchange.put_relay(BeaconRelayWire.build(7, [(BeaconWire.build(1, 7, 0.14,
+                                                                    (1.0, 0.0, 3.0)), 0.0)]))
     assert exchange.setpoint_interval_s() == 0.02 == exchange.setpoint_interval_s()
     ended = LockstepExchange(peers(link, ended=True))
     with pytest.raises(Ended):
@@ -135,14 +137,13 @@ def test_realtime_leaves_out_stale_messages_and_counts_them(link: AutopilotLink)
 
 def test_realtime_beacons_are_carried_forward_at_most_the_failsafe_time(
         link: AutopilotLink) -> None:
-    exchange = RealtimeExchange(peers(link))
-    exchange.beacon_latest = LatestValues(clock=(clock := Clock()))
+    exchange = RealtimeExchange(peers(link), clock=(clock := Clock()))
     hold_s = load_config(CASE1).vehicles.failsafe_timeout_s
-    exchange.put_beacons([
+    exchange.put_relay(BeaconRelayWire.build(3, [
         (BeaconWire.build(2, 3, 0.06, (1.0, 2.0, 3.0), velocity_m_s=(1, 0, 0),
-                          sample_age_s=0.01), None),
+                          sample_age_s=0.01), 0.0),
         (BeaconWire.build(4, 3, 0.06, (0.0, 0.0, 3.0), velocity_m_s=(0, 2, 0),
-                          sample_age_s=hold_s), None)])
+                          sample_age_s=hold_s), 0.0)]))
     clock.now += 0.03
     flying = np.array([0.0, 0.0, 1.0])
     beacons = exchange.beacons(5, 0.02, flying)
@@ -153,25 +154,26 @@ def test_realtime_beacons_are_carried_forward_at_most_the_failsafe_time(
 def test_realtime_beacons_are_each_beacons_formula_to_the_bit(link: AutopilotLink) -> None:
     """``beacons`` carries all N − 1 forward in one array operation: each row equals
     p_j + min(a_j + age_j, hold)·v_j − a_i·v_i computed for that beacon alone, bit for bit
-    (random swarms, ages on both sides of the failsafe hold)."""
+    (random swarms, ages on both sides of the failsafe hold; age_j = the relay's age + how
+    long the world held beacon j)."""
     rng = np.random.default_rng(7)
     hold_s = load_config(CASE1).vehicles.failsafe_timeout_s
     for _ in range(50):
-        exchange = RealtimeExchange(peers(link))
-        exchange.beacon_latest = LatestValues(clock=(clock := Clock()))
+        exchange = RealtimeExchange(peers(link), clock=(clock := Clock()))
         n = int(rng.integers(1, 30))
         sent = [BeaconWire.build(j, 3, 0.06, tuple(rng.normal(0, 10, 3)),
                                  velocity_m_s=tuple(rng.normal(0, 2, 3)),
                                  sample_age_s=float(rng.uniform(0, 2 * hold_s)))
                 for j in range(1, n + 1)]
-        arrived = [clock.now - float(rng.uniform(0, hold_s)) for _ in sent]
-        exchange.put_beacons(list(zip(sent, arrived, strict=True)))
+        held = [float(rng.uniform(0, hold_s)) for _ in sent]
+        arrived_s = clock.now - float(rng.uniform(0, 0.02))
+        exchange.put_relay(BeaconRelayWire.build(3, zip(sent, held, strict=True)), arrived_s)
         clock.now += float(rng.uniform(0, 0.1))
         sample_age_s, flying = float(rng.uniform(0, 0.05)), rng.normal(0, 2, 3)
         beacons = exchange.beacons(5, sample_age_s, flying)
         assert sorted(beacons) == [b.sender for b in sent]
-        for b, arrived_s in zip(sent, arrived, strict=True):
-            lead = min(b.sample_age_s + (clock.now - arrived_s), hold_s)
+        for b, held_s in zip(sent, held, strict=True):
+            lead = min(b.sample_age_s + ((clock.now - arrived_s) + held_s), hold_s)
             alone = (np.asarray(b.position_m, dtype=float)
                      + lead * np.asarray(b.velocity_m_s, dtype=float) - sample_age_s * flying)
             assert beacons[b.sender] == alone.tolist()  # bit for bit
@@ -183,13 +185,11 @@ def test_realtime_reads_take_the_rings_first_and_date_beacons_from_their_arrival
     taking its own stream's rings: a beacon taken from its ring 15 ms after it arrived is
     carried forward from its arrival, not from when it was taken."""
     drains: list[str | None] = []
-    exchange = RealtimeExchange(peers(link, drains=drains))
-    exchange.beacon_latest = LatestValues(clock=(clock := Clock()))
+    exchange = RealtimeExchange(peers(link, drains=drains), clock=(clock := Clock()))
     clock.now = 10.0
-    exchange.put_beacons([
-        (BeaconWire.build(2, 3, 0.06, (1.0, 2.0, 3.0), velocity_m_s=(1, 0, 0)),
-         clock.now - 0.015),
-        (BeaconWire.build(3, 3, 0.06, (5.0, 2.0, 3.0), velocity_m_s=(1, 0, 0)), None)])
+    exchange.put_relay(BeaconRelayWire.build(3, [  # the world had held drone 2's 15 ms
+        (BeaconWire.build(2, 3, 0.06, (1.0, 2.0, 3.0), velocity_m_s=(1, 0, 0)), 0.015),
+        (BeaconWire.build(3, 3, 0.06, (5.0, 2.0, 3.0), velocity_m_s=(1, 0, 0)), 0.0)]))
     clock.now += 0.005
     beacons = exchange.beacons(4, 0.0, np.zeros(3))
     np.testing.assert_allclose(beacons[2], [1.0 + 0.020, 2.0, 3.0])
@@ -198,22 +198,21 @@ def test_realtime_reads_take_the_rings_first_and_date_beacons_from_their_arrival
     exchange.inbox(4, 0)
     assert drains == ["beacons", "consensus"]
     # An arrival stamped after now (a skewed clock) counts as now: no negative age.
-    exchange.put_beacons([(BeaconWire.build(2, 4, 0.08, (1.0, 2.0, 3.0),
-                                            velocity_m_s=(1, 0, 0)), clock.now + 1.0)])
+    exchange.put_relay(BeaconRelayWire.build(4, [(BeaconWire.build(
+        2, 4, 0.08, (1.0, 2.0, 3.0), velocity_m_s=(1, 0, 0)), 0.0)]), clock.now + 1.0)
     np.testing.assert_allclose(exchange.beacons(5, 0.0, np.zeros(3))[2], [1.0, 2.0, 3.0])
 
 
 def test_realtime_swarm_size_follows_the_drones_heard(link: AutopilotLink) -> None:
     p = peers(link, member_timeout_s=1.0)
-    exchange = RealtimeExchange(p)
-    exchange.beacon_latest = LatestValues(clock=(clock := Clock()))
-    exchange.put_beacons([(BeaconWire.build(j, 0, 0.0, (j, 0.0, 3.0)), None)
-                          for j in range(1, 6)])
+    exchange = RealtimeExchange(p, clock=(clock := Clock()))
+    exchange.put_relay(BeaconRelayWire.build(0, [(BeaconWire.build(j, 0, 0.0, (j, 0.0, 3.0)),
+                                                  0.0) for j in range(1, 6)]))
     exchange.begin(0)
     assert exchange.members == frozenset(range(6)) and p.agent.swarm_size == 6
     clock.now += 0.5
-    exchange.put_beacons([(BeaconWire.build(j, 25, 0.5, (j, 0.0, 3.0)), None)
-                          for j in (1, 2, 3)])
+    exchange.put_relay(BeaconRelayWire.build(25, [(BeaconWire.build(j, 25, 0.5, (j, 0.0, 3.0)),
+                                                   0.0) for j in (1, 2, 3)]))
     clock.now += 0.7  # 4 and 5 last heard 1.2 s ago
     exchange.begin(60)
     assert exchange.members == frozenset({0, 1, 2, 3}) and p.agent.swarm_size == 4
@@ -271,3 +270,101 @@ def test_an_unknown_mode_is_refused(link: AutopilotLink) -> None:
     assert isinstance(exchange_for("realtime", peers(link)), RealtimeExchange)
     with pytest.raises(ExchangeError, match="unknown mode 'warp'"):
         exchange_for("warp", peers(link))
+
+
+def test_realtime_keeps_the_newest_relay_whole_without_its_own_beacon(
+        link: AutopilotLink) -> None:
+    """A relay replaces the one held (it carries every drone the world has heard), unless it
+    is older; our own beacon, which comes back with everyone's, is left out."""
+    exchange = RealtimeExchange(peers(link), clock=(clock := Clock()))
+
+    def relay(step: int, held: dict[int, float]) -> BeaconRelayWire:
+        return BeaconRelayWire.build(step, [(BeaconWire.build(j, step, 0.0, (j, 0.0, 3.0)), h)
+                                            for j, h in held.items()])
+
+    exchange.put_relay(relay(5, {0: 0.0, 1: 0.25, 2: 0.5}))
+    assert exchange.beacon_ages() == {1: 0.25, 2: 0.5}
+    exchange.put_relay(relay(4, {3: 0.0}))  # older: not taken
+    clock.now += 0.5
+    assert exchange.beacon_ages() == {1: 0.75, 2: 1.0}
+    exchange.put_relay(relay(6, {1: 0.0}), arrived_s=clock.now - 0.125)
+    assert exchange.beacon_ages() == {1: 0.125}
+
+
+def test_realtime_members_are_the_drones_the_world_heard_recently(link: AutopilotLink) -> None:
+    """The relay carries every drone the world has heard, with how long it held each beacon:
+    N counts those heard within ``member_timeout_s`` (and, until that long after our first
+    step, those not heard at all yet)."""
+    p = peers(link, member_timeout_s=1.0)
+    exchange = RealtimeExchange(p, clock=(clock := Clock()))
+    exchange.put_relay(BeaconRelayWire.build(0, [
+        (BeaconWire.build(j, 0, 0.0, (j, 0.0, 3.0)), held) for j, held in
+        ((1, 0.0), (2, 0.9), (3, 1.5))]))
+    exchange.begin(0)  # 3: held too long; 4 and 5: never heard, the mission just started
+    assert exchange.members == frozenset({0, 1, 2, 4, 5}) and p.agent.swarm_size == 5
+    clock.now += 0.2  # 2 held 1.1 s by now
+    exchange.begin(10)
+    assert exchange.members == frozenset({0, 1, 4, 5})
+    clock.now += 0.9  # past the start-up allowance: the never-heard are out
+    exchange.put_relay(BeaconRelayWire.build(55, [
+        (BeaconWire.build(j, 55, 1.1, (j, 0.0, 3.0)), 0.0) for j in (1, 3)]))
+    exchange.begin(55)
+    assert exchange.members == frozenset({0, 1, 3}) and p.agent.swarm_size == 3
+
+
+def _positions_around(rng: np.random.Generator, n: int, own: np.ndarray,
+                      radius_m: float) -> np.ndarray:
+    """N positions: some inside R_ca, some just outside it and outside the margin, some at
+    exactly R_ca, one not finite."""
+    directions = rng.normal(size=(n, 3))
+    directions /= np.linalg.norm(directions, axis=1)[:, None]
+    distance = rng.choice([0.3 * radius_m, radius_m, 1.05 * radius_m, 1.5 * radius_m,
+                           4.0 * radius_m], size=n)
+    positions = own + distance[:, None] * directions
+    positions[rng.integers(n)] = [np.nan, 0.0, 3.0]
+    return positions
+
+
+def test_around_a_position_the_core_gets_every_drone_it_uses_and_no_more_work(
+        link: AutopilotLink) -> None:
+    """``beacons(..., around=p)`` in both exchanges: the QP rows the core builds from it
+    (``kernels.qp_rows``, the agent's own call) are those it builds from every drone, bit for
+    bit; the graph neighbours are there wherever they are (formation bearings), a position
+    that is not finite too (the core counts it rejected); and drones beyond R_ca + margin are
+    left out."""
+    rng = np.random.default_rng(11)
+    config = load_config(CASE1)
+    ctrl = config.control
+    radius = ctrl.collision_radius_m
+    constants = [6.0, ctrl.gamma, radius, ctrl.collision_distance_m, ctrl.collision_gain, 0.1]
+    neighbours = set(config.swarm.graph.neighbours[0])
+
+    def qp_rows(beacons: dict[int, list[float]], own: np.ndarray
+                ) -> tuple[list[float], list[float]]:  # as DroneAgent._qp_rows calls it
+        others = [beacons[j] for j in sorted(beacons)]
+        return kernels.qp_rows(np.zeros((1, kernels.ROW_SIZE)), np.zeros((1, 3)), [1.0],
+                               own.tolist(), others, [], [], constants)
+
+    left_out = 0
+    for case in range(200):
+        own = rng.normal(0.0, 3.0, 3)
+        positions = _positions_around(rng, 6, own, radius)
+        if case % 2:
+            exchange: LockstepExchange | RealtimeExchange = LockstepExchange(peers(link))
+            exchange.put_camera(frame(3, positions))
+        else:
+            exchange = RealtimeExchange(peers(link), clock=Clock())
+            exchange.put_relay(BeaconRelayWire.build(3, [  # no codec: NaN stays
+                (BeaconWire.build(j, 3, 0.06, tuple(positions[j])), 0.0) for j in range(6)]))
+        flying = np.zeros(3)
+        every = exchange.beacons(3, 0.0, flying)
+        near = exchange.beacons(3, 0.0, flying, around=own)
+        assert set(near) <= set(every) and neighbours <= set(near)
+        for j in near:  # NaN included
+            np.testing.assert_array_equal(near[j], every[j])
+        assert {j for j in every if not np.isfinite(every[j]).all()} <= set(near)
+        for j in set(every) - set(near):
+            assert np.linalg.norm(np.subtract(every[j], own)) > radius + 0.5 - 1e-9
+        left_out += len(every) - len(near)
+        assert qp_rows(near, own) == qp_rows(every, own)
+    assert left_out > 100  # the cases did leave drones out

@@ -19,7 +19,7 @@ import pytest
 
 from swarm.agent.process import AgentOptions, AgentProcess
 from swarm.core.agent import ConsensusMessage
-from swarm.messages.wire import BeaconRelayWire, BeaconWire, CameraFrameWire, RelayedBeacon
+from swarm.messages.wire import BeaconRelayWire, BeaconWire, CameraFrameWire
 from swarm.net.transport import Keys, LatestValues, open_session, zenoh_config
 from swarm.scenario.config import load_config
 from tests.helpers.process_tools import free_tcp_port
@@ -96,9 +96,8 @@ def test_lockstep_positions_of_step_k_come_with_the_camera_frame_of_step_k() -> 
     with agent_on_a_router("lockstep", "lockrelay") as (agent, router):
         keys, codec = Keys("lockrelay"), agent.codec
         forged = codec.encode(BeaconWire.build(4, 1, 0.02, (9.0, 0.0, 3.0)))
-        relay = codec.encode(BeaconRelayWire(step=1, beacons=tuple(
-            RelayedBeacon(BeaconWire.build(j, 1, 0.02, (9.0, 0.0, 3.0)), 0.0)
-            for j in range(6))))
+        relay = codec.encode(BeaconRelayWire.build(1, (
+            (BeaconWire.build(j, 1, 0.02, (9.0, 0.0, 3.0)), 0.0) for j in range(6))))
         positions = np.array([[float(j), 0.5 * j, 3.0] for j in range(6)])
         frame = codec.encode(CameraFrameWire.build(0, 1, 0.02, 1020, [],
                                                    drone_positions=positions))
@@ -128,27 +127,26 @@ def test_realtime_beacons_come_from_the_worlds_relay_dated_from_their_arrival_th
     held it), and leaves out its own; a drone's own beacon key is not listened to."""
     with agent_on_a_router("realtime", "relay") as (agent, router):
         keys, codec = Keys("relay"), agent.codec
-        relay = codec.encode(BeaconRelayWire(step=9, beacons=tuple(
-            RelayedBeacon(BeaconWire.build(j, 8, 0.16, (float(j), 0.0, 3.0)), held_s)
+        relay = codec.encode(BeaconRelayWire.build(9, (
+            (BeaconWire.build(j, 8, 0.16, (float(j), 0.0, 3.0)), held_s)
             for j, held_s in ((0, 0.0), (2, 0.004), (3, 5.0)))))
 
         def delivered() -> bool:
             router.put(keys.beacon_relay, relay)
-            return taken(agent, lambda: agent.exchange.beacon_latest.get(2) is not None)
+            return taken(agent, lambda: 2 in agent.exchange.beacon_ages())
 
         assert wait_until(delivered)
-        ages = agent.exchange.beacon_latest.ages()
+        ages = agent.exchange.beacon_ages()
         assert set(ages) == {2, 3}  # not our own
         assert ages[3] >= 5.0 and ages[2] >= 0.004 and ages[3] - ages[2] == pytest.approx(
             5.0 - 0.004, abs=0.05)
         router.put(keys.beacon(4), codec.encode(BeaconWire.build(4, 8, 0.16, (4.0, 0.0, 3.0))))
         # The next relay leaves after that beacon on the same link: once it is in, the
         # beacon would be too, had the agent listened to drone 4's key.
-        router.put(keys.beacon_relay, codec.encode(BeaconRelayWire(step=10, beacons=(
-            RelayedBeacon(BeaconWire.build(1, 9, 0.18, (1.0, 0.0, 3.0)), 0.0),))))
-        assert wait_until(lambda: taken(
-            agent, lambda: agent.exchange.beacon_latest.get(1) is not None))
-        assert agent.exchange.beacon_latest.get(4) is None
+        router.put(keys.beacon_relay, codec.encode(BeaconRelayWire.build(10, (
+            (BeaconWire.build(1, 9, 0.18, (1.0, 0.0, 3.0)), 0.0),))))
+        assert wait_until(lambda: taken(agent, lambda: 1 in agent.exchange.beacon_ages()))
+        assert 4 not in agent.exchange.beacon_ages()
         assert agent.rejections.total() == 0
 
 
@@ -158,22 +156,22 @@ def test_realtime_reads_drain_only_the_rings_of_their_stream() -> None:
     with agent_on_a_router("realtime", "streams") as (agent, router):
         keys, codec, exchange = Keys("streams"), agent.codec, agent.exchange
         drain = exchange.peers.drain
-        relay = codec.encode(BeaconRelayWire(step=9, beacons=(
-            RelayedBeacon(BeaconWire.build(2, 8, 0.16, (2.0, 0.0, 3.0)), 0.0),)))
+        relay = codec.encode(BeaconRelayWire.build(9, (
+            (BeaconWire.build(2, 8, 0.16, (2.0, 0.0, 3.0)), 0.0),)))
         message = codec.encode(consensus(1, 1, 6))
 
         def routed() -> bool:  # the subscriptions are declared at the router
             router.put(keys.beacon_relay, relay)
             router.put(keys.consensus(1), message)
             drain()
-            return (exchange.beacon_latest.get(2) is not None
+            return (2 in exchange.beacon_ages()
                     and exchange.consensus_latest.get((1, 1)) is not None)
 
         assert wait_until(routed)
         # One link, in order: once the later sample is taken, the earlier one is in its ring,
         # and only its own stream's drain takes it.
         def beacon() -> object:
-            return exchange.beacon_latest.get(2)
+            return exchange.beacon_ages().get(2)
 
         def round_1() -> object:
             return exchange.consensus_latest.get((1, 1))
@@ -184,7 +182,7 @@ def test_realtime_reads_drain_only_the_rings_of_their_stream() -> None:
                  (keys.consensus(1), message, round_1, "consensus")),
                 ((keys.consensus(1), message, round_1, "consensus"),
                  (keys.beacon_relay, relay, beacon, "beacons"))):
-            exchange.beacon_latest, exchange.consensus_latest = LatestValues(), LatestValues()
+            exchange.relay, exchange.consensus_latest = None, LatestValues()
             router.put(first_key, first)
             router.put(later_key, later)
             assert wait_until(lambda s=later_stream, t=later_taken: (drain(s), t())[1]

@@ -593,3 +593,30 @@ def test_join_native_refuses_what_is_not_two_tuples() -> None:
         kernels.join_native([np.zeros(3)], ((3,),))
     with pytest.raises(TypeError, match="shape 0 is not a tuple"):
         kernels.join_native((np.zeros(3),), ([3],))
+
+
+@pytest.mark.parametrize(("change", "error", "message"), [
+    ({"rows": [0.0] * 6}, TypeError, "rows: expected a C-contiguous float64 array"),
+    ({"rows": np.zeros(7)}, ValueError, "rows: 7 floats are not rows of 3"),
+    ({"width": 2}, ValueError, "width 2"),
+    ({"carry": [0.0] * 6}, ValueError, "width 3: expected >= 3 .8 with carry."),
+    ({"ids": [0]}, ValueError, "ids: expected None or a list of 2 ints"),
+    ({"ids": [1, -1]}, ValueError, r"ids\[1\]: drone -1 is negative"),
+    ({"around": [0.0, 0.0]}, ValueError, "around: expected 3 floats"),
+    ({"always": [1, 0]}, TypeError, "always: expected bytes"),
+])
+def test_nearby_names_what_it_was_given_wrong(change, error, message) -> None:
+    args = {"rows": np.zeros(6), "width": 3, "ids": None, "skip": 0, "carry": None,
+            "around": [0.0, 0.0, 0.0], "radius": 1.0, "always": b"\x00\x00"} | change
+    with pytest.raises(error, match=message) as err:
+        kernels.nearby(*args.values())
+    assert "\n" not in str(err.value)
+
+
+def test_nearby_keeps_the_drones_within_the_radius_the_marked_and_the_not_finite() -> None:
+    rows = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [math.nextafter(1.0, 2.0), 0.0, 0.0],
+                     [9.0, 0.0, 0.0], [np.nan, 0.0, 0.0], [7.0, 0.0, 0.0]])
+    got = kernels.nearby(rows, 3, None, 0, None, [0.0, 0.0, 0.0], 1.0, b"\x00\x00\x00\x01")
+    assert list(got) == [1, 3, 4] and got[1] == [1.0, 0.0, 0.0]  # 5: past the marks
+    assert kernels.nearby(rows, 3, [5, 4, 3, 2, 1, 0], 0, None, None, 1.0, b"").keys() == {
+        5, 4, 3, 2, 1}

@@ -16,7 +16,6 @@ from swarm.messages.wire import (
     BeaconWire,
     CameraFrameWire,
     ClockWire,
-    RelayedBeacon,
     TelemetryCounters,
     TelemetryWire,
     TruthWire,
@@ -83,11 +82,10 @@ def valid_messages() -> dict[str, object]:
         "consensus_round": consensus_to_wire(consensus_message(round_=2)),
         "beacon": BeaconWire.build(5, 3, 0.06, [-0.0, 5e-324, 1.7976931348623157e308],
                                    vehicle_time_ms=0xFFFF_FFFF),
-        "beacons": BeaconRelayWire(step=11, beacons=(
-            RelayedBeacon(BeaconWire.build(1, 10, 0.2, [-0.0, 5e-324, 2.0],
-                                           velocity_m_s=(0.5, -0.0, 0.0), sample_age_s=0.003,
-                                           vehicle_time_ms=77), 0.0125),
-            RelayedBeacon(BeaconWire.build(4, 9, 0.18, [1.0, 2.0, 3.0]), 0.0))),
+        "beacons": BeaconRelayWire.build(11, (
+            (BeaconWire.build(1, 10, 0.2, [-0.0, 5e-324, 2.0], velocity_m_s=(0.5, -0.0, 0.0),
+                              sample_age_s=0.003, vehicle_time_ms=77), 0.0125),
+            (BeaconWire.build(4, 9, 0.18, [1.0, 2.0, 3.0]), 0.0))),
         "beacons_none": BeaconRelayWire(step=0),
         "camera": CameraFrameWire.build(2, 9, 0.18, 123456,
                               [Detection(1, np.array([-0.0, 0.1 + 0.2])),

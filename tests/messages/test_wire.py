@@ -24,7 +24,6 @@ from swarm.messages.wire import (
     ConsensusWire,
     DetectionWire,
     F64Array,
-    RelayedBeacon,
     TelemetryCounters,
     TelemetryWire,
     TruthWire,
@@ -209,7 +208,7 @@ def test_non_finite_values_are_rejected(bad: float) -> None:
         ("beacon", msgspec.structs.replace(MESSAGES["beacon"], position_m=(0.0, bad, 1.0))),
         ("beacon", msgspec.structs.replace(MESSAGES["beacon"], time_s=bad)),
         ("beacons", relayed((2, bad))),
-        ("beacons", BeaconRelayWire(step=3, beacons=(RelayedBeacon(msgspec.structs.replace(
+        ("beacons", BeaconRelayWire.build(3, ((msgspec.structs.replace(
             MESSAGES["beacon"], position_m=(bad, 0.0, 0.0)), 0.0),))),
         ("camera", msgspec.structs.replace(MESSAGES["camera"],
                                            detections=(DetectionWire(0, bad, 0.0),))),
@@ -283,9 +282,8 @@ def test_wrong_shapes_and_lengths_are_rejected() -> None:
 
 def relayed(*entries: tuple[int, float]) -> BeaconRelayWire:
     """A relay of these (sender, held_s): no codec involved, so it may break the rules."""
-    return BeaconRelayWire(step=3, beacons=tuple(
-        RelayedBeacon(BeaconWire.build(sender, 2, 0.04, (0.0, 0.0, 3.0)), held)
-        for sender, held in entries))
+    return BeaconRelayWire.build(3, (
+        (BeaconWire.build(sender, 2, 0.04, (0.0, 0.0, 3.0)), held) for sender, held in entries))
 
 
 def test_ids_steps_and_rounds_are_range_checked() -> None:
@@ -315,12 +313,17 @@ def test_ids_steps_and_rounds_are_range_checked() -> None:
          "flying"),
         (CODEC.decode_clock, msgspec.structs.replace(MESSAGES["clock"], mode="fast"), "fast"),
         (CODEC.decode_beacon, msgspec.structs.replace(MESSAGES["beacon"], sender=True), "int"),
-        # The world's relay: each beacon's rules, each drone once, at most N, held ≥ 0.
-        (CODEC.decode_beacon_relay, relayed((9, 0.0)), "beacons[0].beacon.sender 9 out of range"),
+        # The world's relay: each drone once, at most N, ages ≥ 0, one row per sender.
+        (CODEC.decode_beacon_relay, relayed((9, 0.0)), "sender 9 out of range"),
         (CODEC.decode_beacon_relay, relayed((1, 0.0), (1, 0.5)), "sender 1 appears twice"),
-        (CODEC.decode_beacon_relay, relayed((2, -0.001)), "beacons[0].held_s must be >= 0"),
+        (CODEC.decode_beacon_relay, relayed((2, -0.001)), "negative sample age or held time"),
         (CODEC.decode_beacon_relay, relayed(*((j % N, 0.0) for j in range(N + 1))),
          "more than this swarm's 6 drones"),
+        (CODEC.decode_beacon_relay, msgspec.structs.replace(
+            relayed((1, 0.0), (2, 0.0)), senders=b"\x01\x00\x02"), "not 2 per drone id"),
+        (CODEC.decode_beacon_relay, msgspec.structs.replace(
+            relayed((1, 0.0), (2, 0.0)), senders=b"\x01\x00"),
+         "data carries 128 bytes, expected 64 for 1 senders"),
     ]
     for decode, message, needle in cases:
         assert needle in reason_of(decode, raw(message)), needle

@@ -17,7 +17,7 @@ import pytest
 import sim_world.world as world_module
 from sim_world.world import CLOCK_PERIOD_S, World, WorldOptions
 from swarm.launch.launcher import free_tcp_port, reserve_mavlink_base
-from swarm.messages.wire import BeaconWire
+from swarm.messages.wire import RELAY_HELD, RELAY_POSITION, BeaconWire
 from swarm.net.transport import open_session, zenoh_config
 from swarm.scenario.config import load_config
 
@@ -247,11 +247,11 @@ def test_a_realtime_world_relays_every_drones_newest_beacon_and_how_long_it_held
         first, second = (made.codec.decode_beacon_relay(payload) for payload, _ in heard)
         assert all(stamped for _, stamped in heard)
         assert (first.step, second.step) == (9, 10)
-        assert [(e.beacon.sender, e.beacon.position_m[0]) for e in first.beacons] == [
-            (1, 1.5), (4, 4.0)]
+        assert first.sender_ids().tolist() == [1, 4]
+        assert first.rows()[:, RELAY_POSITION].tolist() == [[1.5, 0.0, 3.0], [4.0, 0.0, 3.0]]
         (start1, end1), (start2, end2) = relays
-        for a, b in zip(first.beacons, second.beacons, strict=True):
-            assert start2 - end1 <= b.held_s - a.held_s <= end2 - start1
+        for a, b in zip(first.rows()[:, RELAY_HELD], second.rows()[:, RELAY_HELD], strict=True):
+            assert start2 - end1 <= b - a <= end2 - start1
         assert made.rejections.total() == 0
 
 
