@@ -62,7 +62,6 @@ from swarm.messages.wire import (
     BeaconWire,
     CameraFrameWire,
     ClockWire,
-    RelayedBeacon,
     TelemetryWire,
     WireCodec,
 )
@@ -116,9 +115,8 @@ def _beacon_bases(codec: WireCodec, n: int) -> list[bytes]:
 def _relay_bases(codec: WireCodec, n: int) -> list[bytes]:
     beacons = [BeaconWire.build(j, 9, 0.18, (j, -1.0, 3.5), velocity_m_s=(0.1, 0.2, -0.1),
                                 sample_age_s=0.01) for j in range(n)]
-    return [codec.encode(BeaconRelayWire(step=9, beacons=tuple(
-        RelayedBeacon(b, 0.001 * j) for j, b in enumerate(beacons[:count]))))
-        for count in (1, n)]
+    return [codec.encode(BeaconRelayWire.build(9, (
+        (b, 0.001 * j) for j, b in enumerate(beacons[:count])))) for count in (1, n)]
 
 
 def _clock_bases(codec: WireCodec) -> list[bytes]:
