@@ -22,8 +22,8 @@ their vehicles report, as their beacons would carry them): deterministic (equal 
 in-process reference bit for bit).
 ``RealtimeExchange``: a loop on the wall clock with the newest of everything, each drone's
 at its own phase after the world's tick (``loop_phase_s``); neighbour data older than
-``runtime.stale_timeout_s`` is left out and counted; N follows the drones heard within
-``runtime.member_timeout_s``.
+``runtime.stale_timeout_s`` is left out and counted; N follows the drones the world's relay
+says it heard within ``runtime.member_timeout_s``.
 """
 
 from __future__ import annotations
@@ -91,6 +91,7 @@ class Vicinity:
         n = peers.config.swarm.n_drones
         self.radius_m = peers.config.control.collision_radius_m + VICINITY_MARGIN_M
         self.always = bytes(j in peers.neighbours for j in range(n))
+
 
 class Exchange(Protocol):
     """The mode of an agent's exchange (module docstring)."""
