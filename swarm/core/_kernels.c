@@ -1335,7 +1335,8 @@ py_consensus_step(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
 
 enum { CARRY_RELAY_AGE, CARRY_SAMPLE_AGE, CARRY_FLYING, CARRY_HOLD = CARRY_FLYING + 3,
        N_CARRY };
-/* BeaconRelayWire's columns: position (3), velocity (3), sample age, held. */
+/* BeaconRelayWire's columns: position (3), velocity (3), sample age, held. The wire takes
+ * them from here (swarm.messages.wire.RELAY_*): one statement of the layout. */
 enum { RELAY_VELOCITY = 3, RELAY_SAMPLE_AGE = 6, RELAY_HELD = 7, RELAY_WIDTH = 8 };
 
 PyDoc_STRVAR(nearby_doc,
@@ -1471,7 +1472,10 @@ PyInit__kernels(void)
             || PyModule_AddIntConstant(mod, "BARRIER_SIZE", N_BARRIER) < 0
             || PyModule_AddIntConstant(mod, "SMOOTH_MIN_SIZE", N_SMOOTH) < 0
             || PyModule_AddIntConstant(mod, "CONSTANTS_SIZE", N_CONSTANTS) < 0
-            || PyModule_AddIntConstant(mod, "MAX_STATE", MAX_STATE) < 0) {
+            || PyModule_AddIntConstant(mod, "MAX_STATE", MAX_STATE) < 0
+            || PyModule_AddIntConstant(mod, "RELAY_SAMPLE_AGE", RELAY_SAMPLE_AGE) < 0
+            || PyModule_AddIntConstant(mod, "RELAY_HELD", RELAY_HELD) < 0
+            || PyModule_AddIntConstant(mod, "RELAY_WIDTH", RELAY_WIDTH) < 0) {
         Py_DECREF(mod);
         return NULL;
     }

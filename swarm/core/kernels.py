@@ -215,6 +215,11 @@ consensus_step = _kernels.consensus_step
 # ``tests/agent/test_exchange.py`` binds it to each relayed beacon's carry-forward formula
 # computed alone, bit for bit, and to the QP rows the core builds from every drone.
 nearby = _kernels.nearby
+# The columns of a BeaconRelayWire row that ``nearby`` reads (after position 0-2 and velocity
+# 3-5): the wire's layout is these (``swarm.messages.wire.RELAY_*``).
+RELAY_SAMPLE_AGE: int = _kernels.RELAY_SAMPLE_AGE
+RELAY_HELD: int = _kernels.RELAY_HELD
+RELAY_WIDTH: int = _kernels.RELAY_WIDTH
 
 
 def filter_stack(information: Array, vector: Array, transition: Array, process_noise: float,

@@ -43,6 +43,7 @@ import msgspec
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from swarm.core import kernels
 from swarm.core.agent import Detection, StepDiagnostics
 from swarm.core.consensus_message import (
     STATE_NAMES,
@@ -231,12 +232,12 @@ class BeaconWire(_Wire, tag="beacon", kw_only=True):
 
 
 # A relayed beacon's row in ``BeaconRelayWire.data``: position (3), velocity (3), the
-# sample's age when the drone sent it, and how long the world had held it when the relay left.
+# sample's age when the drone sent it, and how long the world had held it when the relay left
+# (the compiled reader's layout, ``kernels.nearby``, stated once there).
 RELAY_POSITION: Final = slice(0, 3)
-RELAY_VELOCITY: Final = slice(3, 6)
-RELAY_SAMPLE_AGE: Final = 6
-RELAY_HELD: Final = 7
-RELAY_WIDTH: Final = 8
+RELAY_SAMPLE_AGE: Final = kernels.RELAY_SAMPLE_AGE
+RELAY_HELD: Final = kernels.RELAY_HELD
+RELAY_WIDTH: Final = kernels.RELAY_WIDTH
 _LE_U16: Final = np.dtype("<u2")
 
 
