@@ -16,8 +16,10 @@ thing (``follow_parent``), from two environment variables the launcher sets
   (why: ``swarm.launch.launcher``).
 
 Both variables are taken out of the child's environment, so nothing the child starts inherits
-them. A process started by hand (no variables) is left alone. No imports from the rest of the
-project but ``swarm.errors``: the agent calls this before its imports.
+them. A process started by hand (no variables) is left alone. ``child_environment`` also
+makes a Python child import the launcher's own code (``code_path``), wherever the launcher
+was started. No imports from the rest of the project but ``swarm.errors``: the agent calls
+this before its imports.
 """
 
 from __future__ import annotations
@@ -26,14 +28,17 @@ import contextlib
 import ctypes
 import os
 import signal
+import site
 import sys
 from collections.abc import Mapping
+from pathlib import Path
 
 from swarm.errors import EXIT_FAILED
 
 PARENT_PID_VARIABLE = "VIGIL_PARENT_PID"
 SCHED_BATCH_VARIABLE = "VIGIL_SCHED_BATCH"
 PR_SET_PDEATHSIG = 1
+CODE_ROOT = Path(__file__).resolve().parents[1]  # holds swarm/ (and sim_world/ beside it)
 
 
 def die_with_parent() -> None:
@@ -45,13 +50,33 @@ def die_with_parent() -> None:
 
 def child_environment(base: Mapping[str, str], *, parent_pid: int,
                       sched_batch: bool) -> dict[str, str]:
-    """``base`` plus what ``follow_parent`` reads in the child."""
+    """``base`` plus what ``follow_parent`` reads in the child, and the path of the code
+    the parent runs (``code_path``)."""
     env = dict(base)
     env[PARENT_PID_VARIABLE] = str(parent_pid)
     env.pop(SCHED_BATCH_VARIABLE, None)
     if sched_batch:
         env[SCHED_BATCH_VARIABLE] = "1"
+    env.update(code_path(base))
     return env
+
+
+def code_path(base: Mapping[str, str]) -> dict[str, str]:
+    """The variables that make a Python child (``python -m swarm.agent.cli`` …) import the
+    code this process runs. ``python -m`` puts the working directory first on the path, so a
+    launcher started in another checkout (or anywhere a ``swarm/`` folder lies) gave its
+    children that other code: side-by-side benchmark runs of two commits from one directory
+    measured the same code twice. ``PYTHONSAFEPATH`` leaves the working directory out, and the
+    directory that holds this package goes first on ``PYTHONPATH`` (unless it is a
+    site-packages directory, where the child finds the installed package anyway)."""
+    root = str(CODE_ROOT)
+    paths = [p for p in base.get("PYTHONPATH", "").split(os.pathsep) if p]
+    if root not in site.getsitepackages() and (not paths or paths[0] != root):
+        paths = [root, *paths]
+    out = {"PYTHONSAFEPATH": "1"}
+    if paths:
+        out["PYTHONPATH"] = os.pathsep.join(paths)
+    return out
 
 
 def follow_parent(prog: str) -> None:

@@ -9,9 +9,11 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import pytest
 
+import swarm
 from swarm.children import (
     PARENT_PID_VARIABLE,
     SCHED_BATCH_VARIABLE,
@@ -111,3 +113,25 @@ def test_a_child_dies_with_its_launcher_killed_by_sigkill() -> None:
         launcher.kill()
         if pid is not None and alive(pid):
             os.kill(pid, signal.SIGKILL)
+
+
+def test_a_child_runs_the_launchers_code_whatever_its_working_directory(
+        tmp_path: Path) -> None:
+    """A launcher started in another checkout: ``python -m`` would import that directory's
+    ``swarm`` in the child (here a decoy that says so), not the code the launcher runs."""
+    decoy = tmp_path / "swarm"
+    decoy.mkdir()
+    (decoy / "__init__.py").write_text("raise SystemExit('the decoy swarm was imported')\n")
+    (decoy / "errors.py").write_text("")
+    probe = [sys.executable, "-m", "swarm.errors"]
+    plain = subprocess.run(probe, cwd=tmp_path, env=dict(os.environ), capture_output=True,
+                           text=True, timeout=60)
+    assert "the decoy swarm was imported" in plain.stderr  # what the fix is for
+    env = child_environment(os.environ, parent_pid=os.getpid(), sched_batch=False)
+    where = subprocess.run([sys.executable, "-c", "import swarm; print(swarm.__file__)"],
+                           cwd=tmp_path, env=env, capture_output=True, text=True, timeout=60)
+    assert where.returncode == 0, where.stderr
+    assert Path(where.stdout.strip()) == Path(swarm.__file__).resolve()
+    assert env["PYTHONSAFEPATH"] == "1"
+    again = child_environment(env, parent_pid=os.getpid(), sched_batch=False)
+    assert again["PYTHONPATH"] == env.get("PYTHONPATH")  # not prepended twice
