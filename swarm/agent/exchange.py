@@ -4,7 +4,7 @@
 the publishers, the checks on who sent what) and runs one step the same way in every mode
 (``AgentProcess.step``). What a mode decides is here, behind ``Exchange``:
 
-* how messages are received and kept (``direct``, ``ring``, ``sent_times``) and stored
+* how messages are received and kept (``receiving``, ``sent_times``) and stored
   (``put_camera``, ``put_consensus``, and with ``relayed_beacons`` ``put_relay``: the world's
   relay, ``world/beacons``, which carries every drone's beacon packed in one message, kept
   whole as arrays);
@@ -16,7 +16,8 @@ the publishers, the checks on who sent what) and runs one step the same way in e
   starts (``announce``) and the loop that paces the steps (``run``).
 
 ``LockstepExchange``: step k waits for the camera frame of step k, the position sample
-stamped with that frame's ``vehicle_time_ms`` and every neighbour's round messages; the other
+stamped with that frame's ``vehicle_time_ms`` and every neighbour's round messages (taken
+by the step's own thread from a FIFO per neighbour, ``DrainedSubscriber.receive_one``); the other
 drones' positions of step k come with the frame (``CameraFrameWire.drone_positions``: what
 their vehicles report, as their beacons would carry them): deterministic (equal to the
 in-process reference bit for bit).
@@ -30,9 +31,9 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Literal, Protocol
+from typing import Any, Literal, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -43,14 +44,31 @@ from swarm.errors import UsageError
 from swarm.mavlink.link import AutopilotLink, LinkError, PositionSample
 from swarm.messages.wire import RELAY_HELD, RELAY_WIDTH, BeaconRelayWire, CameraFrameWire
 from swarm.net.rate import RateLimiter
-from swarm.net.transport import LatestValues, StepMailbox
+from swarm.net.transport import BlockingReceives, DrainedSubscriber, LatestValues, StepMailbox
 from swarm.scenario.config import ScenarioConfig
 
 Mode = Literal["lockstep", "realtime"]
+# What an agent subscribes to: its camera frames, the world's clock, the world's beacon relay
+# (realtime) and each neighbour's consensus messages.
+Stream = Literal["camera", "clock", "beacons", "consensus"]
 # ``beacons(..., around=p)`` hands the core the drones within R_ca plus this of p: the core
 # applies R_ca itself (``kernels.qp_rows``), so the margin only has to cover rounding [m].
 VICINITY_MARGIN_M = 0.5
 WAIT_SLICE_S = 0.25  # lockstep waits wake at least this often to check their deadline
+# A lockstep agent sends its telemetry this many steps at a time (``TelemetryBatchWire``):
+# every message costs a put, the router's forwarding and the observer's receiving, and the
+# steps come every ~3 ms of wall time. Case 2, lockstep, 20 s, side by side: telemetry
+# once per step cost ~11 % of the real-time factor (6.5× against 7.2× with none);
+# LOCKSTEP_TELEMETRY_STEPS = 10 keeps every step's message and holds it at most ~30 ms.
+LOCKSTEP_TELEMETRY_STEPS = 10
+# A lockstep neighbour is never more than a step ahead (step k + 1 needs every setpoint of
+# step k): its FIFO holds at most two steps of its messages. But anything on its key waits
+# there until the step's next wait for it, which takes it (and decodes, and counts a junk
+# payload) on the way to the neighbour's message; a full FIFO would hold up the session's
+# receiving, the camera frame included, until then. So the bound is only against runaway
+# memory (a FIFO allocates as samples wait): a bound of 32 stalled the fuzz test's swarm
+# under 10 000 junk payloads per key, which now wait and are counted a step later.
+LOCKSTEP_CONSENSUS_BACKLOG = 1 << 16
 FIRST_FRAME_POLL_S = 0.01  # realtime, before the mission: how often the rings are looked at
 
 # One step of the agent: (step, the vehicle's position sample, the camera frame or None, the
@@ -96,16 +114,17 @@ class Vicinity:
 class Exchange(Protocol):
     """The mode of an agent's exchange (module docstring)."""
 
-    direct: bool  # subscription callbacks on zenoh's thread (True) or a thread of their own
     relayed_beacons: bool  # the others' positions come in the world's relay (put_relay)
     block_consensus: bool  # a consensus put waits for room (True) or drops (False)
     sent_times: bool  # read each consensus message's Zenoh timestamp (neighbour age)
+    telemetry_steps: int  # steps of telemetry per message (AgentProcess sends them together)
     late_steps: int
     unpaired_frames: int
     stale_messages: int
     neighbour_age_ms: float
 
-    def ring(self, per_step: int) -> int | None: ...
+    def receiving(self, stream: Stream, per_step: int) -> dict[str, Any]: ...
+    def attach_consensus(self, subscribers: Mapping[int, DrainedSubscriber]) -> None: ...
     def put_camera(self, frame: CameraFrameWire) -> None: ...
     def put_consensus(self, msg: ConsensusMessage, arrived_s: float | None = None) -> None: ...
     def consensus_sent(self, msg: ConsensusMessage, sent_unix_s: float) -> None: ...
@@ -124,22 +143,41 @@ class Exchange(Protocol):
 class LockstepExchange:
     """Everything keyed by (step, round), waited for (module docstring)."""
 
-    # Direct callbacks: every step waits on them, and each only decodes and stores.
-    direct = True
     relayed_beacons = False  # the camera frame of step k carries every drone's position
     block_consensus = True  # peers wait for every message
     sent_times = False  # lockstep reports no neighbour age: its hot path skips them
+    telemetry_steps = LOCKSTEP_TELEMETRY_STEPS
 
     def __init__(self, peers: Peers) -> None:
         self.peers = peers
         self.vicinity = Vicinity(peers)
         self.camera_steps: StepMailbox[CameraFrameWire] = StepMailbox()
         self.consensus_steps: StepMailbox[ConsensusMessage] = StepMailbox()
+        self._neighbour_order = sorted(peers.neighbours)
+        self._consensus_from: dict[int, DrainedSubscriber] = {}
+        self._receives: BlockingReceives | None = None  # attach_consensus
+        self._closed = False
         self.late_steps = self.unpaired_frames = self.stale_messages = 0
         self.neighbour_age_ms = math.nan
 
-    def ring(self, per_step: int) -> int | None:
-        return None  # every message is kept until its step is taken
+    def receiving(self, stream: Stream, per_step: int) -> dict[str, Any]:
+        """Consensus: a FIFO per neighbour inside zenoh, from which the step's thread takes
+        messages while it waits for them (``inbox``). Everything else: a callback on zenoh's
+        receiving thread that only decodes and stores (the frame, which the camera's wait
+        and the start wait on; the clock, which must end any wait)."""
+        if stream == "consensus":
+            return {"backlog": LOCKSTEP_CONSENSUS_BACKLOG}
+        return {"direct": True}
+
+    def attach_consensus(self, subscribers: Mapping[int, DrainedSubscriber]) -> None:
+        """The neighbours' consensus FIFOs (``receiving("consensus", ...)``), by neighbour."""
+        if set(subscribers) != self.peers.neighbours:
+            raise ExchangeError(f"consensus subscriptions for {sorted(subscribers)}, expected "
+                                f"the neighbours {sorted(self.peers.neighbours)}")
+        self._consensus_from = dict(subscribers)
+        self._receives = BlockingReceives(subscribers.values(), check_period_s=WAIT_SLICE_S)
+        if self._closed:
+            self._receives.close()
 
     def put_camera(self, frame: CameraFrameWire) -> None:
         self.camera_steps.put(frame.step, 0, 0, frame)
@@ -155,8 +193,12 @@ class LockstepExchange:
                             "camera frame, not from a relay of beacons")
 
     def close(self) -> None:
+        """End every wait now and for good (the mission is over, or the process closes)."""
+        self._closed = True
         for mailbox in (self.camera_steps, self.consensus_steps):
             mailbox.close()
+        if self._receives is not None:
+            self._receives.close()
 
     def announce(self) -> PositionSample | None:
         return None  # the world steps every vehicle of its own; nobody waits to hear us
@@ -168,8 +210,32 @@ class LockstepExchange:
         return None  # N is the configured swarm
 
     def inbox(self, step: int, rnd: int) -> dict[int, ConsensusMessage]:
-        return self._wait(self.consensus_steps, step, rnd, self.peers.neighbours,
-                          f"round-{rnd} consensus")
+        """Every neighbour's message of (step, round), taken from its FIFO in arrival order
+        (a message of a later round or step is kept for its own inbox)."""
+        what = f"round-{rnd} consensus"
+        mailbox, wanted = self.consensus_steps, self.peers.neighbours
+        if self._receives is None:
+            raise ExchangeError("attach_consensus first: a lockstep inbox takes the "
+                                "neighbours' messages from their subscriptions")
+        mailbox.prune(step)
+        timeout_s = self.peers.config.runtime.lockstep_timeout_s
+        self._receives.arm(time.monotonic() + timeout_s)
+        try:
+            while True:
+                got = mailbox.get(step, rnd)
+                missing = [j for j in self._neighbour_order if j not in got]
+                if not missing:
+                    return {j: got[j] for j in wanted}
+                if self._consensus_from[missing[0]].receive_one():
+                    continue
+                self.peers.check_clock()  # the mission ended: that is why
+                if self._receives.expired:
+                    raise LinkError(f"drone {self.peers.drone_id}: step {step}: no {what} "
+                                    f"from {missing} within {timeout_s} s")
+                raise LinkError(f"drone {self.peers.drone_id}: step {step}: the exchange "
+                                f"closed while waiting for {what} from {missing}")
+        finally:
+            self._receives.arm(None)
 
     def beacons(self, step: int, sample_age_s: float, flying: np.ndarray, *,
                 around: np.ndarray | None = None) -> dict[int, list[float]]:
@@ -218,7 +284,7 @@ class LockstepExchange:
 class RealtimeExchange:
     """The newest of everything, on the wall clock (module docstring)."""
 
-    # Samples wait in bounded rings inside zenoh (``ring``: a few steps' worth of every
+    # Samples wait in bounded rings inside zenoh (``receiving``: a few steps' worth of every
     # source; no Python, no GIL) and the loop takes them where it reads them (``drain``: every
     # ring at each tick, the consensus rings before each round's inbox and the relay's before
     # the beacons; an empty ring's drain costs ~10 µs of a cold loop), so receiving never
@@ -227,10 +293,10 @@ class RealtimeExchange:
     # 44 % with a thread per ring against 7 % drained here). Zenoh's own unbounded queue
     # grew by ~300 kB/s per agent on an overloaded machine (Case 2 at N = 24) while the
     # agents fell ever further behind.
-    direct = False
     relayed_beacons = True
     block_consensus = False  # the newest message is what counts: drop when the queue is full
     sent_times = True
+    telemetry_steps = 1  # live: each step's as it is made
 
     def __init__(self, peers: Peers, *, clock: Callable[[], float] = time.monotonic) -> None:
         self.peers = peers
@@ -253,8 +319,11 @@ class RealtimeExchange:
         self._first_step_s: float | None = None
         self._last_setpoint_s: float | None = None  # monotonic s
 
-    def ring(self, per_step: int) -> int | None:
-        return 4 * per_step
+    def receiving(self, stream: Stream, per_step: int) -> dict[str, Any]:
+        return {"keep_latest": 4 * per_step}  # rings of a few steps' worth, every stream
+
+    def attach_consensus(self, subscribers: Mapping[int, DrainedSubscriber]) -> None:
+        return None  # their rings are drained by the loop (Peers.drain)
 
     def put_camera(self, frame: CameraFrameWire) -> None:
         return None  # the loop reads the newest frame (``Peers.camera_latest``)

@@ -122,6 +122,7 @@ class AgentProcess:
         self.clock: LatestValues[ClockWire] = LatestValues()
         self.qp_failures = QpFailureLog(options.log, options.qp_dump_dir)
         self.steps_run = 0
+        self._telemetry_waiting: list[bytes] = []  # encoded, not sent yet (_queue_telemetry)
         self._flying = np.zeros(3)  # the velocity setpoint last sent (what the vehicle flies)
         # vehicles.setpoints = "tracked": the reference the setpoints follow, and when the
         # last one went out (monotonic s; realtime measures Δt_k, lockstep uses ΔT).
@@ -151,27 +152,25 @@ class AgentProcess:
         except BaseException:
             self.link.close()
             raise
-        # How callbacks run and what they keep is the exchange's (``Exchange.direct``,
-        # ``ring``). Our own beacon never comes back to us.
-        direct, ring, rounds = exchange.direct, exchange.ring, self.agent.n_rounds
+        # How each stream is received and kept is the exchange's (``Exchange.receiving``).
+        # Our own beacon never comes back to us.
+        receiving, rounds = exchange.receiving, self.agent.n_rounds
         subs = [
             subscribe(self.session, self.keys.camera(self.id), self.codec.decode_camera,
-                      self._on_camera, self.rejections, "camera", direct=direct,
-                      keep_latest=ring(1)),
+                      self._on_camera, self.rejections, "camera", **receiving("camera", 1)),
             subscribe(self.session, self.keys.clock, self.codec.decode_clock,
-                      self._on_clock, self.rejections, "clock", direct=direct,
-                      keep_latest=ring(1)),
+                      self._on_clock, self.rejections, "clock", **receiving("clock", 1)),
         ]
         relay = [subscribe(
             self.session, self.keys.beacon_relay, self.codec.decode_beacon_relay,
-            self._on_beacon_relay, self.rejections, "beacon relay", direct=direct,
-            keep_latest=ring(1))] if exchange.relayed_beacons else []
+            self._on_beacon_relay, self.rejections, "beacon relay",
+            **receiving("beacons", 1))] if exchange.relayed_beacons else []
         consensus = [subscribe(self.session, self.keys.consensus(j), self.codec.decode_consensus,
-                               self._on_consensus, self.rejections, "consensus", direct=direct,
+                               self._on_consensus, self.rejections, "consensus",
                                on_sent_time=exchange.consensus_sent if exchange.sent_times
-                               else None,
-                               keep_latest=ring(rounds))
+                               else None, **receiving("consensus", rounds))
                      for j in sorted(self.neighbours)]
+        exchange.attach_consensus(dict(zip(sorted(self.neighbours), consensus, strict=True)))
         self._subscribers = subs = subs + relay + consensus
 
         def rings(group: list) -> list[DrainedSubscriber]:
@@ -335,8 +334,7 @@ class AgentProcess:
         self._send_command(result.velocity, position, vehicle_velocity, stamp)
         self._flying = result.velocity
         self._watch_localization(result.diagnostics)
-        self._send(
-            self._pub_telemetry, self.codec.encode_telemetry,
+        self._queue_telemetry(
             result.diagnostics, position, qp_fallbacks=agent.qp_fallbacks,
             rejected_messages=agent.rejected_inputs + self.rejections.total()
             + self.link.rejected_frames,
@@ -355,6 +353,25 @@ class AgentProcess:
             first_lambda_breach_s=self.localization.first_breach_s,
             localization_status=self.localization.status())
         self._watch_vehicle(step, sample_age_s)
+
+    def _queue_telemetry(self, *args, **kwargs) -> None:
+        """This step's telemetry (``codec.encode_telemetry``'s arguments), sent once the
+        exchange's ``telemetry_steps`` of them are waiting."""
+        payload = self._encode(self.codec.encode_telemetry, *args, **kwargs)
+        if payload is None:
+            return
+        self._telemetry_waiting.append(payload)
+        if len(self._telemetry_waiting) >= self.exchange.telemetry_steps:
+            self._flush_telemetry()
+
+    def _flush_telemetry(self) -> None:
+        """Send the telemetry waiting: one step as its own ``TelemetryWire``, several as a
+        ``TelemetryBatchWire``."""
+        waiting, self._telemetry_waiting = self._telemetry_waiting, []
+        if len(waiting) > 1:
+            self._send(self._pub_telemetry, self.codec.encode_telemetry_batch, waiting)
+        elif waiting:
+            self._pub_telemetry.put(waiting[0])
 
     def _vehicle_status(self) -> str:
         problem = self.watch.problem
@@ -438,6 +455,10 @@ class AgentProcess:
         try:
             return self._run()
         finally:
+            try:
+                self._flush_telemetry()  # the steps still waiting: nothing run goes unsent
+            except Exception as err:  # the session may be what failed: still end the mission
+                self.options.log(f"drone {self.id}: last telemetry not sent: {err}")
             self.link.end_mission(self.options.config.vehicles.end_action)
             for line in self.rejections.lines():
                 self.options.log(f"drone {self.id}: rejected {line}")
@@ -476,6 +497,7 @@ class AgentProcess:
         return EXIT_OK
 
     def close(self) -> None:
+        self.exchange.close()  # ends its waits, and the thread that ends them
         for sub in self._subscribers:
             sub.undeclare()
         self.link.close()

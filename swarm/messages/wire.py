@@ -33,6 +33,7 @@ which convert and encode in one call.
 from __future__ import annotations
 
 import functools
+import itertools
 import math
 import operator
 import sys
@@ -78,13 +79,16 @@ _W = TypeVar("_W")
 #    relay that no longer comes.
 # 7: telemetry packs its arrays in one block (TelemetryWire.data, with n_targets and n_state).
 # 8: the beacon relay is packed (BeaconRelayWire.senders, .data): no struct per drone.
-WIRE_VERSION: Final = 8
+# 9: a lockstep agent sends its telemetry a few steps at a time (TelemetryBatchWire): an
+#    observer of an older build would reject the batches.
+WIRE_VERSION: Final = 9
 
 MAX_DRONES: Final = 1024  # codec limits: a swarm larger than this is a configuration error
 MAX_TARGETS: Final = 1024
 MAX_STATE: Final = 64
 MAX_LABEL_CHARS: Final = 64  # qp_status, mavlink_state
 MAX_TEXT_CHARS: Final = 512  # ClockWire.detail
+MAX_TELEMETRY_BATCH: Final = 64  # TelemetryBatchWire.items
 DEFAULT_MAX_PAYLOAD_BYTES: Final = 1 << 20  # nothing this swarm sends comes close to 1 MiB
 
 ClockState = Literal["waiting", "running", "done", "aborted"]
@@ -597,12 +601,22 @@ def _pack_telemetry(arrays: tuple[Any, ...]) -> tuple[int, int, bytes]:
     return m, n, b"".join(chunks)
 
 
+class TelemetryBatchWire(_Wire, tag="telemetry_batch", kw_only=True):
+    """Consecutive steps of one agent's telemetry in one message on ``agent/<i>/telemetry``
+    (a lockstep agent: ``Exchange.telemetry_steps``): each item is the bytes of one
+    ``TelemetryWire``, checked as that message is on its own (``WireCodec.
+    decode_telemetry_items``); every item is the same drone's, in increasing steps."""
+
+    items: Annotated[list[msgspec.Raw], msgspec.Meta(min_length=1,
+                                                     max_length=MAX_TELEMETRY_BATCH)]
+
+
 WireMessage = (ConsensusWire | BeaconWire | BeaconRelayWire | CameraFrameWire | TruthWire
-               | ClockWire | TelemetryWire)
+               | ClockWire | TelemetryWire | TelemetryBatchWire)
 _KINDS: Final[dict[type, str]] = {
     ConsensusWire: "consensus", BeaconWire: "beacon", BeaconRelayWire: "beacons",
     CameraFrameWire: "camera", TruthWire: "truth", ClockWire: "clock",
-    TelemetryWire: "telemetry",
+    TelemetryWire: "telemetry", TelemetryBatchWire: "telemetry_batch",
 }
 
 
@@ -867,6 +881,7 @@ class WireCodec:
         self._decoders: dict[type, msgspec.msgpack.Decoder[Any]] = {
             cls: msgspec.msgpack.Decoder(cls) for cls in _KINDS}
         self._header = msgspec.msgpack.Decoder(_Header)
+        self._telemetry_or_batch = msgspec.msgpack.Decoder(TelemetryWire | TelemetryBatchWire)
         sizes = {"drones": n_drones, "targets": n_targets, "state": n_state,
                  "rounds": n_rounds}
         self._rules: dict[type, Check] = SwarmRules(
@@ -923,6 +938,20 @@ class WireCodec:
         return self._encode_fields("telemetry", TelemetryWire, _converted(
             _telemetry_fields, "StepDiagnostics", diag, position, totals))
 
+    def encode_telemetry_batch(self, payloads: Sequence[bytes]) -> bytes:
+        """One ``TelemetryBatchWire`` of these ``TelemetryWire`` payloads (each as
+        ``encode_telemetry`` made it), checked as ``decode_telemetry_items`` checks it."""
+        if isinstance(payloads, bytes | bytearray | memoryview | str):
+            raise WireError("a telemetry batch takes a sequence of payloads, not one",
+                            rule="type")
+        try:
+            payload = self._encoder.encode(("telemetry_batch", WIRE_VERSION,
+                                            [msgspec.Raw(p) for p in payloads]))
+        except (TypeError, ValueError, OverflowError, msgspec.EncodeError) as exc:
+            raise WireError(f"cannot encode TelemetryBatchWire: {exc}", rule="type") from None
+        self.decode_telemetry_items(payload)
+        return payload
+
     def _encode_fields(self, kind: str, cls: type, fields: tuple[Any, ...]) -> bytes:
         """The bytes of a ``cls`` message with these fields (after ``version``), checked as
         ``encode`` checks: msgspec writes a tuple as it writes the array-like struct."""
@@ -968,14 +997,59 @@ class WireCodec:
     def decode_telemetry(self, payload: bytes) -> TelemetryWire:
         return self._decode(payload, TelemetryWire)
 
-    def _decode(self, payload: Any, cls: type[_W]) -> _W:
-        """msgspec's decode (types and constraints, in C), then this swarm's rules."""
+    def decode_telemetry_items(self, payload: bytes) -> tuple[TelemetryWire, ...]:
+        """What an agent's telemetry key carries: one ``TelemetryWire`` or a
+        ``TelemetryBatchWire``, as the telemetry messages in it, in order. Each item is
+        checked as ``decode_telemetry`` checks a message of its own; a batch whose items
+        are not one drone's in increasing steps is refused whole."""
+        self._check_payload(payload, TelemetryBatchWire)
+        try:
+            message = self._telemetry_or_batch.decode(payload)
+        except msgspec.DecodeError as exc:
+            kind = self._kind_of(payload)
+            raise self._explain(payload, TelemetryBatchWire if kind == "telemetry_batch"
+                                else TelemetryWire, exc) from None
+        except UnicodeDecodeError:
+            raise WireError("malformed telemetry message: a string is not valid UTF-8",
+                            rule="malformed") from None
+        if type(message) is TelemetryWire:
+            self._rules[TelemetryWire](message)
+            return (message,)
+        items = []
+        for index, raw in enumerate(message.items):
+            try:
+                items.append(self._decode(memoryview(raw), TelemetryWire))
+            except WireError as err:
+                raise WireError(f"telemetry batch item {index}: {err.reason}",
+                                rule=err.rule) from None
+        first = items[0]
+        for index, (before, item) in enumerate(itertools.pairwise(items), 1):
+            if item.drone != first.drone:
+                raise WireError(f"telemetry batch item {index} is drone {item.drone}'s, "
+                                f"item 0 drone {first.drone}'s", rule="value")
+            if item.step <= before.step:
+                raise WireError(f"telemetry batch item {index} has step {item.step}, not "
+                                f"after {before.step}", rule="value")
+        return tuple(items)
+
+    def _kind_of(self, payload: Any) -> str | None:
+        try:
+            return self._header.decode(payload).kind
+        except (msgspec.DecodeError, UnicodeDecodeError):
+            return None
+
+    def _check_payload(self, payload: Any, cls: type) -> None:
+        """Bytes, and no more of them than ``max_payload_bytes``."""
         if type(payload) is not bytes and not isinstance(payload, bytearray | memoryview):
             raise WireError(f"{_KINDS[cls]} payload must be bytes, got "
                             f"{type(payload).__name__}", rule="type")
         if len(payload) > self.max_payload_bytes:
             raise WireError(f"{_KINDS[cls]} payload of {len(payload)} bytes exceeds the "
                             f"{self.max_payload_bytes}-byte limit", rule="size")
+
+    def _decode(self, payload: Any, cls: type[_W]) -> _W:
+        """msgspec's decode (types and constraints, in C), then this swarm's rules."""
+        self._check_payload(payload, cls)
         try:
             message = self._decoders[cls].decode(payload)
         except msgspec.DecodeError as exc:  # includes msgspec.ValidationError

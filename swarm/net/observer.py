@@ -72,9 +72,15 @@ def subscribe_observer(session: zenoh.Session, keys: Keys, codec: WireCodec,
     ``codec``, each rejection counted in ``rejections`` under its kind. Keep the returned
     subscribers: a subscription lives as long as its handle. ``backlog``: FIFOs of that many
     samples, handed to the callbacks by ``drain()`` (``subscribe``), instead of a Python
-    thread of zenoh's per subscription."""
+    thread of zenoh's per subscription. A telemetry sample may carry several steps
+    (``TelemetryBatchWire``): ``on_telemetry`` gets each step's message, in order."""
+
+    def on_telemetry_items(key: str, items: tuple[TelemetryWire, ...]) -> None:
+        for tel in items:
+            on_telemetry(key, tel)
+
     wanted: list[tuple[str, Callable[[bytes], Any], OnMessage | None, str]] = [
-        (keys.all_telemetry, codec.decode_telemetry, on_telemetry, "telemetry"),
+        (keys.all_telemetry, codec.decode_telemetry_items, on_telemetry_items, "telemetry"),
         (keys.truth, codec.decode_truth, on_truth, "truth"),
         (keys.clock, codec.decode_clock, on_clock, "clock"),
         (keys.all_beacons, codec.decode_beacon, on_beacon, "beacon"),

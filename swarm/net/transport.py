@@ -838,9 +838,72 @@ class DrainedSubscriber:
             self._callback(sample, arrived_s)
         return taken
 
+    def receive_one(self) -> bool:
+        """Wait for the next sample and run the callback on it, on this thread (a FIFO:
+        ``subscribe(..., backlog=K)``, whose samples come in order); False, at once, when the
+        subscription is undeclared (another thread's way to end the wait,
+        ``BlockingReceives``) or its session closed. The wait holds no GIL; zenoh wakes this
+        thread alone when the sample arrives, where a callback subscription takes the GIL on
+        zenoh's receiving thread and then wakes the waiter."""
+        try:
+            sample = self._queue.recv()
+        except zenoh.ZError:  # undeclared, or the session closed: nothing more will come
+            return False
+        if self._arrival_times:
+            self._callback(sample, time.monotonic())
+        else:
+            self._callback(sample)
+        return True
+
     def undeclare(self) -> None:
         if not self._declared:
             return
         self._declared = False
         with contextlib.suppress(zenoh.ZError):  # the session is closed already
             self._subscriber.undeclare()
+
+
+class BlockingReceives:
+    """A way out of ``DrainedSubscriber.receive_one`` waits: zenoh's ``recv`` takes no
+    timeout, so a thread of this class undeclares ``subscribers`` (every wait in progress on
+    them returns False at once) when ``close()`` is called, or once a deadline set with
+    ``arm`` has passed. It looks at the deadline every ``check_period_s``: arming costs the
+    waiter an assignment, not a wake-up of this thread. Once it has fired, the subscriptions
+    are gone for good: for waits whose failure ends their owner (a lockstep agent whose
+    neighbour fell silent, or whose mission ended). ``expired`` says which it was."""
+
+    def __init__(self, subscribers: Iterable[DrainedSubscriber], *,
+                 check_period_s: float = 0.25,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        if not check_period_s > 0:
+            raise ValueError(f"BlockingReceives: check_period_s must be > 0, got "
+                             f"{check_period_s!r}")
+        self._subscribers = list(subscribers)
+        self._check_period_s = check_period_s
+        self._clock = clock
+        self._deadline_s: float | None = None
+        self._closed = threading.Event()
+        self.expired = False
+        self._thread = threading.Thread(target=self._watch, name="receive-deadline",
+                                        daemon=True)
+        self._thread.start()
+
+    def arm(self, deadline_s: float | None) -> None:
+        """End the waits if they go on past ``deadline_s`` (on ``clock``); None: no deadline."""
+        self._deadline_s = deadline_s
+
+    def close(self) -> None:
+        """End every wait now (safe from any thread, also zenoh's, and more than once)."""
+        self._closed.set()
+
+    def join(self, timeout_s: float | None = None) -> None:
+        self._thread.join(timeout_s)
+
+    def _watch(self) -> None:
+        while not self._closed.wait(self._check_period_s):
+            deadline_s = self._deadline_s
+            if deadline_s is not None and self._clock() > deadline_s:
+                self.expired = True
+                break
+        for sub in self._subscribers:
+            sub.undeclare()

@@ -1,12 +1,15 @@
 """The two exchanges of an agent's step (swarm.agent.exchange): what a step sees of the swarm
 in lockstep and in realtime, on the real core and a real MAVLink link (no peers needed: the
-messages are stored as the subscriptions store them; a settable clock ages them)."""
+messages are stored as the subscriptions store them, or in lockstep put on a Zenoh session
+of the test into the exchange's own FIFOs; a settable clock ages them)."""
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +20,7 @@ from hypothesis import strategies as st
 from sim_world.mavlink_endpoint import VehicleEndpoint
 from sim_world.vehicle import EmulatedVehicle
 from swarm.agent.exchange import (
+    WAIT_SLICE_S,
     ExchangeError,
     LockstepExchange,
     Peers,
@@ -27,8 +31,15 @@ from swarm.agent.exchange import (
 from swarm.core import kernels
 from swarm.core.agent import ConsensusMessage
 from swarm.mavlink.link import AutopilotLink, LinkError
-from swarm.messages.wire import BeaconRelayWire, BeaconWire, CameraFrameWire
-from swarm.net.transport import LatestValues
+from swarm.messages.wire import BeaconRelayWire, BeaconWire, CameraFrameWire, WireCodec
+from swarm.net.transport import (
+    Keys,
+    LatestValues,
+    RejectionCounter,
+    open_session,
+    subscribe,
+    zenoh_config,
+)
 from swarm.scenario.config import load_config
 from swarm.scenario.setup import build_agent
 
@@ -77,20 +88,75 @@ def peers(link: AutopilotLink, *, ended: bool = False, drains: list[str | None] 
 
 
 def message(sender: int, step: int, rnd: int) -> ConsensusMessage:
-    return ConsensusMessage.of_arrays(sender, step, rnd, np.eye(6)[None], np.zeros((1, 6)))
+    """A valid message of (step, round) for one target; round 0 carries the states too."""
+    states = {} if rnd else {"projector_mean": np.eye(3)[None], "weight_mean": np.ones(1),
+                             "projector_integral": np.eye(3)[None],
+                             "weight_integral": np.ones(1), "gramian": np.eye(3)[None]}
+    return ConsensusMessage.of_arrays(sender, step, rnd, np.eye(6)[None], np.zeros((1, 6)),
+                                      **states)
+
+
+@contextlib.contextmanager
+def subscribed(exchange: LockstepExchange) -> Iterator[Callable[[ConsensusMessage], None]]:
+    """The exchange's consensus subscriptions as the agent process makes them
+    (``receiving("consensus", ...)``: a FIFO per neighbour) on a Zenoh session of this
+    process, attached; yields how a neighbour sends (a put on that session, in its FIFO at
+    once)."""
+    session = open_session(zenoh_config(mode="peer"))
+    keys, codec = Keys("exchange"), WireCodec(6, 1, 6)
+    subs = {j: subscribe(session, keys.consensus(j), codec.decode_consensus,
+                         lambda _key, msg: exchange.put_consensus(msg), RejectionCounter(),
+                         "consensus", **exchange.receiving("consensus", 2))
+            for j in sorted(exchange.peers.neighbours)}
+    exchange.attach_consensus(subs)
+    try:
+        yield lambda msg: session.put(keys.consensus(msg.sender), codec.encode(msg))
+    finally:
+        exchange.close()
+        session.close()
 
 
 def test_lockstep_waits_for_every_neighbour_of_the_round(link: AutopilotLink) -> None:
+    """Each neighbour's messages come in order on its own FIFO; the inbox takes them until
+    it has the round's, keeping any later one for its own inbox."""
     exchange = LockstepExchange(peers(link, lockstep_timeout_s=0.3))
-    for j in (1, 3, 5):
-        exchange.put_consensus(message(j, 4, 1))
-    exchange.put_consensus(message(1, 4, 0))  # another round: not this inbox
-    inbox = exchange.inbox(4, 1)
-    assert sorted(inbox) == [1, 3, 5] and all(m.round == 1 for m in inbox.values())
-    exchange.put_consensus(message(1, 5, 0))
-    with pytest.raises(LinkError, match=r"drone 0: step 5: no round-0 consensus from \[3, 5\] "
-                                        r"within 0.3 s"):
-        exchange.inbox(5, 0)
+    with subscribed(exchange) as send:
+        for j in (1, 3, 5):
+            send(message(j, 4, 0))
+            send(message(j, 4, 1))
+        send(message(1, 5, 0))  # the next step's, already there: kept for it
+        assert {j: m.round for j, m in exchange.inbox(4, 0).items()} == {1: 0, 3: 0, 5: 0}
+        inbox = exchange.inbox(4, 1)
+        assert sorted(inbox) == [1, 3, 5] and all(m.round == 1 for m in inbox.values())
+        started = time.monotonic()
+        with pytest.raises(LinkError, match=r"drone 0: step 5: no round-0 consensus from "
+                                            r"\[3, 5\] within 0.3 s"):
+            exchange.inbox(5, 0)
+        assert 0.3 <= time.monotonic() - started < 0.3 + 2 * WAIT_SLICE_S + 1.0
+    with pytest.raises(ExchangeError, match="expected the neighbours \\[1, 3, 5\\]"):
+        exchange.attach_consensus({})
+
+
+def test_lockstep_inbox_needs_the_subscriptions_and_a_mission_end_ends_its_wait(
+        link: AutopilotLink) -> None:
+    """A wait on a neighbour that sends nothing ends when the exchange is closed (the world's
+    "done" or "aborted"): at once, not at the deadline, and it says why."""
+    with pytest.raises(ExchangeError, match="attach_consensus first"):
+        LockstepExchange(peers(link)).inbox(0, 0)
+    exchange = LockstepExchange(peers(link, ended=True))  # the clock said "done"
+    with subscribed(exchange):
+        closer = threading.Timer(0.2, exchange.close)
+        started = time.monotonic()
+        closer.start()
+        with pytest.raises(Ended):
+            exchange.inbox(0, 0)
+        assert time.monotonic() - started < 5.0  # the deadline is the config's 20 s
+    exchange = LockstepExchange(peers(link))  # closed without a mission end: said so
+    with subscribed(exchange):
+        exchange.close()
+        with pytest.raises(LinkError, match="the exchange closed while waiting for round-1 "
+                                            r"consensus from \[1, 3, 5\]"):
+            exchange.inbox(0, 1)
 
 
 def frame(step: int, positions: np.ndarray | None) -> CameraFrameWire:
@@ -117,9 +183,6 @@ def test_lockstep_beacons_are_the_frames_positions_and_a_mission_end_ends_the_wa
         exchange.put_relay(BeaconRelayWire.build(7, [(BeaconWire.build(1, 7, 0.14,
                                                                     (1.0, 0.0, 3.0)), 0.0)]))
     assert exchange.setpoint_interval_s() == 0.02 == exchange.setpoint_interval_s()
-    ended = LockstepExchange(peers(link, ended=True))
-    with pytest.raises(Ended):
-        ended.inbox(0, 0)
 
 
 def test_realtime_leaves_out_stale_messages_and_counts_them(link: AutopilotLink) -> None:

@@ -15,6 +15,7 @@ from hypothesis import strategies as st
 
 from swarm.core.agent import ConsensusMessage
 from swarm.messages.wire import (
+    MAX_TELEMETRY_BATCH,
     TELEMETRY_ARRAYS,
     WIRE_VERSION,
     BeaconRelayWire,
@@ -530,3 +531,71 @@ def test_one_codec_shared_by_threads() -> None:
     for t in threads:
         t.join()
     assert errors == []
+
+
+# -- telemetry batches (a lockstep agent's telemetry, several steps per message) -----------------
+
+
+def telemetry_steps(steps: list[int], drone: int = 1) -> list[bytes]:
+    """``encode_telemetry``-checked payloads of the sample telemetry at these steps."""
+    base = MESSAGES["telemetry"]
+    return [CODEC.encode(msgspec.structs.replace(base, drone=drone, step=k, time_s=0.02 * k))
+            for k in steps]
+
+
+@given(steps=st.lists(st.integers(0, 10**6), min_size=1, max_size=MAX_TELEMETRY_BATCH,
+                      unique=True).map(sorted), drone=st.integers(0, N - 1))
+def test_a_telemetry_batch_decodes_to_its_steps_messages_in_order(steps: list[int],
+                                                                  drone: int) -> None:
+    payloads = telemetry_steps(steps, drone)
+    batch = CODEC.encode_telemetry_batch(payloads)
+    items = CODEC.decode_telemetry_items(batch)
+    assert items == tuple(CODEC.decode_telemetry(p) for p in payloads)
+    assert [CODEC.encode(item) for item in items] == payloads  # every bit as sent
+    # A telemetry key may carry one message of its own too: the same decoder takes it.
+    assert CODEC.decode_telemetry_items(payloads[0]) == (CODEC.decode_telemetry(payloads[0]),)
+
+
+def test_a_telemetry_batch_is_refused_whole_naming_the_item_and_the_rule() -> None:
+    good = telemetry_steps([3, 4])
+    bad_item = raw(msgspec.structs.replace(MESSAGES["telemetry"], step=5, qp_solve_us=-1.0))
+    batch = ["telemetry_batch", WIRE_VERSION]
+    cases = [
+        (raw([*batch, []]), "type", "items: Expected `array` of length >= 1"),
+        (raw([*batch, [msgspec.Raw(good[0])] * (MAX_TELEMETRY_BATCH + 1)]), "length",
+         f"more than {MAX_TELEMETRY_BATCH} items"),
+        (raw([*batch, [msgspec.Raw(p) for p in (*good, bad_item)]]), "range",
+         "telemetry batch item 2: qp_solve_us must be >= 0.0"),
+        (raw([*batch, [msgspec.Raw(p) for p in telemetry_steps([3, 3])]]), "value",
+         "item 1 has step 3, not after 3"),
+        (raw([*batch, [msgspec.Raw(p) for p in (*good, *telemetry_steps([5], drone=2))]]),
+         "value", "item 2 is drone 2's, item 0 drone 1's"),
+        (raw(["telemetry_batch", WIRE_VERSION + 1, [msgspec.Raw(good[0])]]), "version",
+         f"wire version {WIRE_VERSION + 1}"),
+        (raw(MESSAGES["clock"]), "kind", "expected a telemetry message"),
+        (CODEC.encode_telemetry_batch(good)[:-1], "malformed", "malformed"),
+        (bytes(CODEC.max_payload_bytes + 1), "size", "exceeds"),
+    ]
+    for payload, rule, words in cases:
+        with pytest.raises(WireError) as info:
+            CODEC.decode_telemetry_items(payload)
+        assert info.value.rule == rule and words in info.value.reason, (info.value, words)
+    # The sender cannot emit what the observers would refuse.
+    with pytest.raises(WireError, match="not after 3"):
+        CODEC.encode_telemetry_batch(telemetry_steps([3, 3]))
+    with pytest.raises(WireError, match="a sequence of payloads, not one"):
+        CODEC.encode_telemetry_batch(good[0])
+
+
+BATCH_PREFIX = bytes([0x93]) + raw(["telemetry_batch", WIRE_VERSION])[1:]  # [tag, version, …
+
+
+@FUZZ
+@given(data=st.one_of(st.binary(max_size=512),
+                      st.binary(max_size=256).map(lambda tail: BATCH_PREFIX + tail)),
+       mutations=MUTATIONS)
+def test_fuzz_telemetry_batches_only_raise_wire_error(data: bytes, mutations) -> None:
+    """Random bytes (some shaped like a batch's start) and mutated valid batches."""
+    decode_only_wire_error(CODEC.decode_telemetry_items, data)
+    batch = CODEC.encode_telemetry_batch(telemetry_steps([7, 8, 9]))
+    decode_only_wire_error(CODEC.decode_telemetry_items, mutate(batch, mutations))

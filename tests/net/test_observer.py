@@ -271,3 +271,50 @@ def test_a_feed_refuses_a_period_or_pass_size_it_could_not_run_with(
         options: dict, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         ObserverFeed([], **options)
+
+
+def test_telemetry_batches_reach_the_observer_one_step_at_a_time() -> None:
+    """A lockstep agent sends its telemetry several steps per message
+    (``TelemetryBatchWire``): the observer's ``on_telemetry`` gets each step's message, in
+    order, as for messages sent one by one; a batch it refuses is counted, whole."""
+    port = free_tcp_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    keys = Keys("batchtest")
+    telemetry = MESSAGES["telemetry"]
+    key = keys.telemetry(telemetry.drone)
+
+    def steps(*ks: int) -> list[bytes]:
+        return [CODEC.encode(structs.replace(telemetry, step=k)) for k in ks]
+
+    router = open_session(zenoh_config(mode="router", listen=[endpoint]))
+    try:
+        observer = join_router([endpoint], DEADLINE_S)
+        got: list[int] = []
+        rejections = RejectionCounter()
+        subs = subscribe_observer(
+            observer, keys, CODEC, rejections, on_telemetry=lambda _k, tel: got.append(tel.step),
+            on_clock=lambda _k, _c: None, backlog=FEED_BACKLOG)
+        deadline = time.monotonic() + DEADLINE_S
+        while not got and time.monotonic() < deadline:  # until the subscription is up
+            router.put(key, steps(0)[0])
+            time.sleep(0.01)
+            drain_in_turn(subs, 256)
+        publisher = declare_publisher(router, key)
+        publisher.put(CODEC.encode_telemetry_batch(steps(1, 2, 3)))
+        publisher.put(steps(4)[0])
+        publisher.put(CODEC.encode_telemetry_batch(steps(5, 6)))
+        publisher.put(CODEC.encode_telemetry_batch(steps(7, 8)).replace(
+            steps(8)[0], steps(7)[0]))  # 7 then 7: refused whole
+        publisher.put(CODEC.encode_telemetry_batch(steps(9, 10)))
+        while not (got and got[-1] == 10) and time.monotonic() < deadline:
+            time.sleep(0.01)
+            drain_in_turn(subs, 256)
+        assert [k for k in got if k > 0] == [1, 2, 3, 4, 5, 6, 9, 10]
+        assert rejections.snapshot()["telemetry"]["rejected"] == 1
+        assert "item 1 has step 7, not after 7" in rejections.snapshot()["telemetry"][
+            "last_reason"]
+        for sub in subs:
+            sub.undeclare()
+        observer.close()
+    finally:
+        router.close()
