@@ -68,10 +68,12 @@ def code_path(base: Mapping[str, str]) -> dict[str, str]:
     children that other code: side-by-side benchmark runs of two commits from one directory
     measured the same code twice. ``PYTHONSAFEPATH`` leaves the working directory out, and the
     directory that holds this package goes first on ``PYTHONPATH`` (unless it is a
-    site-packages directory, where the child finds the installed package anyway)."""
+    site-packages directory, where the child finds the installed package anyway, and which
+    must not go before the standard library)."""
     root = str(CODE_ROOT)
     paths = [p for p in base.get("PYTHONPATH", "").split(os.pathsep) if p]
-    if root not in site.getsitepackages() and (not paths or paths[0] != root):
+    installed = {*site.getsitepackages(), site.getusersitepackages()}
+    if root not in installed and (not paths or paths[0] != root):
         paths = [root, *paths]
     out = {"PYTHONSAFEPATH": "1"}
     if paths:

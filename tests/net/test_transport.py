@@ -30,6 +30,7 @@ from hypothesis import strategies as st
 from swarm.messages.wire import WIRE_VERSION, BeaconWire, WireCodec
 from swarm.net.transport import (
     ZENOH_RUNTIME_DEFAULT,
+    BlockingReceives,
     DrainedSubscriber,
     FaultyPublisher,
     Keys,
@@ -897,6 +898,58 @@ def test_a_backlog_subscription_loses_nothing_and_makes_zenoh_wait_when_full() -
         with pytest.raises(ValueError, match=r"backlog|keep_latest"):
             subscribe(hub, "x", CODEC.decode_beacon, on_value, RejectionCounter(), "beacon",
                       **wrong)
+
+
+def test_a_blocking_receive_takes_samples_in_order_and_ends_at_a_close_or_a_deadline(
+) -> None:
+    """``receive_one`` runs the callback on the waiting thread for each sample in turn;
+    ``BlockingReceives`` ends a wait on a silent FIFO when closed (at once) or once its
+    armed deadline has passed (within a check period), and says which; disarmed, it lets a
+    wait go on."""
+    taken: list[tuple[int, int]] = []  # (step, thread id)
+
+    def on_value(_key: str, beacon) -> None:
+        taken.append((beacon.step, threading.get_ident()))
+
+    def waited_s(fifo: DrainedSubscriber) -> tuple[bool, float]:
+        started = time.monotonic()
+        got = fifo.receive_one()
+        return got, time.monotonic() - started
+
+    with beacons_to_a_hub("blocking") as (hub, keys, seen, put):
+        fifos = [subscribe(hub, keys.all_beacons, CODEC.decode_beacon, on_value,
+                           RejectionCounter(), "beacon", backlog=64) for _ in range(2)]
+        repeat_until(lambda: put(0), lambda wait_s: seen.wait_for([0], wait_s))
+        for fifo in fifos:
+            while fifo.drain():
+                pass
+        taken.clear()
+        for step in (1, 2, 3):
+            put(step)
+        for fifo in fifos:
+            assert all(fifo.receive_one() for _ in range(3))
+        assert [step for step, _ in taken] == [1, 2, 3] * 2
+        assert {thread for _, thread in taken} == {threading.get_ident()}
+
+        closing = BlockingReceives(fifos[:1], check_period_s=0.05)
+        closing.arm(time.monotonic() + 60.0)
+        threading.Timer(0.2, closing.close).start()
+        got, after_s = waited_s(fifos[0])
+        assert not got and 0.2 <= after_s < 5.0 and not closing.expired
+        assert not fifos[0].receive_one()  # gone for good
+
+        expiring = BlockingReceives(fifos[1:], check_period_s=0.05)
+        expiring.arm(None)
+        threading.Timer(0.3, lambda: put(4)).start()
+        assert fifos[1].receive_one() and taken[-1][0] == 4  # disarmed: it waited
+        assert not expiring.expired
+        expiring.arm(time.monotonic() + 0.2)
+        got, after_s = waited_s(fifos[1])
+        assert not got and 0.2 <= after_s < 5.0 and expiring.expired
+        for watch in (closing, expiring):
+            watch.join(5.0)
+    with pytest.raises(ValueError, match="check_period_s"):
+        BlockingReceives([], check_period_s=0.0)
 
 
 @pytest.mark.wallclock
