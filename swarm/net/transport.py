@@ -720,8 +720,9 @@ def subscribe(
     to a session that stopped receiving block, and zenoh closes the link after ~5 s. Size it
     never to fill (``swarm.net.observer.FEED_BACKLOG``: nothing is allocated up front). For
     consumers that must see every sample but can take them in batches (the launcher's
-    collector and recorder: one wake-up per drain instead of one per sample).
-    ``on_value(key, value)`` as without it.
+    collector and recorder: one wake-up per drain instead of one per sample), or that wait
+    for them one at a time on their own thread (``DrainedSubscriber.receive_one``: a lockstep
+    agent's neighbours' consensus). ``on_value(key, value)`` as without it.
     """
 
     # Every reason names the key the payload came on (which drone, which stream): what an
