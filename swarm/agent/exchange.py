@@ -16,8 +16,8 @@ the publishers, the checks on who sent what) and runs one step the same way in e
   starts (``announce``) and the loop that paces the steps (``run``).
 
 ``LockstepExchange``: step k waits for the camera frame of step k, the position sample
-stamped with that frame's ``vehicle_time_ms`` and every neighbour's round messages (taken
-by the step's own thread from a FIFO per neighbour, ``DrainedSubscriber.receive_one``); the other
+stamped with that frame's ``vehicle_time_ms`` and every neighbour's round messages (frames and
+messages taken by the step's own thread from FIFOs, ``DrainedSubscriber.receive_one``); the other
 drones' positions of step k come with the frame (``CameraFrameWire.drone_positions``: what
 their vehicles report, as their beacons would carry them): deterministic (equal to the
 in-process reference bit for bit).
@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal, Protocol
 
@@ -54,21 +54,22 @@ Stream = Literal["camera", "clock", "beacons", "consensus"]
 # ``beacons(..., around=p)`` hands the core the drones within R_ca plus this of p: the core
 # applies R_ca itself (``kernels.qp_rows``), so the margin only has to cover rounding [m].
 VICINITY_MARGIN_M = 0.5
-WAIT_SLICE_S = 0.25  # lockstep waits wake at least this often to check their deadline
+WAIT_SLICE_S = 0.25  # how often a lockstep wait's deadline is looked at (BlockingReceives)
 # A lockstep agent sends its telemetry this many steps at a time (``TelemetryBatchWire``):
 # every message costs a put, the router's forwarding and the observer's receiving, and the
 # steps come every ~3 ms of wall time. Case 2, lockstep, 20 s, side by side: telemetry
 # once per step cost ~11 % of the real-time factor (6.5× against 7.2× with none);
 # LOCKSTEP_TELEMETRY_STEPS = 10 keeps every step's message and holds it at most ~30 ms.
 LOCKSTEP_TELEMETRY_STEPS = 10
-# A lockstep neighbour is never more than a step ahead (step k + 1 needs every setpoint of
-# step k): its FIFO holds at most two steps of its messages. But anything on its key waits
-# there until the step's next wait for it, which takes it (and decodes, and counts a junk
-# payload) on the way to the neighbour's message; a full FIFO would hold up the session's
-# receiving, the camera frame included, until then. So the bound is only against runaway
-# memory (a FIFO allocates as samples wait): a bound of 32 stalled the fuzz test's swarm
-# under 10 000 junk payloads per key, which now wait and are counted a step later.
-LOCKSTEP_CONSENSUS_BACKLOG = 1 << 16
+# A lockstep agent's camera frames and each neighbour's consensus messages wait in a FIFO
+# inside zenoh for the step's thread. A source is never more than a step ahead (step k + 1
+# needs every setpoint of step k): its FIFO holds at most two steps of its messages. But
+# anything on its key waits there until the step's next wait for it, which takes it (and
+# decodes, and counts a junk payload) on the way; a full FIFO would hold up the session's
+# receiving until then. So the bound is only against runaway memory (a FIFO allocates as
+# samples wait): a bound of 32 stalled the fuzz test's swarm under 10 000 junk payloads per
+# key, which now wait and are counted a step later.
+LOCKSTEP_BACKLOG = 1 << 16
 FIRST_FRAME_POLL_S = 0.01  # realtime, before the mission: how often the rings are looked at
 
 # One step of the agent: (step, the vehicle's position sample, the camera frame or None, the
@@ -124,7 +125,8 @@ class Exchange(Protocol):
     neighbour_age_ms: float
 
     def receiving(self, stream: Stream, per_step: int) -> dict[str, Any]: ...
-    def attach_consensus(self, subscribers: Mapping[int, DrainedSubscriber]) -> None: ...
+    def attach(self, camera: DrainedSubscriber,
+               consensus: Mapping[int, DrainedSubscriber]) -> None: ...
     def put_camera(self, frame: CameraFrameWire) -> None: ...
     def put_consensus(self, msg: ConsensusMessage, arrived_s: float | None = None) -> None: ...
     def consensus_sent(self, msg: ConsensusMessage, sent_unix_s: float) -> None: ...
@@ -154,28 +156,32 @@ class LockstepExchange:
         self.camera_steps: StepMailbox[CameraFrameWire] = StepMailbox()
         self.consensus_steps: StepMailbox[ConsensusMessage] = StepMailbox()
         self._neighbour_order = sorted(peers.neighbours)
+        self._camera_from: dict[int, DrainedSubscriber] = {}
         self._consensus_from: dict[int, DrainedSubscriber] = {}
-        self._receives: BlockingReceives | None = None  # attach_consensus
+        self._receives: BlockingReceives | None = None  # attach
         self._closed = False
         self.late_steps = self.unpaired_frames = self.stale_messages = 0
         self.neighbour_age_ms = math.nan
 
     def receiving(self, stream: Stream, per_step: int) -> dict[str, Any]:
-        """Consensus: a FIFO per neighbour inside zenoh, from which the step's thread takes
-        messages while it waits for them (``inbox``). Everything else: a callback on zenoh's
-        receiving thread that only decodes and stores (the frame, which the camera's wait
-        and the start wait on; the clock, which must end any wait)."""
-        if stream == "consensus":
-            return {"backlog": LOCKSTEP_CONSENSUS_BACKLOG}
+        """The camera frames and each neighbour's consensus: a FIFO inside zenoh, from
+        which the step's thread takes them while it waits for them (``attach``). The clock:
+        a callback on zenoh's receiving thread, which must end any wait."""
+        if stream in ("camera", "consensus"):
+            return {"backlog": LOCKSTEP_BACKLOG}
         return {"direct": True}
 
-    def attach_consensus(self, subscribers: Mapping[int, DrainedSubscriber]) -> None:
-        """The neighbours' consensus FIFOs (``receiving("consensus", ...)``), by neighbour."""
-        if set(subscribers) != self.peers.neighbours:
-            raise ExchangeError(f"consensus subscriptions for {sorted(subscribers)}, expected "
+    def attach(self, camera: DrainedSubscriber,
+               consensus: Mapping[int, DrainedSubscriber]) -> None:
+        """The FIFOs of ``receiving``: the camera's, and the consensus one of each
+        neighbour."""
+        if set(consensus) != self.peers.neighbours:
+            raise ExchangeError(f"consensus subscriptions for {sorted(consensus)}, expected "
                                 f"the neighbours {sorted(self.peers.neighbours)}")
-        self._consensus_from = dict(subscribers)
-        self._receives = BlockingReceives(subscribers.values(), check_period_s=WAIT_SLICE_S)
+        self._camera_from = {0: camera}
+        self._consensus_from = dict(consensus)
+        self._receives = BlockingReceives([camera, *consensus.values()],
+                                          check_period_s=WAIT_SLICE_S)
         if self._closed:
             self._receives.close()
 
@@ -204,7 +210,18 @@ class LockstepExchange:
         return None  # the world steps every vehicle of its own; nobody waits to hear us
 
     def wait_first_frame(self, timeout_s: float) -> None:
-        self.camera_steps.wait_for(0, 0, {0}, timeout_s)
+        """Until the first frame or ``timeout_s``: the camera's FIFO is looked at every
+        ``FIRST_FRAME_POLL_S`` (before the mission only: a wait on it cannot time out)."""
+        if not self._camera_from:
+            raise ExchangeError("attach first: a lockstep agent takes its frames from its "
+                                "camera subscription")
+        deadline = time.monotonic() + timeout_s
+        while True:
+            self._camera_from[0].drain()
+            remaining = deadline - time.monotonic()
+            if self.peers.camera_latest.get(0) is not None or remaining <= 0:
+                return
+            time.sleep(min(FIRST_FRAME_POLL_S, remaining))
 
     def begin(self, step: int) -> None:
         return None  # N is the configured swarm
@@ -212,28 +229,41 @@ class LockstepExchange:
     def inbox(self, step: int, rnd: int) -> dict[int, ConsensusMessage]:
         """Every neighbour's message of (step, round), taken from its FIFO in arrival order
         (a message of a later round or step is kept for its own inbox)."""
-        what = f"round-{rnd} consensus"
-        mailbox, wanted = self.consensus_steps, self.peers.neighbours
-        if self._receives is None:
-            raise ExchangeError("attach_consensus first: a lockstep inbox takes the "
-                                "neighbours' messages from their subscriptions")
+        return self._take(self.consensus_steps, step, rnd, self._consensus_from,
+                          self._neighbour_order, f"round-{rnd} consensus")
+
+    def _frame(self, step: int) -> CameraFrameWire:
+        return self._take(self.camera_steps, step, 0, self._camera_from, (0,),
+                          "camera frame")[0]
+
+    def _take(self, mailbox: StepMailbox, step: int, rnd: int,
+              fifos: Mapping[int, DrainedSubscriber], senders: Sequence[int],
+              what: str) -> dict:
+        """(step, round) of every sender: what the mailbox holds, and what the senders'
+        FIFOs bring, taken in arrival order on this thread until it is complete, watching
+        for the mission end and the lockstep deadline."""
         mailbox.prune(step)
+        got = mailbox.get(step, rnd)
+        missing = [j for j in senders if j not in got]
+        if not missing:
+            return got
+        if self._receives is None:
+            raise ExchangeError(f"attach first: a lockstep agent waits for its {what} on "
+                                "its subscriptions")
         timeout_s = self.peers.config.runtime.lockstep_timeout_s
         self._receives.arm(time.monotonic() + timeout_s)
         try:
-            while True:
+            while missing:
+                if not fifos[missing[0]].receive_one():
+                    self.peers.check_clock()  # the mission ended: that is why
+                    if self._receives.expired:
+                        raise LinkError(f"drone {self.peers.drone_id}: step {step}: no "
+                                        f"{what} from {missing} within {timeout_s} s")
+                    raise LinkError(f"drone {self.peers.drone_id}: step {step}: the exchange "
+                                    f"closed while waiting for {what} from {missing}")
                 got = mailbox.get(step, rnd)
-                missing = [j for j in self._neighbour_order if j not in got]
-                if not missing:
-                    return {j: got[j] for j in wanted}
-                if self._consensus_from[missing[0]].receive_one():
-                    continue
-                self.peers.check_clock()  # the mission ended: that is why
-                if self._receives.expired:
-                    raise LinkError(f"drone {self.peers.drone_id}: step {step}: no {what} "
-                                    f"from {missing} within {timeout_s} s")
-                raise LinkError(f"drone {self.peers.drone_id}: step {step}: the exchange "
-                                f"closed while waiting for {what} from {missing}")
+                missing = [j for j in senders if j not in got]
+            return got
         finally:
             self._receives.arm(None)
 
@@ -243,7 +273,7 @@ class LockstepExchange:
         use, ``Vicinity``), all of the same instant: those the camera frame of step k carries
         (its vehicle's report, as its beacon of step k would say), as lists of floats,
         bit-exact."""
-        frame = self._wait(self.camera_steps, step, 0, {0}, "camera frame")[0]
+        frame = self._frame(step)
         positions = frame.drone_positions
         if positions is None:
             raise LinkError(f"drone {self.peers.drone_id}: step {step}: the camera frame "
@@ -260,25 +290,10 @@ class LockstepExchange:
         timeout_s = self.peers.config.runtime.lockstep_timeout_s
         k = 0
         while True:
-            frame = self._wait(self.camera_steps, k, 0, {0}, "camera frame")[0]
+            frame = self._frame(k)
             sample = self.peers.link.wait_position(frame.vehicle_time_ms, timeout_s)
             step(k, sample, frame, 0.0, None)
             k += 1
-
-    def _wait(self, mailbox: StepMailbox, step: int, rnd: int, senders: set[int],
-              what: str) -> dict:
-        """(step, round) from every sender, watching for the mission end."""
-        timeout_s = self.peers.config.runtime.lockstep_timeout_s
-        deadline = time.monotonic() + timeout_s
-        while True:
-            got = mailbox.wait_for(step, rnd, senders, WAIT_SLICE_S)
-            if len(got) == len(senders):
-                return got
-            self.peers.check_clock()
-            if time.monotonic() > deadline:
-                missing = sorted(senders - set(got))
-                raise LinkError(f"drone {self.peers.drone_id}: step {step}: no {what} from "
-                                f"{missing} within {timeout_s} s")
 
 
 class RealtimeExchange:
@@ -322,7 +337,8 @@ class RealtimeExchange:
     def receiving(self, stream: Stream, per_step: int) -> dict[str, Any]:
         return {"keep_latest": 4 * per_step}  # rings of a few steps' worth, every stream
 
-    def attach_consensus(self, subscribers: Mapping[int, DrainedSubscriber]) -> None:
+    def attach(self, camera: DrainedSubscriber,
+               consensus: Mapping[int, DrainedSubscriber]) -> None:
         return None  # their rings are drained by the loop (Peers.drain)
 
     def put_camera(self, frame: CameraFrameWire) -> None:

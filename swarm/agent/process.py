@@ -170,7 +170,7 @@ class AgentProcess:
                                on_sent_time=exchange.consensus_sent if exchange.sent_times
                                else None, **receiving("consensus", rounds))
                      for j in sorted(self.neighbours)]
-        exchange.attach_consensus(dict(zip(sorted(self.neighbours), consensus, strict=True)))
+        exchange.attach(subs[0], dict(zip(sorted(self.neighbours), consensus, strict=True)))
         self._subscribers = subs = subs + relay + consensus
 
         def rings(group: list) -> list[DrainedSubscriber]:

@@ -97,20 +97,35 @@ def message(sender: int, step: int, rnd: int) -> ConsensusMessage:
 
 
 @contextlib.contextmanager
-def subscribed(exchange: LockstepExchange) -> Iterator[Callable[[ConsensusMessage], None]]:
-    """The exchange's consensus subscriptions as the agent process makes them
-    (``receiving("consensus", ...)``: a FIFO per neighbour) on a Zenoh session of this
-    process, attached; yields how a neighbour sends (a put on that session, in its FIFO at
-    once)."""
+def subscribed(exchange: LockstepExchange
+               ) -> Iterator[Callable[[ConsensusMessage | CameraFrameWire], None]]:
+    """The exchange's camera and consensus subscriptions as the agent process makes them
+    (``receiving``: a FIFO for the frames and one per neighbour) on a Zenoh session of this
+    process, attached; yields how the world and the neighbours send (a put on that session,
+    in the FIFO at once)."""
     session = open_session(zenoh_config(mode="peer"))
     keys, codec = Keys("exchange"), WireCodec(6, 1, 6)
+
+    def on_camera(_key: str, frame: CameraFrameWire) -> None:  # as AgentProcess._on_camera
+        exchange.put_camera(frame)
+        exchange.peers.camera_latest.put(0, frame)
+
+    camera = subscribe(session, keys.camera(0), codec.decode_camera, on_camera,
+                       RejectionCounter(), "camera", **exchange.receiving("camera", 1))
     subs = {j: subscribe(session, keys.consensus(j), codec.decode_consensus,
                          lambda _key, msg: exchange.put_consensus(msg), RejectionCounter(),
                          "consensus", **exchange.receiving("consensus", 2))
             for j in sorted(exchange.peers.neighbours)}
-    exchange.attach_consensus(subs)
+    exchange.attach(camera, subs)
+
+    def send(message: ConsensusMessage | CameraFrameWire) -> None:
+        if isinstance(message, CameraFrameWire):
+            session.put(keys.camera(message.drone), codec.encode(message))
+        else:
+            session.put(keys.consensus(message.sender), codec.encode(message))
+
     try:
-        yield lambda msg: session.put(keys.consensus(msg.sender), codec.encode(msg))
+        yield send
     finally:
         exchange.close()
         session.close()
@@ -134,14 +149,14 @@ def test_lockstep_waits_for_every_neighbour_of_the_round(link: AutopilotLink) ->
             exchange.inbox(5, 0)
         assert 0.3 <= time.monotonic() - started < 0.3 + 2 * WAIT_SLICE_S + 1.0
     with pytest.raises(ExchangeError, match="expected the neighbours \\[1, 3, 5\\]"):
-        exchange.attach_consensus({})
+        exchange.attach(exchange._camera_from[0], {})
 
 
 def test_lockstep_inbox_needs_the_subscriptions_and_a_mission_end_ends_its_wait(
         link: AutopilotLink) -> None:
     """A wait on a neighbour that sends nothing ends when the exchange is closed (the world's
     "done" or "aborted"): at once, not at the deadline, and it says why."""
-    with pytest.raises(ExchangeError, match="attach_consensus first"):
+    with pytest.raises(ExchangeError, match="attach first"):
         LockstepExchange(peers(link)).inbox(0, 0)
     exchange = LockstepExchange(peers(link, ended=True))  # the clock said "done"
     with subscribed(exchange):
@@ -164,21 +179,32 @@ def frame(step: int, positions: np.ndarray | None) -> CameraFrameWire:
                                  drone_positions=positions)
 
 
-def test_lockstep_beacons_are_the_frames_positions_and_a_mission_end_ends_the_wait(
+def test_lockstep_beacons_are_the_frames_positions_taken_from_the_cameras_fifo(
         link: AutopilotLink) -> None:
+    """The frames come through the camera's FIFO in order: the step takes its own and keeps
+    a later one; the other drones' positions are the frame's; a frame that does not come
+    ends the wait at the deadline. Before the mission the FIFO is looked at in turns."""
     exchange = LockstepExchange(peers(link, lockstep_timeout_s=0.3))
     positions = np.array([[float(j), 0.0, 3.0] for j in range(6)])
-    exchange.put_camera(frame(7, positions))
-    exchange.put_camera(frame(8, positions + 1.0))  # the next step's: not these
-    beacons = exchange.beacons(7, 0.5, np.ones(3))
-    assert beacons == {  # lists of floats: the core takes them as they are
-        j: [float(j), 0.0, 3.0] for j in range(1, 6)}  # the step's positions, not carried on
-    exchange.put_camera(frame(9, None))
-    with pytest.raises(LinkError, match=r"drone 0: step 9: the camera frame carries no drone "
-                                        r"positions"):
-        exchange.beacons(9, 0.0, np.ones(3))
-    with pytest.raises(LinkError, match=r"step 10: no camera frame from \[0\] within 0.3 s"):
-        exchange.beacons(10, 0.0, np.ones(3))
+    with pytest.raises(ExchangeError, match="attach first"):
+        exchange.beacons(7, 0.5, np.ones(3))
+    with subscribed(exchange) as send:
+        exchange.wait_first_frame(0.05)  # nothing yet: returns at its timeout
+        assert exchange.peers.camera_latest.get(0) is None
+        send(frame(7, positions))
+        send(frame(8, positions + 1.0))  # the next step's: not these
+        exchange.wait_first_frame(5.0)
+        assert exchange.peers.camera_latest.get(0)[0].step in (7, 8)
+        beacons = exchange.beacons(7, 0.5, np.ones(3))
+        assert beacons == {  # lists of floats: the core takes them as they are
+            j: [float(j), 0.0, 3.0] for j in range(1, 6)}  # the step's, not carried on
+        assert exchange.beacons(8, 0.5, np.ones(3))[1] == [2.0, 1.0, 4.0]
+        send(frame(9, None))
+        with pytest.raises(LinkError, match=r"drone 0: step 9: the camera frame carries no "
+                                            r"drone positions"):
+            exchange.beacons(9, 0.0, np.ones(3))
+        with pytest.raises(LinkError, match=r"step 10: no camera frame from \[0\] within 0.3 s"):
+            exchange.beacons(10, 0.0, np.ones(3))
     with pytest.raises(ExchangeError, match="from its camera frame, not from a relay"):
         exchange.put_relay(BeaconRelayWire.build(7, [(BeaconWire.build(1, 7, 0.14,
                                                                     (1.0, 0.0, 3.0)), 0.0)]))

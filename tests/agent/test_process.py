@@ -101,16 +101,16 @@ def test_lockstep_positions_of_step_k_come_with_the_camera_frame_of_step_k() -> 
         positions = np.array([[float(j), 0.5 * j, 3.0] for j in range(6)])
         frame = codec.encode(CameraFrameWire.build(0, 1, 0.02, 1020, [],
                                                    drone_positions=positions))
-        mailbox = agent.exchange.camera_steps
-
         # Each frame leaves after a beacon on drone 4's key and a relay, on the same link:
         # had the agent listened to either, it would have them (and a relay in lockstep is
-        # refused, which would count).
+        # refused, which would count). The frame waits in the camera's FIFO until the agent
+        # takes it (as before the mission, ``wait_first_frame``).
         def delivered() -> bool:
             router.put(keys.beacon(4), forged)
             router.put(keys.beacon_relay, relay)
             router.put(keys.camera(0), frame)
-            return len(mailbox.wait_for(1, 0, {0}, 0.01)) == 1
+            agent.exchange.wait_first_frame(0.01)
+            return agent.camera_latest.get(0) is not None
 
         assert wait_until(delivered)
         got = agent.exchange.beacons(1, 0.0, np.zeros(3))
