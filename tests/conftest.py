@@ -5,7 +5,9 @@ MAVProxy dialogues, realtime swarms of processes, timers. They form one xdist gr
 run one at a time on one worker, in collection order (the conformance suite boots a SITL in one
 test for the next, and at most one SITL instance may run), never two at once; the other worker
 takes the CPU-bound tests (numerics, property tests, lockstep swarms) beside them. ``-n 0``
-runs everything in one process.
+runs everything in one process. A wallclock test also marked ``alone`` (three PX4 SITL
+instances) runs with the other worker idle: it waits for that worker's test in progress, and
+the next one waits for it (``tests.helpers.machine_share``).
 
 pytest-xdist marks a test's group by appending ``@group`` to its node id. pytest 9.2 keeps node
 ids elsewhere, and the grouping silently stops (pytest-xdist issue 1386): pyproject.toml pins
@@ -14,7 +16,12 @@ pytest below 9.2, and a wallclock test that a worker finds ungrouped fails, sayi
 
 from __future__ import annotations
 
+import os
+from collections.abc import Iterator
+
 import pytest
+
+from tests.helpers.machine_share import machine_share
 
 WALLCLOCK_GROUP = "wallclock"
 
@@ -34,3 +41,16 @@ def pytest_runtest_setup(item: pytest.Item) -> None:
                     "tests would run two at a time: its loadgroup fails silently with pytest "
                     ">= 9.2 (pytest-xdist issue 1386); pip install 'pytest<9.2' (as "
                     "pip install -e '.[dev]' does), or run with -n 0", pytrace=False)
+
+
+@pytest.fixture(autouse=True)
+def _machine_share(request: pytest.FixtureRequest,
+                   tmp_path_factory: pytest.TempPathFactory) -> Iterator[None]:
+    """Each test's share of the machine beside the other xdist worker (shared, or the whole
+    of it for ``alone``); nothing to share with ``-n 0``."""
+    if "PYTEST_XDIST_WORKER" not in os.environ:
+        yield
+        return
+    shared = tmp_path_factory.getbasetemp().parent  # the session's, above each worker's own
+    with machine_share(shared, alone=request.node.get_closest_marker("alone") is not None):
+        yield

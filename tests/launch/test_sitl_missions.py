@@ -255,6 +255,7 @@ def _not_asked(agent_log: str) -> list[str]:
             if "vehicle not as asked, and not by the agent" in line]
 
 
+@pytest.mark.alone  # three PX4 SIH simulators: one starved beside the other worker's tests
 def test_px4_flies_from_the_ground_on_tracked_setpoints_and_a_failsafe_is_watched(
         tmp_path: Path) -> None:
     """PX4 (SIH, three drones) from the ground: climb, OFFBOARD, the mission on tracked
