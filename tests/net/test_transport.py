@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import ipaddress
+import itertools
 import json
 import os
 import queue
@@ -29,6 +30,7 @@ from hypothesis import strategies as st
 
 from swarm.messages.wire import WIRE_VERSION, BeaconWire, WireCodec
 from swarm.net.transport import (
+    KEY_ROOT,
     ZENOH_RUNTIME_DEFAULT,
     BlockingReceives,
     DrainedSubscriber,
@@ -809,23 +811,41 @@ def test_a_slow_link_sends_each_message_k_steps_late_stamped_when_it_was_put() -
 
 @contextlib.contextmanager
 def beacons_to_a_hub(run_id: str) -> Iterator[tuple[zenoh.Session, Keys, LatestValues,
-                                                   Callable[[int], None]]]:
+                                                   Callable[[int], None], Callable[[], None]]]:
     """A hub session; ``seen``, a plain subscriber of it keeping the newest beacon step
     heard (what has arrived, beside the subscription under test); ``put(step)``, drone 2's
-    beacon of that step from a client session."""
+    beacon of that step from a client session; ``settle()``, until every beacon put so far
+    has been handed to every subscription of the hub.
+
+    ``seen`` hearing a beacon does not mean the subscription under test has it yet: the hub
+    hands each sample to its subscriptions one after the other, and on a loaded machine the
+    test's thread ran between the two (a CI run drained an empty ring). ``settle`` puts a
+    fence on another key over the same link and waits until the hub has heard it: the hub
+    handles a link's messages in order, so every beacon before it has been handed out."""
     port = free_tcp_port()
     keys = Keys(run_id)
     seen = LatestValues()
+    fenced = LatestValues()
+    fence_key = f"{KEY_ROOT}/{run_id}/test/fence"
     with session(zenoh_config(mode="peer", listen=[endpoint(port)])) as hub, \
             session(zenoh_config(mode="peer", connect=[endpoint(port)])) as client:
         subscribe(hub, keys.all_beacons, CODEC.decode_beacon,
                   lambda _k, b: seen.put(0, b.step, seq=b.step), RejectionCounter(), "beacon")
+        subscribe(hub, fence_key, int, lambda _k, n: fenced.put(0, n, seq=n),
+                  RejectionCounter(), "fence")
         publisher = declare_publisher(client, keys.beacon(2))
+        fence = declare_publisher(client, fence_key)
+        fences = itertools.count(1)
 
         def put(step: int) -> None:
             publisher.put(CODEC.encode(BeaconWire.build(2, step, 0.0, [0, 0, 1.0])))
 
-        yield hub, keys, seen, put
+        def settle() -> None:
+            n = next(fences)
+            repeat_until(lambda: fence.put(str(n).encode()),
+                         lambda wait_s: fenced.wait_for([0], wait_s, min_seq=n))
+
+        yield hub, keys, seen, put, settle
 
 
 def test_a_ring_subscription_waits_for_its_drain_and_keeps_only_the_newest() -> None:
@@ -837,18 +857,20 @@ def test_a_ring_subscription_waits_for_its_drain_and_keeps_only_the_newest() -> 
     def on_value(_key: str, beacon, arrived_s: float) -> None:
         taken.append((beacon.step, threading.get_ident()))
 
-    with beacons_to_a_hub("ring") as (hub, keys, seen, put):
+    with beacons_to_a_hub("ring") as (hub, keys, seen, put, settle):
         threads_before = threading.active_count()
         ring = subscribe(hub, keys.all_beacons, CODEC.decode_beacon, on_value,
                          RejectionCounter(), "beacon", keep_latest=4)
         assert threading.active_count() == threads_before  # no thread of ours
         repeat_until(lambda: put(0), lambda wait_s: seen.wait_for([0], wait_s))
+        settle()
         assert ring.drain() >= 1 and taken and taken[-1][0] == 0
         taken.clear()
         assert ring.drain() == 0 and not taken  # nothing new
         for step in range(1, 201):
             put(step)
         assert seen.wait_for([0], DEADLINE_S, min_seq=200)  # the burst has come
+        settle()
         assert ring.drain() == 4
         assert [step for step, _ in taken] == [197, 198, 199, 200]
         assert {thread for _, thread in taken} == {threading.get_ident()}
@@ -871,10 +893,11 @@ def test_a_backlog_subscription_loses_nothing_and_makes_zenoh_wait_when_full() -
     def on_value(_key: str, beacon) -> None:
         taken.append((beacon.step, threading.get_ident()))
 
-    with beacons_to_a_hub("fifo") as (hub, keys, seen, put):
+    with beacons_to_a_hub("fifo") as (hub, keys, seen, put, settle):
         fifo = subscribe(hub, keys.all_beacons, CODEC.decode_beacon, on_value,
                          RejectionCounter(), "beacon", backlog=backlog)
         repeat_until(lambda: put(0), lambda wait_s: seen.wait_for([0], wait_s))
+        settle()
         while fifo.drain():
             pass
         taken.clear()
@@ -911,15 +934,17 @@ def test_a_blocking_receive_takes_samples_in_order_and_ends_at_a_close_or_a_dead
     def on_value(_key: str, beacon) -> None:
         taken.append((beacon.step, threading.get_ident()))
 
-    def waited_s(fifo: DrainedSubscriber) -> tuple[bool, float]:
-        started = time.monotonic()
+    def waited_s(fifo: DrainedSubscriber, since_s: float) -> tuple[bool, float]:
+        """``receive_one``'s outcome and the time from ``since_s`` (taken before the timer or
+        the deadline was set: a wait measured from after it could end a little under it)."""
         got = fifo.receive_one()
-        return got, time.monotonic() - started
+        return got, time.monotonic() - since_s
 
-    with beacons_to_a_hub("blocking") as (hub, keys, seen, put):
+    with beacons_to_a_hub("blocking") as (hub, keys, seen, put, settle):
         fifos = [subscribe(hub, keys.all_beacons, CODEC.decode_beacon, on_value,
                            RejectionCounter(), "beacon", backlog=64) for _ in range(2)]
         repeat_until(lambda: put(0), lambda wait_s: seen.wait_for([0], wait_s))
+        settle()
         for fifo in fifos:
             while fifo.drain():
                 pass
@@ -933,8 +958,9 @@ def test_a_blocking_receive_takes_samples_in_order_and_ends_at_a_close_or_a_dead
 
         closing = BlockingReceives(fifos[:1], check_period_s=0.05)
         closing.arm(time.monotonic() + 60.0)
+        since_s = time.monotonic()
         threading.Timer(0.2, closing.close).start()
-        got, after_s = waited_s(fifos[0])
+        got, after_s = waited_s(fifos[0], since_s)
         assert not got and 0.2 <= after_s < 5.0 and not closing.expired
         assert not fifos[0].receive_one()  # gone for good
 
@@ -943,8 +969,9 @@ def test_a_blocking_receive_takes_samples_in_order_and_ends_at_a_close_or_a_dead
         threading.Timer(0.3, lambda: put(4)).start()
         assert fifos[1].receive_one() and taken[-1][0] == 4  # disarmed: it waited
         assert not expiring.expired
-        expiring.arm(time.monotonic() + 0.2)
-        got, after_s = waited_s(fifos[1])
+        since_s = time.monotonic()
+        expiring.arm(since_s + 0.2)
+        got, after_s = waited_s(fifos[1], since_s)
         assert not got and 0.2 <= after_s < 5.0 and expiring.expired
         for watch in (closing, expiring):
             watch.join(5.0)
