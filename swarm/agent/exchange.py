@@ -70,7 +70,7 @@ LOCKSTEP_TELEMETRY_STEPS = 10
 # samples wait): a bound of 32 stalled the fuzz test's swarm under 10 000 junk payloads per
 # key, which now wait and are counted a step later.
 LOCKSTEP_BACKLOG = 1 << 16
-FIRST_FRAME_POLL_S = 0.01  # realtime, before the mission: how often the rings are looked at
+FIRST_FRAME_POLL_S = 0.01  # before the mission: how often the frame's ring or FIFO is looked at
 
 # One step of the agent: (step, the vehicle's position sample, the camera frame or None, the
 # sample's age [s], the pose the frame was taken from when not the sample's).
@@ -215,13 +215,7 @@ class LockstepExchange:
         if not self._camera_from:
             raise ExchangeError("attach first: a lockstep agent takes its frames from its "
                                 "camera subscription")
-        deadline = time.monotonic() + timeout_s
-        while True:
-            self._camera_from[0].drain()
-            remaining = deadline - time.monotonic()
-            if self.peers.camera_latest.get(0) is not None or remaining <= 0:
-                return
-            time.sleep(min(FIRST_FRAME_POLL_S, remaining))
+        poll_first_frame(self.peers, self._camera_from[0].drain, timeout_s)
 
     def begin(self, step: int) -> None:
         return None  # N is the configured swarm
@@ -383,13 +377,7 @@ class RealtimeExchange:
     def wait_first_frame(self, timeout_s: float) -> None:
         """Until the first frame or ``timeout_s``: the rings are looked at every
         ``FIRST_FRAME_POLL_S`` (before the mission only; nothing wakes a wait on a ring)."""
-        deadline = time.monotonic() + timeout_s
-        while True:
-            self.peers.drain()
-            remaining = deadline - time.monotonic()
-            if self.peers.camera_latest.get(0) is not None or remaining <= 0:
-                return
-            time.sleep(min(FIRST_FRAME_POLL_S, remaining))
+        poll_first_frame(self.peers, self.peers.drain, timeout_s)
 
     def begin(self, step: int) -> None:
         """N = the own drone and the drones heard within ``member_timeout_s``.
@@ -549,6 +537,19 @@ class HeldRelay:
         """Each beacon's age at ``now_s``: since it reached the world (the relay's age plus
         how long the world had held it), never negative."""
         return max(now_s - self.arrived_s, 0.0) + self.rows[:, RELAY_HELD]
+
+
+def poll_first_frame(peers: Peers, drain: Callable[[], object], timeout_s: float) -> None:
+    """Until the first camera frame is held or ``timeout_s`` has passed: ``drain`` (what
+    takes the waiting samples) every ``FIRST_FRAME_POLL_S``. Before the mission only: rings
+    and FIFOs wake nobody, and a wait on a FIFO cannot time out."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        drain()
+        remaining = deadline - time.monotonic()
+        if peers.camera_latest.get(0) is not None or remaining <= 0:
+            return
+        time.sleep(min(FIRST_FRAME_POLL_S, remaining))
 
 
 def loop_phase_s(drone_id: int, n_drones: int, period_s: float) -> float:
