@@ -268,9 +268,21 @@ def test_launchers_started_together_reserve_different_mavlink_blocks() -> None:
             launcher_module.reserve_mavlink_base(first_base, 6)
     finally:
         first_lock.close()
-    again, lock = launcher_module.reserve_mavlink_base(first_base, 6)  # released: free again
+    # Released, free again: shown on a block of its own, off the grid that launches without
+    # a requested base search (a launch in a test on the other xdist worker may take the
+    # first free grid block the moment this test releases it, and bind its ports).
+    own = next(base for base in range(launcher_module.DEFAULT_MAVLINK_BASE + 70, 32768 - 6, 100)
+               if launcher_module.udp_ports_free(base, 6))
+    held, lock = launcher_module.reserve_mavlink_base(own, 6)
+    try:
+        assert held == own
+        with pytest.raises(launcher_module.MissionError, match="reserved by another"):
+            launcher_module.reserve_mavlink_base(own, 6)
+    finally:
+        lock.close()
+    again, lock = launcher_module.reserve_mavlink_base(own, 6)
     lock.close()
-    assert again == first_base
+    assert again == own
 
 
 # -- command lines ---------------------------------------------------------------------------
