@@ -6,6 +6,11 @@
 
 Sections (each also runs alone: ``python benchmarks/<module>.py``):
 
+- ``host``     (bench_host.py)     the machine alone at this hour: Python's speed, what a
+                                   wake-up between processes and a timer wake-up cost;
+                                   measured again after the last section (``host_after``
+                                   in the summary), so that a run's host is known at both
+                                   ends;
 - ``step``     (bench_step.py)     per-drone step for M = 1, 2, 3 with its breakdown and wire
                                    encode/decode, and the M = 2 step with the QP rebuilt in
                                    CVXPY;
@@ -34,6 +39,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import bench_host
 import bench_lockstep
 import bench_qp
 import bench_startup
@@ -53,12 +59,14 @@ from common import (
 from plot_scaling import WORLD_TARGET_MS_PER_DRONE, write_scaling_plot
 from rich.table import Table
 
-SECTIONS = ("step", "qp", "lockstep", "realtime", "startup")
+SECTIONS = ("host", "step", "qp", "lockstep", "realtime", "startup")
 MIB_PER_MB = 1e6 / 2**20
 
 
 def run_section(name: str, profile: Any, done: dict[str, dict[str, Any]],
                 out_dir: Path) -> dict[str, Any]:
+    if name == "host":
+        return bench_host.run(profile)
     if name == "step":
         return bench_step.run(profile)
     if name == "qp":  # the whole-step estimate takes the newest step figures
@@ -74,8 +82,9 @@ def run_section(name: str, profile: Any, done: dict[str, dict[str, Any]],
 
 
 TABLES: dict[str, Callable[[dict[str, Any]], list[Table]]] = {
-    "step": bench_step.tables, "qp": bench_qp.tables, "lockstep": bench_lockstep.tables,
-    "realtime": realtime_swarm.tables, "startup": bench_startup.tables,
+    "host": bench_host.tables, "step": bench_step.tables, "qp": bench_qp.tables,
+    "lockstep": bench_lockstep.tables, "realtime": realtime_swarm.tables,
+    "startup": bench_startup.tables,
 }
 
 
@@ -164,6 +173,17 @@ def targets_table(rows: list[dict[str, Any]]) -> Table:
     return table
 
 
+def host_table(before: dict[str, Any], after: dict[str, Any]) -> Table:
+    """The host's figures at the start and at the end of the run, side by side."""
+    table = new_table("The host at both ends of this run", ["figure", "start", "end"],
+                      caption=f"measured at {before['measured_at']} and {after['measured_at']}"
+                              " (benchmarks/bench_host.py)")
+    for (label, start), (_, end) in zip(bench_host.figure_rows(before),
+                                        bench_host.figure_rows(after), strict=True):
+        table.add_row(label, start, end)
+    return table
+
+
 def _load_line(clock: dict[str, Any]) -> str:
     cores = clock["cpu_cores"]
     return (f"load average {clock['load_before']} → {clock['load_after']}; CPU cores used by "
@@ -235,11 +255,15 @@ def main(argv: list[str] | None = None) -> int:
                                    "machine": earlier.get("machine")}
     goals = targets(newest)
     out.print(targets_table(goals))
+    host_after = None
+    if "host" in done:  # the host again, at the other end of the run
+        host_after = bench_host.measure(profile)
+        out.print(host_table(done["host"]["figures"], host_after))
     total = clock.done()
     summary = {"command": " ".join(["python", "benchmarks/run_all.py",
                                     *(argv if argv is not None else sys.argv[1:])]),
                "profile": profile.name, "machine": machine, **total,
-               "sections": sections_info, "targets": goals}
+               "sections": sections_info, "targets": goals, "host_after": host_after}
     write_json(out_dir / "summary.json", summary)
     out.print(f"total {fmt(total['wall_s'], 0)} s; {_load_line(total)}; wrote "
               f"{out_dir / 'summary.json'}")

@@ -4,6 +4,7 @@ writes the fields the report is made of. Timings are measured, never asserted he
 from __future__ import annotations
 
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -14,11 +15,13 @@ sys.path.insert(0, str(ROOT / "benchmarks"))
 
 pytest.importorskip("cvxpy", reason="the benchmarks need the 'bench' extra (cvxpy)")
 
+import bench_host  # noqa: E402
 import bench_startup  # noqa: E402
 import run_all  # noqa: E402
 import swarm_configs  # noqa: E402
 
 pytestmark = pytest.mark.wallclock
+CPUS = sorted(os.sched_getaffinity(0))
 
 
 def test_scaled_configs_are_generated_from_case2_and_valid() -> None:
@@ -91,6 +94,44 @@ def test_every_section_runs_and_writes_its_fields(tmp_path: Path) -> None:
     assert startup["summary"]["launch_to_streaming_s"]["median"] > 0
     assert startup["summary"]["agent_hwm_mib_max"]["median"] > 0
     assert startup["imports"]["by_package_self_ms"]
+
+    # The host, at both ends of the run.
+    for figures in (load("host")["figures"], summary["host_after"]):
+        assert figures["python_loop_us_per_1000"] > 0
+        assert figures["timer_wakeup_cpu_us"] > 0
+        bounces = [figures["one_cpu"]] + ([figures["two_cpus"]] if len(CPUS) > 1 else [])
+        assert figures["two_cpus"] is None or len(CPUS) > 1
+        for bounce in bounces:
+            assert 0 < bounce["round_trip_median_us"] <= bounce["round_trip_p90_us"]
+            assert bounce["cpu_per_hop_us"] > 0
+
+
+def test_the_host_bounces_give_back_the_cpus_and_leave_no_process() -> None:
+    """The bounce child is gone after the call, and this thread has the CPUs it had
+    before."""
+    cpu = CPUS[-1]
+    before = set(live_children())
+    figures = bench_host.udp_round_trips(20, CPUS[0], cpu)
+    assert figures["round_trip_median_us"] > 0 and figures["cpu_per_hop_us"] > 0
+    assert os.sched_getaffinity(0) == set(CPUS)
+    assert set(live_children()) == before
+
+
+def live_children() -> list[int]:
+    """This process's live children, from /proc."""
+    me = str(os.getpid())
+    children = []
+    for pid in os.listdir("/proc"):
+        if not pid.isdigit():
+            continue
+        try:
+            stat = Path(f"/proc/{pid}/stat").read_text()
+        except OSError:
+            continue
+        fields = stat[stat.rindex(")") + 2:].split()
+        if fields[1] == me and fields[0] != "Z":
+            children.append(int(pid))
+    return children
 
 
 @pytest.mark.slow
