@@ -26,7 +26,8 @@ Writes ``<out>/<section>.json`` and ``<out>/summary.json`` (machine, versions, l
 before and after each section, the issue's targets against the newest figures of every
 section, those of sections not run this time read from their JSON). Nothing is asserted:
 the figures depend on the machine and its load, which the summary records. Exit code 1 if a
-section failed to run (its error is in the summary), else 0.
+section (or the host's second measurement) failed to run (its error is in the summary), else
+0.
 """
 
 from __future__ import annotations
@@ -255,10 +256,15 @@ def main(argv: list[str] | None = None) -> int:
                                    "machine": earlier.get("machine")}
     goals = targets(newest)
     out.print(targets_table(goals))
-    host_after = None
+    host_after: dict[str, Any] | None = None
     if "host" in done:  # the host again, at the other end of the run
-        host_after = bench_host.measure(profile)
-        out.print(host_table(done["host"]["figures"], host_after))
+        try:
+            host_after = bench_host.measure(profile)
+        except Exception as err:  # the figures measured so far are kept all the same
+            out.print(f"host (after): failed: {type(err).__name__}: {err}", style="red")
+            host_after = {"error": f"{type(err).__name__}: {err}"}
+        else:
+            out.print(host_table(done["host"]["figures"], host_after))
     total = clock.done()
     summary = {"command": " ".join(["python", "benchmarks/run_all.py",
                                     *(argv if argv is not None else sys.argv[1:])]),
@@ -267,7 +273,8 @@ def main(argv: list[str] | None = None) -> int:
     write_json(out_dir / "summary.json", summary)
     out.print(f"total {fmt(total['wall_s'], 0)} s; {_load_line(total)}; wrote "
               f"{out_dir / 'summary.json'}")
-    return 1 if any("error" in info for info in sections_info.values()) else 0
+    failed = any("error" in info for info in sections_info.values())
+    return 1 if failed or (host_after is not None and "error" in host_after) else 0
 
 
 if __name__ == "__main__":
