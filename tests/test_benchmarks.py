@@ -117,6 +117,26 @@ def test_the_host_bounces_give_back_the_cpus_and_leave_no_process() -> None:
     assert set(live_children()) == before
 
 
+def test_a_failed_second_host_measurement_keeps_the_run_and_fails_its_exit_code(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    measure = bench_host.measure
+    calls = []
+
+    def second_fails(profile: object) -> dict:
+        calls.append(profile)
+        if len(calls) > 1:
+            raise OSError("no loopback here")
+        return measure(profile)
+
+    monkeypatch.setattr(bench_host, "measure", second_fails)
+    assert run_all.main(["--profile", "smoke", "--only", "host", "--out", str(tmp_path)]) == 1
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert summary["host_after"] == {"error": "OSError: no loopback here"}
+    host = json.loads((tmp_path / "host.json").read_text())
+    assert host["figures"]["python_loop_us_per_1000"] > 0
+    assert len(calls) == 2
+
+
 def live_children() -> list[int]:
     """This process's live children, from /proc."""
     me = str(os.getpid())
