@@ -31,13 +31,13 @@ from __future__ import annotations
 
 import os
 import socket
-import statistics
 import subprocess
 import sys
 import threading
 import time
 from typing import Any
 
+import numpy as np
 from common import PROFILES, Profile, SectionClock, fmt, new_table, report_section, section_parser
 from rich.table import Table
 
@@ -79,7 +79,7 @@ def python_loop_us(iterations: int = HOST_LOOP_ITERATIONS,
         start = time.perf_counter()
         loop()
         times.append((time.perf_counter() - start) * 1e6 * 1000 / iterations)
-    return statistics.median(times)
+    return float(np.median(times))
 
 
 def udp_round_trips(count: int, own_cpu: int, child_cpu: int) -> dict[str, float]:
@@ -119,9 +119,9 @@ def udp_round_trips(count: int, own_cpu: int, child_cpu: int) -> dict[str, float
         if child.poll() is None:
             child.kill()
             child.wait()
-    round_trips_ns.sort()
-    return {"round_trip_median_us": round_trips_ns[len(round_trips_ns) // 2] / 1e3,
-            "round_trip_p90_us": round_trips_ns[int(0.9 * (len(round_trips_ns) - 1))] / 1e3,
+    median_ns, p90_ns = np.percentile(round_trips_ns, [50, 90])
+    return {"round_trip_median_us": float(median_ns) / 1e3,
+            "round_trip_p90_us": float(p90_ns) / 1e3,
             "cpu_per_hop_us": (own_cpu_s + child_cpu_s) / (2 * count) * 1e6}
 
 
