@@ -54,7 +54,7 @@ from swarm.scenario.cli_common import (
     seed,
     terminate_on_sigterm,
 )
-from swarm.scenario.config import ScenarioConfig, realtime_only_reason
+from swarm.scenario.config import ScenarioConfig, config_to_toml, realtime_only_reason
 
 PROG = "launch-swarm"
 # Live tables at 4 Hz at most on a terminal; a line every 5 simulated seconds otherwise.
@@ -115,6 +115,11 @@ def build_parser() -> OneLineParser:
                         help="write DIR/run.mcap as the run goes: telemetry, beacons, "
                              "detections and truth with their sim time, and the resolved "
                              "config (MCAP, JSON; Foxglove reads it)")
+    parser.add_argument("--print-config", action="store_true",
+                        help="print the resolved config as TOML (every value the run would "
+                             "use: the defaults filled in, --seed, --duration and the tracking "
+                             "margins fitted to --sitl/--mavlink applied) and exit 0; nothing "
+                             "is started")
     return parser
 
 
@@ -219,6 +224,13 @@ def main(argv: Sequence[str] | None = None) -> int:
                                                      autopilot=autopilot), dict(args.mavlink))
         except ConfigError as err:
             return fail_on(PROG, err, "config error: ")
+    if args.print_config:
+        try:
+            shown = config.with_seed(seed_value)
+        except ConfigError as err:
+            return fail_on(PROG, err, "config error: ")
+        sys.stdout.write(config_to_toml(shown))
+        return 0
     reason = realtime_only_reason(config.vehicles, mode=args.mode, inprocess=args.inprocess,
                                   external=real, restarts_agents=bool(args.agent_restarts),
                                   kills_agents=bool(args.kill_agents))

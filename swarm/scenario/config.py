@@ -9,6 +9,7 @@ becomes one ``ConfigError`` whose text is a single line naming the key and the r
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import tomllib
 import typing
@@ -429,6 +430,14 @@ class ScenarioConfig:
         estimator's state size."""
         return WireCodec(self.swarm.n_drones, len(self.targets), self.state_dimension)
 
+    def with_seed(self, seed: int) -> ScenarioConfig:
+        """The same scenario with another seed (``--seed``); ConfigError if invalid."""
+        try:
+            return dataclasses.replace(
+                self, scenario=dataclasses.replace(self.scenario, seed=seed))
+        except ValueError as err:
+            raise ConfigError(f"--seed: {err}") from None
+
     def with_duration(self, duration_s: float) -> ScenarioConfig:
         """The same scenario with another length (``--duration``); ConfigError if invalid."""
         try:
@@ -533,6 +542,7 @@ def _cross_check(config: ScenarioConfig) -> None:
             f"swarm.initial_box_size_m {box_list} is too small for {config.swarm.n_drones} "
             f"drones {config.swarm.initial_min_separation_m} m apart")
     _check_start_inside_envelope(config)
+    _check_targets_seen_at_start(config)
     try:  # the volume bound above is necessary, not sufficient: try the config's own seed
         sample_initial_positions(
             config.swarm.n_drones, np.asarray(config.swarm.initial_box_center_m), box,
@@ -573,6 +583,43 @@ def _check_start_inside_envelope(config: ScenarioConfig) -> None:
                 f"inside it")
 
 
+def _check_targets_seen_at_start(config: ScenarioConfig) -> None:
+    """Some drone start in the start box can see every target at t = 0 (SPEC §2: the camera
+    looks down, sees D_m < d < D_M and |x̄|, |ȳ| ≤ tan α_M). A target none can see gives no
+    information, while G(0) = 2εI decays below ε within ln 2/ρ: the λ̄ ≥ ε barrier, on from
+    control.start_s, could never hold. Three necessary conditions, each on its own exact:
+    the target below the box's top, nearer than D_M to the box, and inside the field of view
+    of a camera at the box's top right above the box's point nearest to it."""
+    center = np.asarray(config.swarm.initial_box_center_m, dtype=float)
+    half = np.asarray(config.swarm.initial_box_size_m, dtype=float) / 2.0
+    low, high = center - half, center + half
+    top_z = float(high[2])
+    camera = config.camera
+    for k, target in enumerate(config.targets):
+        start = np.asarray(target.start_m, dtype=float)
+        key = f"targets[{k}].start_m"
+        if not start[2] < top_z:
+            raise ConfigError(
+                f"{key}: z = {start[2]:g} m is not below the top of the drones' start box "
+                f"(z = {top_z:g} m, swarm.initial_box_center_m and initial_box_size_m): the "
+                f"cameras look down, no drone can see this target at the start")
+        nearest = np.clip(start, low, high)
+        distance = math.dist(nearest, start)
+        if not distance < camera.range_max_m:
+            raise ConfigError(
+                f"{key}: {distance:.3g} m from the nearest point of the drones' start box, "
+                f"not within camera.range_max_m = {camera.range_max_m:g} m: no drone can see "
+                f"this target at the start")
+        reach = (top_z - start[2]) * camera.image_half_width
+        aside = float(np.max(np.abs(start[:2] - nearest[:2])))
+        if aside > reach:
+            raise ConfigError(
+                f"{key}: {aside:.3g} m beside the drones' start box, outside every camera's "
+                f"field of view at the start (from the box's top, {top_z - start[2]:.3g} m "
+                f"above it, camera.half_fov_deg = {camera.half_fov_deg:g} reaches "
+                f"{reach:.3g} m aside)")
+
+
 def _check_unknown_keys(data: object, schema: object, path: str) -> None:
     """msgspec ignores unknown keys of dataclasses; a typo must not pass silently."""
     origin = typing.get_origin(schema)
@@ -601,6 +648,9 @@ def _one_line(error: msgspec.ValidationError) -> str:
     message, _, location = text.partition(" - at `$")
     location = location.rstrip("`").lstrip(".")
     if not location:
+        if message.startswith("Object missing required field"):
+            return (f"{message}: a config needs [scenario], [swarm] and [[targets]]; every "
+                    f"other section may be left out (its defaults are used)")
         return message
     if message.startswith(("Expected", "Object missing", "Invalid")):
         return f"{location}: {message}"
@@ -647,10 +697,80 @@ def _fill_tracking_defaults(data: dict[str, object], autopilot: str | None) -> N
 
 def config_to_data(config: ScenarioConfig) -> dict[str, object]:
     """The config as plain JSON-ready data that ``config_from_dict`` turns back into an equal
-    config (recordings keep the resolved config this way); ``source`` is left out."""
-    data = msgspec.to_builtins(config)
+    config (recordings keep the resolved config this way): every key of every section, the
+    defaults and fitted values included; ``source`` is left out."""
+    data = msgspec.to_builtins(_every_field(config))
     data.pop("source", None)
     return data
+
+
+def _every_field(value: object) -> object:
+    """``value`` with every dataclass made a dict of all its fields. (msgspec builds a
+    dataclass without storing the defaults of the keys a document leaves out, and its
+    ``to_builtins`` writes only the stored ones: a default would be missing.)"""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: _every_field(getattr(value, f.name))
+                for f in dataclasses.fields(value) if f.init}
+    if isinstance(value, tuple | list):
+        return [_every_field(item) for item in value]
+    return value
+
+
+def config_to_toml(config: ScenarioConfig) -> str:
+    """The resolved config as TOML text that ``load_config`` reads back into an equal config
+    (``launch-swarm --print-config``): every key of every section, the defaults and the
+    fitted values included. A key whose value is none (an altitude bound not set) is shown
+    as a comment; ``vehicles.setpoint_timeout_s = 0`` says which failsafe delay it means."""
+    data = config_to_data(config)
+    lines = [f"# The resolved config of {config.source}: every value a run of it uses,",
+             "# the defaults of the sections and keys it leaves out filled in."]
+    for name, value in data.items():
+        _toml_table(name, value, lines)
+    return "\n".join(lines) + "\n"
+
+
+def _toml_table(path: str, value: object, lines: list[str]) -> None:
+    """Append ``value`` (a dict: ``[path]``; a list of dicts: one ``[[path]]`` each)."""
+    if isinstance(value, list):
+        for item in value:
+            lines.extend(("", f"[[{path}]]"))
+            _toml_keys(path, item, lines)
+        return
+    lines.extend(("", f"[{path}]"))
+    _toml_keys(path, value, lines)
+
+
+def _toml_keys(path: str, table: object, lines: list[str]) -> None:
+    assert isinstance(table, dict)
+    nested = []
+    for key, value in table.items():
+        if isinstance(value, dict) or (isinstance(value, list) and value
+                                       and all(isinstance(v, dict) for v in value)):
+            nested.append((key, value))
+        elif value is None:
+            lines.append(f"# {key}: not set")
+        else:
+            note = ""
+            if path == "vehicles" and key == "setpoint_timeout_s" and value == 0:
+                flavour = table["flavour"]
+                note = (f"  # 0: the flavour's default, "
+                        f"{DEFAULT_SETPOINT_TIMEOUT_S[flavour]:g} s ({flavour})")
+            lines.append(f"{key} = {_toml_value(value)}{note}")
+    for key, value in nested:
+        _toml_table(f"{path}.{key}", value, lines)
+
+
+def _toml_value(value: object) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int | float):
+        return repr(value)
+    if isinstance(value, str):
+        # A JSON string is a TOML basic string, once DEL (which TOML wants escaped) is.
+        return json.dumps(value, ensure_ascii=False).replace("\x7f", "\\u007F")
+    if isinstance(value, list):
+        return "[" + ", ".join(_toml_value(item) for item in value) + "]"
+    raise TypeError(f"no TOML form for {type(value).__name__}")
 
 
 def write_resolved_config(config: ScenarioConfig, path: str | Path) -> Path:

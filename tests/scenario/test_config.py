@@ -491,3 +491,187 @@ def test_the_mode_rules_hold_outside_realtime_only(flags: dict, says: str) -> No
     assert realtime_only_reason(vehicles, mode="lockstep") is None
     ground = dataclasses.replace(vehicles, start="ground")
     assert "vehicles.start = 'ground'" in realtime_only_reason(ground, mode="lockstep")
+
+
+# -- what a config leaves out, and the resolved config -------------------------------------
+
+REQUIRED_SECTIONS = ("scenario", "swarm", "targets")
+OPTIONAL_SECTIONS = ("camera", "perception", "estimation", "gramian", "control", "checks",
+                     "safety", "vehicles", "runtime", "security")
+
+
+def _field_names(schema: type) -> set[str]:
+    return {f.name for f in dataclasses.fields(schema) if f.init and f.name != "source"}
+
+
+def _assert_every_key(data: object, schema: object, path: str = "") -> int:
+    """Every field of every dataclass in ``schema`` is a key of ``data``; the keys counted."""
+    import typing
+
+    origin = typing.get_origin(schema)
+    if origin is tuple and isinstance(data, list):
+        args = typing.get_args(schema)
+        item_schema = args[0] if len(args) == 2 and args[1] is Ellipsis else None
+        return sum(_assert_every_key(item, item_schema, f"{path}[{k}]")
+                   for k, item in enumerate(data)) if item_schema is not None else 0
+    if not (dataclasses.is_dataclass(schema) and isinstance(schema, type)):
+        return 0
+    assert isinstance(data, dict), path
+    assert set(data) == _field_names(schema), (path, sorted(_field_names(schema) - set(data)))
+    hints = typing.get_type_hints(schema)
+    return len(data) + sum(_assert_every_key(value, hints[key], f"{path}.{key}")
+                           for key, value in data.items())
+
+
+def test_only_scenario_swarm_and_targets_are_required() -> None:
+    """Each other section left out takes its defaults (the thesis' values: case1 differs from
+    them in control.qp only); a required one left out says which ones are required."""
+    from swarm.scenario.config import config_to_data
+
+    full = load_case("case1")
+    minimal = config_from_dict({name: raw_case("case1")[name] for name in REQUIRED_SECTIONS})
+    assert minimal == dataclasses.replace(full, control=dataclasses.replace(full.control,
+                                                                              qp="relaxed"))
+    for name in OPTIONAL_SECTIONS:
+        data = raw_case("case1")
+        data.pop(name, None)
+        assert config_to_data(config_from_dict(data))[name] == \
+            config_to_data(minimal)[name], name
+    for name in REQUIRED_SECTIONS:
+        data = raw_case("case1")
+        del data[name]
+        with pytest.raises(ConfigError) as info:
+            config_from_dict(data)
+        message = str(info.value)
+        assert message.startswith(f"Object missing required field `{name}`: a config needs "
+                                  f"[scenario], [swarm] and [[targets]]"), message
+        assert "\n" not in message
+
+
+@pytest.mark.parametrize("keep", [REQUIRED_SECTIONS, (*REQUIRED_SECTIONS, "checks", "control")])
+def test_the_resolved_config_holds_every_key_the_defaults_included(keep: tuple[str, ...]) -> None:
+    """What a recording keeps (``config_to_data``) names every key of every section, also
+    the keys and sections the file left out (case1 gives no checks.envelope_tolerance_m, no
+    target amplitude_m; msgspec alone wrote only the keys given) and the tracking margins
+    fitted to the vehicles."""
+    from swarm.scenario.config import TRACKING_DEFAULTS, config_to_data
+
+    raw = raw_case("case1")
+    data = {name: raw[name] for name in keep}
+    data.setdefault("vehicles", {})["response"] = "px4"
+    config = config_from_dict(data)
+    resolved = config_to_data(config)
+    assert _assert_every_key(resolved, ScenarioConfig) > 100
+    assert resolved["checks"]["envelope_tolerance_m"] == 5e-3
+    assert resolved["targets"][0]["amplitude_m"] == [0.0, 0.0, 0.0]
+    assert (resolved["control"]["tracking_error_bound_m_s"],
+            resolved["control"]["command_accel_limit_m_s2"]) == TRACKING_DEFAULTS["px4"]
+    assert config_from_dict(resolved) == config
+
+
+def _shipped_configs() -> list[Path]:
+    return sorted([*CONFIGS.glob("*.toml"), *CONFIGS.glob("bench/*.toml"),
+                   *(ROOT / "tests" / "configs").glob("*.toml")])
+
+
+@pytest.mark.parametrize("path", _shipped_configs(), ids=lambda p: p.stem)
+def test_the_resolved_config_as_toml_reads_back_equal(path: Path, tmp_path: Path) -> None:
+    from swarm.scenario.config import config_to_data, config_to_toml
+
+    config = load_config(path)
+    text = config_to_toml(config)
+    assert text.startswith(f"# The resolved config of {path}: ")
+    (tmp_path / "resolved.toml").write_text(text)
+    again = load_config(tmp_path / "resolved.toml")
+    assert again == config
+    assert config_to_data(again) == config_to_data(config)
+
+
+def test_the_toml_text_keeps_odd_strings_and_says_the_failsafe_delay() -> None:
+    from swarm.scenario.config import config_to_toml
+
+    data = _case1_data()
+    data["scenario"]["name"] = 'a "case"\twith \\ ☃, \x7f and \U0001F681'
+    data["vehicles"]["flavour"] = "ardupilot"
+    data["safety"] = {"floor_m": 1.0, "keep_out": [{"center_m": [9.0, 9.0], "radius_m": 1.0}]}
+    config = config_from_dict(data)
+    text = config_to_toml(config)
+    assert config_from_dict(tomllib.loads(text)) == config
+    assert 'setpoint_timeout_s = 0.0  # 0: the flavour\'s default, 3 s (ardupilot)' in text
+    assert "floor_m = 1.0\n# ceiling_m: not set\n" in text
+    assert "\n[[safety.keep_out]]\ncenter_m = [9.0, 9.0]\nradius_m = 1.0\n" in text
+
+
+def test_print_config_shows_what_the_run_would_use(tmp_path: Path) -> None:
+    """``launch-swarm --print-config``: TOML on stdout, exit 0, nothing started; the file's
+    left-out sections filled in, --seed and --duration applied, and with --mavlink the
+    tracking margins fitted to that autopilot flavour."""
+    from swarm.scenario.config import TRACKING_DEFAULTS
+
+    minimal = tmp_path / "minimal.toml"
+    raw = raw_case("case1")
+    minimal.write_text("\n".join(
+        ["[scenario]", 'name = "minimal"', "duration_s = 30.0", "[swarm]", "n_drones = 6",
+         f"edges = {raw['swarm']['edges']}", "[[targets]]", 'trajectory = "linear"',
+         "start_m = [0.1, 0.0, 0.0]"]) + "\n")
+    result = launch_swarm_in_process(str(minimal), "--print-config", "--seed", "7",
+                                     "--duration", "3")
+    assert (result.returncode, result.stderr) == (0, ""), result.stderr
+    printed = tomllib.loads(result.stdout)
+    assert printed["scenario"] == {"name": "minimal", "duration_s": 3.0, "dt_s": 0.02,
+                                   "seed": 7}
+    assert printed["checks"] == {"lambda_tolerance": 0.005, "collision_tolerance_m": 0.001,
+                                 "envelope_tolerance_m": 0.005}
+    expected = load_config(minimal).with_duration(3.0).with_seed(7)
+    assert config_from_dict(printed) == expected
+    urls = [arg for i in range(6) for arg in ("--mavlink", f"{i}=udpin:127.0.0.1:{14540 + i}")]
+    result = launch_swarm_in_process(str(CONFIGS / "case1.toml"), "--print-config", *urls)
+    assert (result.returncode, result.stderr) == (0, ""), result.stderr
+    control = tomllib.loads(result.stdout)["control"]
+    assert (control["tracking_error_bound_m_s"], control["command_accel_limit_m_s2"]) == \
+        TRACKING_DEFAULTS["px4"]
+    assert 'mavlink_urls = ["udpin:127.0.0.1:14540", ' in result.stdout
+    bad = launch_swarm_in_process(str(CORPUS_DIR / "target_above_start_box.toml"),
+                                  "--print-config")
+    assert (bad.returncode, bad.stdout) == (2, "") and len(bad.stderr.splitlines()) == 1
+
+
+# -- geometry that cannot work -------------------------------------------------------------
+
+
+@pytest.mark.parametrize(("start_m", "refused"), [
+    ([0.1, 0.0, 4.5], "z = 4.5 m is not below the top of the drones' start box"),
+    ([0.1, 0.0, 4.49], None),  # inside the box, below its top: drones above it can see it
+    ([0.0, 0.0, 4.5 - 8.0], "8 m from the nearest point of the drones' start box, not within"
+                            " camera.range_max_m = 8 m"),
+    ([0.0, 0.0, 4.5 - 7.99], None),  # right below, just within range
+    ([2.0 + 4.0 * math.tan(math.radians(50.0)), 0.0, 0.5], None),  # at the edge of the view
+    ([2.0 + 4.0 * math.tan(math.radians(50.0)) + 1e-6, 0.0, 0.5],
+     "m beside the drones' start box, outside every camera's field of view"),
+    ([0.0, -2.0 - 4.0 * math.tan(math.radians(50.0)) - 1e-6, 0.5],
+     "outside every camera's field of view"),
+])
+def test_a_target_no_drone_can_see_at_the_start_is_refused(start_m: list[float],
+                                                           refused: str | None) -> None:
+    """The camera looks down and sees D_m < d < D_M inside ±α_M: a target no start position
+    in the box can see is refused, naming the target; the boundaries are the camera's own."""
+    data = _case1_data()
+    data["swarm"]["initial_box_size_m"] = [4.0, 4.0, 0.0]  # every drone starts at z = 4.5
+    data["swarm"]["initial_box_center_m"] = [0.0, 0.0, 4.5]
+    data["swarm"]["initial_min_separation_m"] = 0.5
+    data["targets"][0]["start_m"] = start_m
+    if refused is None:
+        assert config_from_dict(data).targets[0].start_m == tuple(start_m)
+        return
+    with pytest.raises(ConfigError) as info:
+        config_from_dict(data)
+    message = str(info.value)
+    assert message.startswith("targets[0].start_m: ") and refused in message, message
+    assert "\n" not in message
+
+
+def test_the_second_target_is_named_when_it_is_the_one_out_of_view() -> None:
+    data = raw_case("case2")
+    data["targets"][1]["start_m"] = [-0.1, 0.0, 6.0]
+    with pytest.raises(ConfigError, match=r"^targets\[1\]\.start_m: z = 6 m is not below"):
+        config_from_dict(data)
