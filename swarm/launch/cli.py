@@ -31,6 +31,7 @@ from swarm.mavlink.sitl import (
 from swarm.messages.wire import TelemetryCounters
 from swarm.models.kinematics import InitialPlacementError
 from swarm.observe.dashboard import Dashboard, DashboardSettings, InProcessFeed
+from swarm.observe.live_view import LiveViewAddressError, check_address
 from swarm.observe.recording import RecordingError, record_directory, record_reference
 from swarm.observe.report import build_report, render_report
 from swarm.runs.record import RunRecord
@@ -255,6 +256,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         return fail(PROG, "--foxglove serves a process swarm as it runs; --inprocess runs as "
                           "fast as it can: record it (--record DIR) and open DIR/run.mcap in "
                           "Foxglove")
+    if args.foxglove is not None:
+        try:  # before any process starts: a taken port is found now, not after SITL boots
+            check_address(*args.foxglove)
+        except LiveViewAddressError as err:
+            return fail_on(PROG, err)
     options = None
     if not args.inprocess:
         try:

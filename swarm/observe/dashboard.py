@@ -606,7 +606,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """``python -m swarm.observe.dashboard CONFIG --connect ENDPOINT --run-id ID [--duration S]
     [--headless]``: exit 0 when the mission completed, 1 otherwise, 2 on a bad command line."""
     from swarm.net.transport import TransportError, check_tls_endpoints
-    from swarm.observe.live_view import LiveViewError
+    from swarm.observe.live_view import LiveViewError, check_address
     from swarm.scenario.cli_common import (
         EXIT_FAILED,
         EXIT_OK,
@@ -642,6 +642,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         check_tls_endpoints([args.connect], tls=config.security.enabled)
     except ValueError as err:
         return fail(prog, str(err))
+    try:
+        if args.foxglove is not None:  # before waiting for the router
+            check_address(*args.foxglove)
+    except LiveViewError as err:
+        return fail_on(prog, err)
     terminate_on_sigterm()
     try:
         state = watch(args.connect, args.run_id, config, headless=args.headless,

@@ -115,7 +115,10 @@ def add_foxglove_argument(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--foxglove", type=gcs_address, nargs="?", const=FOXGLOVE_DEFAULT,
                         default=None, metavar="HOST:PORT",
                         help="serve a live 3D view to Foxglove/Lichtblick (Open connection → "
-                             "Foxglove WebSocket, ws://HOST:PORT; default 127.0.0.1:8765)")
+                             "Foxglove WebSocket, ws://HOST:PORT; default 127.0.0.1:8765). The "
+                             "server speaks foxglove.sdk.v1 only: Lichtblick 1.22.0 or later, or "
+                             "a current Foxglove app; older Lichtblick and @foxglove/ws-protocol "
+                             "tools (foxglove.websocket.v1) are refused")
 
 
 def add_gcs_arguments(parser: argparse.ArgumentParser) -> None:
