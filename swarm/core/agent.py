@@ -36,6 +36,7 @@ from swarm.core.qp import (
     FailedQp,
     LocalQpWorkspace,
     QpSolution,
+    estimate_free_rows,
     rate_limited_box,
 )
 from swarm.core.records import record
@@ -396,35 +397,29 @@ class DroneAgent:
         terms, rows, weight_sums = self._barrier_terms(estimates, target_velocities)
         weights = [row[ROW.WEIGHT] for row in rows]
         nominal, formation_error = self._nominal_velocity(own, clean_beacons)
+        # Localization and weight-sum rows from control.start_s on (filter warm-up before);
+        # the safety rows (collision, envelope) from the first step (SPEC §9).
         control_active = time_s >= ctrl.start_s
         box = (rate_limited_box(self._last_command, self._max_change, ctrl.u_max_m_s)
                if self._max_change > 0.0 else None)
-        if control_active:
-            u_rows, lower = self._qp_rows(terms, target_velocities, weight_sums, own,
-                                          clean_beacons)
-            clock.lap(BARRIER)
-            solution, fallback, released = self._solve(nominal, u_rows, lower, weights, box)
-            clock.lap(QP)
-            if solution.found:
-                velocity = solution.z[:3].copy()
-            else:  # SPEC §9: the safest input; within the rate box, braking as hard as it lets
-                velocity = np.array(_clip3(_ZERO3, box) if box is not None else _ZERO3)
-            found_slacks = solution.found and solution.z.shape[0] > 3
-            slacks = solution.z[3:3 + m].copy() if found_slacks else np.zeros(m)
-            weight_slacks = solution.z[3 + m:].copy() if found_slacks else np.zeros(m)
-            conflict = found_slacks and self._n_safety_rows > 0 and safety_conflict(
-                u_rows, lower, self._n_safety_rows, solution.z[:3].tolist(),
-                solution.z[3:].tolist())
-            qp_status, qp_iterations = solution.status, solution.iterations
-            qp_us = solution.solve_time_s * 1e6
-        else:
-            clock.lap(BARRIER)
-            u_max = ctrl.u_max_m_s
-            velocity = np.array(_clip3(nominal, box if box is not None
-                                       else ([-u_max] * 3, [u_max] * 3)))
-            slacks, weight_slacks = np.zeros(m), np.zeros(m)
-            qp_status, qp_iterations, qp_us, fallback, released = "inactive", 0, 0.0, False, False
-            conflict = False
+        u_rows, lower = self._qp_rows(terms, target_velocities, weight_sums, own, clean_beacons)
+        if not control_active:
+            estimate_free_rows(u_rows, lower, 2 * m)
+        clock.lap(BARRIER)
+        solution, fallback, released = self._solve(nominal, u_rows, lower, weights, box)
+        clock.lap(QP)
+        if solution.found:
+            velocity = solution.z[:3].copy()
+        else:  # SPEC §9: the safest input; within the rate box, braking as hard as it lets
+            velocity = np.array(_clip3(_ZERO3, box) if box is not None else _ZERO3)
+        found_slacks = solution.found and solution.z.shape[0] > 3
+        slacks = solution.z[3:3 + m].copy() if found_slacks else np.zeros(m)
+        weight_slacks = solution.z[3 + m:].copy() if found_slacks else np.zeros(m)
+        conflict = found_slacks and self._n_safety_rows > 0 and safety_conflict(
+            u_rows, lower, self._n_safety_rows, solution.z[:3].tolist(),
+            solution.z[3:].tolist())
+        qp_status, qp_iterations = solution.status, solution.iterations
+        qp_us = solution.solve_time_s * 1e6
         self._last_command = tuple(velocity.tolist())
         clock.lap(OTHER)
 

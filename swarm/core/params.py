@@ -132,7 +132,7 @@ NominalTask = Literal["zero", "bearing_formation"]
 class ControlParams:
     """Local QP and its constraints (SPEC §8-§10, thesis 3.32-3.37, 4.1-4.2)."""
 
-    start_s: float = 1.0  # before it drones apply u_d only (filter warm-up) [s]
+    start_s: float = 1.0  # localization rows from here; only safety rows before [s]
     qp: QpMode = "relaxed"  # "hard" = 3.37 (no slacks), "relaxed" = 3.36
     gamma: float = 0.5  # γ, lower bound on Σ_i w_ir [1]
     slack_weight: float = 1e6  # K_δ [1]

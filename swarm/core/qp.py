@@ -250,6 +250,23 @@ def rate_limited_box(previous: tuple[float, float, float], max_change: float,
     return low, high
 
 
+def estimate_free_rows(u_columns: list[float], lower: list[float], n_estimate_rows: int) -> None:
+    """Blank the first ``n_estimate_rows`` rows (localization and weight-sum, which need the
+    estimate) of the QP rows in place: each becomes ``0·z ≥ −1`` (``INACTIVE_ROW_LOWER``),
+    always met, so its slack is 0 at the optimum; the rows after them (collision, envelope)
+    stay as they are. ``u_columns`` is column-major (the x coefficients of every row, then y,
+    then z), as ``LocalQpWorkspace.solve`` takes it. Before ``control.start_s`` the QP keeps
+    only the safety rows this way (SPEC §9), with the same shape and workspace as after."""
+    n_rows = len(lower)
+    if not 0 <= n_estimate_rows <= n_rows or len(u_columns) != 3 * n_rows:
+        raise ValueError(f"{n_estimate_rows} estimate rows of {n_rows} rows with "
+                         f"{len(u_columns)} velocity coefficients (3 per row)")
+    blank = [0.0] * n_estimate_rows
+    for axis in range(3):
+        u_columns[axis * n_rows:axis * n_rows + n_estimate_rows] = blank
+    lower[:n_estimate_rows] = [INACTIVE_ROW_LOWER] * n_estimate_rows
+
+
 @dataclass
 class _RowBlock:
     """The rows and bounds of the local QP for one number of collision rows, with their DAQP

@@ -12,6 +12,7 @@ from swarm.core.agent import AgentSetup, AgentStateError, ConsensusMessage, Dete
 from swarm.core.barrier import collision_row
 from swarm.core.params import ControlParams, EstimationParams, GramianParams, PerceptionParams
 from swarm.core.qp import QpSolver, build_local_qp
+from swarm.core.safety import SafetyParams
 from swarm.models.kinematics import step_drone
 from swarm.runs.reference import run_reference
 from swarm.scenario.config import load_config
@@ -151,11 +152,71 @@ def test_a_message_from_another_round_is_rejected() -> None:
     assert a.rejected_inputs == 1
 
 
-def test_before_start_the_nominal_input_is_applied_without_qp() -> None:
-    agent = lone_agent(ControlParams(start_s=1.0))
-    result = run_alone(agent, 0, [0.0, 0.0, 3.0])
-    assert result.diagnostics.qp_status == "inactive" and not result.diagnostics.control_active
-    np.testing.assert_array_equal(result.velocity, np.zeros(3))
+NEIGHBOUR_OFFSET = np.array([2.0, 0.0, 0.0])  # where formation_agent's neighbour 1 flies
+
+
+def formation_agent(control: ControlParams, safety: SafetyParams | None = None,
+                    desired_bearing: tuple[float, float, float] = (0.0, -1.0, 0.0)
+                    ) -> DroneAgent:
+    """Drone 0 of three with a bearing formation toward neighbour 1 (at +x, NEIGHBOUR_OFFSET):
+    u_d = −k_f P_g g* with g = +x, so the default desired bearing −y makes u_d = (0, k_f, 0),
+    straight at drone 2 when drone 2 is at +y; −z makes it (0, 0, k_f), up."""
+    setup = AgentSetup(
+        drone_id=0, n_drones=3, n_targets=1, dt_s=0.02, neighbour_weights={1: 0.5},
+        perception=PerceptionParams(), estimation=EstimationParams(), gramian=GramianParams(),
+        control=control, desired_bearings={1: np.array(desired_bearing)},
+        safety=safety or SafetyParams())
+    return DroneAgent(setup, np.array([[0.0, 0.0, 0.0]]))
+
+
+def test_before_start_the_nominal_input_passes_the_safety_qp_unchanged() -> None:
+    """With no safety row in reach, u_d is the QP's optimum: applied exactly, localization
+    rows left out (no slack, control not active)."""
+    agent = formation_agent(ControlParams(start_s=1.0, task="bearing_formation"))
+    position = np.array([0.0, 0.0, 3.0])
+    result = run_alone(agent, 0, position, beacons={1: position + NEIGHBOUR_OFFSET})
+    d = result.diagnostics
+    assert not d.control_active and d.qp_status == "NOMINAL_FEASIBLE"
+    np.testing.assert_array_equal(result.velocity, d.nominal_velocity)
+    np.testing.assert_allclose(d.nominal_velocity, [0.0, 1.0, 0.0], atol=1e-12)
+    assert d.slacks.tolist() == [0.0] and d.weight_slacks.tolist() == [0.0]
+
+
+@pytest.mark.parametrize("qp", ["hard", "relaxed"])
+def test_before_start_the_collision_rows_hold_the_nominal_input_back(qp: str) -> None:
+    """u_d flies at drone 2 (0.8 m away, Δ = 0.5 m) during the warm-up: every command meets
+    the collision row (4.1-4.2) and the drones never get closer than Δ (issue 41, point 1)."""
+    agent = formation_agent(ControlParams(start_s=10.0, task="bearing_formation", qp=qp))
+    position = np.array([0.0, 0.0, 3.0])
+    other = np.array([0.0, 0.8, 3.0])
+    closest = np.inf
+    # All before start_s. Drone 0 takes half of the pair's row, so with drone 2 still
+    # h = ‖p − p_2‖² − Δ² decays no faster than e^(−α t / 2): 0.39 → ≥ 0.007 in 8 s.
+    for step in range(400):
+        beacons = {1: position + NEIGHBOUR_OFFSET, 2: other}
+        result = run_alone(agent, step, position, beacons=beacons)
+        d = result.diagnostics
+        assert not d.control_active and not d.qp_fallback
+        row, lower = collision_row(position, other, 0.5, 1.0)
+        assert float(row @ result.velocity) >= lower - 1e-9
+        assert d.nominal_velocity[1] > 0.9  # the formation still pulls at drone 2
+        position = position + 0.02 * result.velocity
+        closest = min(closest, float(np.linalg.norm(position - other)))
+    assert 0.5 <= closest < 0.51  # held at Δ, not kept far away
+
+
+def test_before_start_the_envelope_rows_hold() -> None:
+    """A ceiling 0.3 m above the drone and u_d upward (neighbour 1 at +x, desired bearing
+    straight down): the warm-up QP keeps it below."""
+    agent = formation_agent(ControlParams(start_s=10.0, task="bearing_formation"),
+                            SafetyParams(ceiling_m=3.3), desired_bearing=(0.0, 0.0, -1.0))
+    position = np.array([0.0, 0.0, 3.0])
+    for step in range(400):
+        result = run_alone(agent, step, position, beacons={1: position + NEIGHBOUR_OFFSET})
+        assert result.diagnostics.nominal_velocity[2] > 0.9
+        position = position + 0.02 * result.velocity
+        assert position[2] <= 3.3
+    assert position[2] > 3.299  # it climbed up to the ceiling
 
 
 def test_hard_qp_infeasibility_falls_back_to_relaxed_and_is_counted() -> None:
@@ -412,7 +473,7 @@ def test_the_step_time_is_split_into_its_sections() -> None:
     non-zero once the control runs, and a new step starts from zero."""
     agent = lone_agent(ControlParams(start_s=0.02, qp="relaxed"))
     before = run_alone(agent, 0, [0.0, 0.0, 3.0]).diagnostics
-    assert before.qp_status == "inactive" and agent.section_us["qp"] == 0.0
+    assert not before.control_active and before.qp_status == "NOMINAL_FEASIBLE"
     for step in (1, 2):
         diag = run_alone(agent, step, [0.0, 0.0, 3.0]).diagnostics
         sections = agent.section_us

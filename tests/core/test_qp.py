@@ -731,3 +731,28 @@ def test_qp_load_says_when_p_changed_and_names_what_it_was_given_wrong() -> None
         qp_load(*args, np.zeros((3, n_z)), low, up, linear, hessian)
     for a, b in zip((rows, low, up, linear, hessian), before, strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+@given(n_estimate=st.integers(0, 4), n_safety=st.integers(0, 3),
+       values=st.lists(st.floats(-10, 10), min_size=28, max_size=28))
+def test_estimate_free_rows_blanks_exactly_the_estimate_rows(n_estimate: int, n_safety: int,
+                                                             values: list[float]) -> None:
+    """The first rows become ``0·u ≥ −1`` in every column; the safety rows after them keep
+    their coefficients and bounds to the bit (SPEC §9, before control.start_s)."""
+    n = n_estimate + n_safety
+    columns, lower = values[:3 * n], values[3 * n:4 * n]
+    rows = np.array(columns).reshape(3, n).T.copy()  # (n, 3) from the column-major list
+    bounds = list(lower)
+    qp_module.estimate_free_rows(columns, lower, n_estimate)
+    blanked = np.array(columns).reshape(3, n).T
+    assert np.all(blanked[:n_estimate] == 0.0)
+    assert lower[:n_estimate] == [INACTIVE_ROW_LOWER] * n_estimate
+    np.testing.assert_array_equal(blanked[n_estimate:], rows[n_estimate:])
+    assert lower[n_estimate:] == bounds[n_estimate:]
+
+
+def test_estimate_free_rows_refuses_a_count_or_layout_that_does_not_fit() -> None:
+    with pytest.raises(ValueError, match="3 per row"):
+        qp_module.estimate_free_rows([0.0] * 5, [0.0, 0.0], 1)
+    with pytest.raises(ValueError, match="3 estimate rows of 2 rows"):
+        qp_module.estimate_free_rows([0.0] * 6, [0.0, 0.0], 3)
