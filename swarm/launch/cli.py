@@ -32,7 +32,12 @@ from swarm.messages.wire import TelemetryCounters
 from swarm.models.kinematics import InitialPlacementError
 from swarm.observe.dashboard import Dashboard, DashboardSettings, InProcessFeed
 from swarm.observe.live_view import LiveViewAddressError, check_address
-from swarm.observe.recording import RecordingError, record_directory, record_reference
+from swarm.observe.recording import (
+    RECORDING_FILE,
+    RecordingError,
+    record_directory,
+    record_reference,
+)
 from swarm.observe.report import build_report, render_report
 from swarm.runs.record import RunRecord
 from swarm.runs.reference import run_reference
@@ -116,6 +121,9 @@ def build_parser() -> OneLineParser:
                         help="write DIR/run.mcap as the run goes: telemetry, beacons, "
                              "detections and truth with their sim time, and the resolved "
                              "config (MCAP, JSON; Foxglove reads it)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="with --record: replace the recording DIR already holds (without "
+                             "it, such a DIR is refused before anything starts)")
     parser.add_argument("--print-config", action="store_true",
                         help="print the resolved config as TOML (every value the run would "
                              "use: the defaults filled in, --seed, --duration and the tracking "
@@ -240,6 +248,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.sitl_params and sitl is None:
         return fail(PROG, "--sitl-param needs --sitl (it sets parameters on the SITL "
                           "autopilots launch-swarm starts)")
+    problem = record_dir_problem(args.record, overwrite=args.overwrite)
+    if problem is not None:
+        return fail(PROG, problem)
     if sitl is not None and config.vehicles.mavlink_urls:
         return fail(PROG, "--sitl starts its own autopilots: leave out --mavlink and "
                           "vehicles.mavlink_urls")
@@ -271,10 +282,19 @@ def main(argv: Sequence[str] | None = None) -> int:
                 agent_restarts=args.agent_restarts,
                 agent_restart_delay_s=args.agent_restart_delay, sitl=sitl,
                 sitl_params=tuple(args.sitl_params), kill_agents=tuple(args.kill_agents),
+                defer_log_cleanup=True,  # removed below if the run succeeds, verdict and all
                 gcs=args.gcs, gcs_control=args.gcs_control, foxglove=args.foxglove)
         except ValueError as err:
             return fail(PROG, str(err))
     terminate_on_sigterm()
+    launcher: SwarmLauncher | None = None
+
+    def failed(code: int) -> int:
+        """A run that did not succeed keeps the temporary log directory, and says so."""
+        if launcher is not None:
+            launcher.finish_log_dir(success=False)
+        return code
+
     try:
         if args.inprocess:
             with Dashboard(config, console, headless=args.headless,
@@ -295,27 +315,43 @@ def main(argv: Sequence[str] | None = None) -> int:
             print_process_counters(launcher.collector, console)
             counters = launcher.collector.drone_counters()
     except InitialPlacementError as err:
-        return fail_on(PROG, err, f"config error: {config.source}: swarm.initial_box_size_m: ")
+        return failed(fail_on(PROG, err, f"config error: {config.source}: "
+                                         f"swarm.initial_box_size_m: "))
     except MissionError as err:
-        return fail_on(PROG, err, "mission failed: ")
+        return failed(fail_on(PROG, err, "mission failed: "))
     except RecordingError as err:
-        return fail_on(PROG, err, "recording failed: ")
+        return failed(fail_on(PROG, err, "recording failed: "))
     except KeyboardInterrupt as err:
         print(f"{PROG}: interrupted; every process stopped", file=sys.stderr)
-        return exit_code(err)
+        return failed(exit_code(err))
     if args.inprocess:
         return print_summary(record, console)
+    assert launcher is not None
     code = print_summary(record, console, args.mode, counters)
     if launcher.recording_problem is not None:  # the run is fine, its record is not whole
         print(f"{PROG}: recording incomplete: {launcher.recording_problem}", file=sys.stderr)
-        return EXIT_FAILED
-    if launcher.agent_losses:  # the mission went on, degraded: not a clean run
+        code = EXIT_FAILED
+    elif launcher.agent_losses:  # the mission went on, degraded: not a clean run
         lost = ", ".join(f"drone {loss.drone} at {loss.time_s:.1f} s ({loss.how}"
                          f"{', restarted' if loss.restarted else ''})"
                          for loss in launcher.agent_losses)
         print(f"{PROG}: the mission went on after losing agents: {lost}", file=sys.stderr)
-        return EXIT_FAILED
+        code = EXIT_FAILED
+    launcher.finish_log_dir(success=code == 0)
     return code
+
+
+def record_dir_problem(directory: Path | None, *, overwrite: bool) -> str | None:
+    """Why ``--record DIR`` cannot be used as given (None: it can): DIR already holds a
+    recording and ``--overwrite`` was not given, or ``--overwrite`` without ``--record``."""
+    if directory is None:
+        return "--overwrite needs --record DIR (it replaces the recording in DIR)" \
+            if overwrite else None
+    existing = directory / RECORDING_FILE
+    if existing.exists() and not overwrite:
+        return (f"--record {directory}: {existing} holds a recording already; record to "
+                f"another directory, or add --overwrite to replace it")
+    return None
 
 
 def print_process_counters(collector: TelemetryCollector, console: Console) -> None:

@@ -36,6 +36,7 @@ import zenoh
 
 from swarm.children import child_environment
 from swarm.errors import EXIT_END_MISSION, VigilError
+from swarm.mavlink.link import EndReport, autopilot_mode_name, end_mode_name
 from swarm.mavlink.sitl import (
     DEFAULT_BOOT_SPEEDUP,
     Firmware,
@@ -95,7 +96,12 @@ class LaunchOptions:
     run_id: str = ""  # empty: a random one
     zenoh_port: int = 0  # 0: a free port
     mavlink_base: int = 0  # 0: DEFAULT_MAVLINK_BASE if free and quiet, else the next such block
+    # Each process's log goes to log_dir (kept); None: a temporary directory, removed if the run
+    # succeeds: run() decides (success: it returned, no agent lost, the recording whole), or,
+    # with defer_log_cleanup, the caller does (finish_log_dir; launch-swarm, which knows the
+    # verdict). A failed run keeps it and says so.
     log_dir: Path | None = None
+    defer_log_cleanup: bool = False
     extra_agent_args: dict[int, list[str]] = field(default_factory=dict)
     mavlink_urls: dict[int, str] = field(default_factory=dict)  # e.g. through MAVProxy
     # The world serves no vehicles (--vehicles external) and a separate ``sim-vehicles``
@@ -285,6 +291,24 @@ class AgentLoss:
     restarted: bool = False
 
 
+END_REPORT_TAIL_BYTES = 65536  # an agent's end action is among the last lines of its log
+
+
+def _last_end_report(log_path: Path, drone: int) -> EndReport | None:
+    """The last end-action line of drone ``drone`` in the log at ``log_path`` (its tail)."""
+    try:
+        with log_path.open("rb") as handle:
+            handle.seek(max(log_path.stat().st_size - END_REPORT_TAIL_BYTES, 0))
+            lines = handle.read().decode(errors="replace").splitlines()
+    except OSError:
+        return None
+    for line in reversed(lines):
+        report = EndReport.parse(line)
+        if report is not None and report.drone == drone:
+            return report
+    return None
+
+
 ProgressCallback = Callable[[int, "TelemetryCollector"], None]
 # Extra consumers of the telemetry stream (e.g. the live dashboard), called on Zenoh's
 # callback thread with each decoded message after the collector has stored it.
@@ -309,9 +333,6 @@ class SwarmLauncher:
         self.codec = cfg.wire_codec()
         self.collector = TelemetryCollector(cfg)
         self.rejections = RejectionCounter()
-        self._own_log_dir = options.log_dir is None  # a temp dir, removed after a clean run
-        self.log_dir = options.log_dir or Path(tempfile.mkdtemp(prefix=f"vigil-{self.run_id}-"))
-        self.log_dir.mkdir(parents=True, exist_ok=True)
         self.zenoh_port = options.zenoh_port or free_tcp_port()
         self.endpoint = local_endpoint(self.zenoh_port, tls=cfg.security.enabled)
         # SITL: agent i listens on base + i, the launcher's monitor link of autopilot i on
@@ -319,6 +340,16 @@ class SwarmLauncher:
         self.mavlink_base, self._port_lock = reserve_mavlink_base(
             options.mavlink_base, 2 * self.n if options.sitl is not None else self.n,
             frozenset(options.mavlink_urls))
+        # After the ports: a launcher that cannot start leaves no directory behind.
+        self._own_log_dir = options.log_dir is None  # a temp dir (LaunchOptions.log_dir)
+        self._log_dir_finished = False
+        try:
+            self.log_dir = options.log_dir or Path(tempfile.mkdtemp(
+                prefix=f"vigil-{self.run_id}-"))
+            self.log_dir.mkdir(parents=True, exist_ok=True)
+        except OSError:
+            self._port_lock.close()
+            raise
         # The config every child reads: the user's file, or the one resolved here (SITL: the
         # flavour of the firmware and the origin offsets measured on the autopilots).
         self.config = cfg
@@ -335,6 +366,8 @@ class SwarmLauncher:
         self._restarts_due: dict[int, float] = {}  # drone → monotonic time of its restart
         self._killed: set[int] = set()  # drones killed by kill_agents
         self._restarts_done: dict[int, int] = {}
+        # Every drone's end action, once its agent is gone (_report_end_actions).
+        self.end_actions: dict[int, EndReport] = {}
 
     # -- children ---------------------------------------------------------------------------
 
@@ -430,6 +463,39 @@ class SwarmLauncher:
         for child in self.children:
             with contextlib.suppress(ProcessLookupError, PermissionError):
                 os.killpg(child.process.pid, signal.SIGKILL)
+
+    def _report_end_actions(self) -> None:
+        """Once every agent is gone: what became of each drone's end action, in a line per
+        outcome. Each agent logs it as its last word on the vehicle (``EndReport``, after
+        ``vehicles.end_action`` was acknowledged, refused, not answered or not sent); the log
+        is read, not a message, because the end action also runs when the network is what
+        failed. An agent with no such line died before it could send it (``kill -9``, a
+        crash): its vehicle is left to its own setpoint-loss failsafe."""
+        latest: dict[int, Child] = {}
+        for child in self.children:  # started in order: a restart's replaces the lost one
+            if child.drone is not None:
+                latest[child.drone] = child
+        if self.end_actions or not latest:
+            return
+        vehicles = self.config.vehicles
+        mode = end_mode_name(vehicles.flavour, vehicles.end_action)
+        for drone, child in sorted(latest.items()):
+            report = _last_end_report(child.log_path, drone)
+            if report is None:
+                report = EndReport(
+                    drone, vehicles.end_action, mode, "not sent",
+                    f"its agent ended with {self._how(child)} before it could send it; the "
+                    f"vehicle is left to its own setpoint-loss failsafe")
+            self.end_actions[drone] = report
+        groups: dict[tuple[str, str, str, str], list[int]] = {}
+        for drone, report in self.end_actions.items():
+            key = (report.action, report.mode, report.outcome, report.detail)
+            groups.setdefault(key, []).append(drone)
+        for (action, shown, outcome, detail), drones in groups.items():
+            who = (f"drone {drones[0]}" if len(drones) == 1
+                   else f"drones {', '.join(map(str, drones))}")
+            self.log(f"launch-swarm: {who}: end action {action} ({shown}) {outcome}"
+                     + (f": {detail}" if detail else ""))
 
     def _dead_child(self) -> Child | None:
         """A child that ended badly, or ended cleanly but the mission did not end with it.
@@ -568,7 +634,8 @@ class SwarmLauncher:
         seen = (view.mode, view.armed)
         if self._autopilot_seen.get(drone) != seen:
             if drone in self._autopilot_seen:
-                self.log(f"launch-swarm: drone {drone}'s autopilot now {view.mode}, "
+                shown = autopilot_mode_name(self.config.vehicles.flavour, view.mode)
+                self.log(f"launch-swarm: drone {drone}'s autopilot now {shown}, "
                          f"{'armed' if view.armed else 'disarmed'}")
             self._autopilot_seen[drone] = seen
         recorder = self.recorder
@@ -681,9 +748,12 @@ class SwarmLauncher:
         try:
             vehicles = (f", {self.options.sitl.name} autopilots" if self.options.sitl
                         else ", external autopilots" if self.external_autopilots else "")
+            kept = (" (removed if the run succeeds; --log-dir keeps them)"
+                    if self._own_log_dir else "")
             self.log(f"launch-swarm: run {self.run_id}: world + {self.n} agents "
                      f"({self.options.mode}{vehicles}), zenoh {self.endpoint}, MAVLink "
-                     f"{self.mavlink_base}..{self.mavlink_base + self.n - 1}, logs {self.log_dir}")
+                     f"{self.mavlink_base}..{self.mavlink_base + self.n - 1}, logs "
+                     f"{self.log_dir}{kept}")
             if self.options.sitl is not None:
                 self._start_sitl()
             elif self.external_autopilots:
@@ -741,21 +811,30 @@ class SwarmLauncher:
             self._leave_zenoh()  # no message arrives after this: record and recording agree
             record = self.collector.record(self.options.seed, time.monotonic() - started)
             self.close()
-            if self._own_log_dir:
-                self._remove_own_log_dir()
+            if not self.options.defer_log_cleanup:
+                self.finish_log_dir(success=not self.agent_losses
+                                    and self.recording_problem is None)
             return record
         finally:
             self.close()
 
-    def _remove_own_log_dir(self) -> None:
-        """After a clean run, remove the temporary log directory, unless an agent saved a QP
-        it could not solve there (``swarm.runs.failed_qp``)."""
+    def finish_log_dir(self, success: bool) -> None:
+        """The temporary log directory (``LaunchOptions.log_dir`` None): removed after a run
+        that succeeded, unless an agent saved a QP it could not solve there
+        (``swarm.runs.failed_qp``); otherwise kept, and said so. A directory given is always
+        kept. Once; ``run`` calls it unless ``defer_log_cleanup``."""
+        if not self._own_log_dir or self._log_dir_finished:
+            return
+        self._log_dir_finished = True
         dumps = sorted(self.log_dir.glob("qp-*.npz"))
         if dumps:
-            self.log(f"{len(dumps)} QPs the agents could not solve are saved in {self.log_dir} "
-                     f"(kept; python -m swarm.runs.failed_qp FILE solves one again)")
-            return
-        shutil.rmtree(self.log_dir, ignore_errors=True)
+            self.log(f"launch-swarm: {len(dumps)} QPs the agents could not solve are saved in "
+                     f"{self.log_dir} (kept; python -m swarm.runs.failed_qp FILE solves one "
+                     f"again)")
+        elif success:
+            shutil.rmtree(self.log_dir, ignore_errors=True)
+        else:
+            self.log(f"launch-swarm: the run did not succeed: logs kept in {self.log_dir}")
 
     def _wait_agents_done(self) -> None:
         deadline = time.monotonic() + 5.0
@@ -809,6 +888,7 @@ class SwarmLauncher:
         if view is not None:
             view.close()
         self.stop_children()  # the agents' end actions go out before their autopilots stop
+        self._report_end_actions()
         if self.sitl_fleet is not None:
             self.sitl_fleet.stop()
         self._port_lock.close()  # the children that used the ports are gone

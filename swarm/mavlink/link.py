@@ -61,14 +61,20 @@ Handshake (``handshake(timeout_s, start_position_w=...)``; every stage logged as
    what it said) and what the operator can do.
 
 End (``end_mission(action)``): a zero-velocity setpoint at once, then the end action's mode:
-"hold" (ArduPilot BRAKE, PX4 AUTO.LOITER "Hold"), "land" (LAND, AUTO.LAND) or "rtl" (RTL,
-AUTO.RTL); logged, never raises (it runs on the way out of errors and signals).
+"hold" (ArduPilot BRAKE, PX4 AUTO.LOITER "Hold"), "land" (LAND, PX4 AUTO.LAND "Land") or "rtl"
+(RTL, PX4 AUTO.RTL "Return"); never raises (it runs on the way out of errors and signals). What
+became of it is one ``EndReport`` line in the log, always, with the mode as the autopilot names
+it: ``drone 3: end action hold (Hold) accepted``, ``... refused: result 2 MAV_RESULT_DENIED;
+...``, ``... got no answer: ...`` or ``... not sent: <why>``; ``EndReport.parse`` reads it back
+(the launcher does, from every agent's log).
 
 Public API
 ----------
-``Flavour``, ``EndAction``, ``END_ACTIONS``; ``IDLE_STAMP_MS = 0xFFFFFFFF`` (time_boot_ms of the
-idle setpoints sent by ``handshake`` and ``keepalive``, so they never match a lockstep step
-stamp); ``PositionSample``; ``LinkError``.
+``Flavour``, ``EndAction``, ``END_ACTIONS``, ``EndReport``, ``autopilot_mode_name(flavour,
+mode)`` (pymavlink's name of a mode → the autopilot's own: PX4's "Hold", "Return", "Land";
+ArduPilot's are pymavlink's), ``end_mode_name(flavour, action)``; ``IDLE_STAMP_MS =
+0xFFFFFFFF`` (time_boot_ms of the idle setpoints sent by ``handshake`` and ``keepalive``, so
+they never match a lockstep step stamp); ``PositionSample``; ``LinkError``.
 
 ``AutopilotLink(url, drone_id, flavour, origin_w, *, log=print, source_system=None,
 clock=time.monotonic, signing_key=None, bound=None)`` (``bound``: the ``udpin`` socket,
@@ -78,10 +84,10 @@ bound earlier by ``swarm.mavlink.udpin.bind_udpin``; its listening time counts):
 ``wait_position(time_boot_ms, timeout_s)``,
 ``send_velocity(velocity_w, time_boot_ms)``, ``send_position(position_w, time_boot_ms)``,
 ``end_mission(action)``, ``poll()``, ``close()`` (also a context manager). Properties:
-``url``, ``drone_id``, ``system_id``, ``flavour``, ``origin_w``, ``local_address``, ``peer``
-(the pinned (host, port) over udpin), ``armed``, ``mode``, ``custom_mode``, ``autopilot``,
-``landed_state``, ``last_heartbeat_s``, ``rejected_frames``, ``rejections``,
-``foreign_frames``, ``autopilot_said``, ``signing``.
+``end_report`` (None until ``end_mission`` ran), ``url``, ``drone_id``, ``system_id``,
+``flavour``, ``origin_w``, ``local_address``, ``peer`` (the pinned (host, port) over udpin),
+``armed``, ``mode``, ``custom_mode``, ``autopilot``, ``landed_state``, ``last_heartbeat_s``,
+``rejected_frames``, ``rejections``, ``foreign_frames``, ``autopilot_said``, ``signing``.
 
 MAVLink 2 signing (``signing_key``: the 32-byte secret, see ``swarm.mavlink.signing``; None:
 off): pymavlink's own ``setup_signing`` on the connection, link id 1. Everything sent is
@@ -96,6 +102,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import math
+import re
 import select
 import socket
 import time
@@ -130,19 +137,29 @@ Flavour = Literal["px4", "ardupilot"]
 EndAction = Literal["hold", "land", "rtl"]
 END_ACTIONS: Final[tuple[EndAction, ...]] = ("hold", "land", "rtl")
 
-__all__ = ["END_ACTIONS", "IDLE_STAMP_MS", "AutopilotLink", "EndAction", "Flavour", "LinkError",
-           "PositionSample"]
+__all__ = ["END_ACTIONS", "IDLE_STAMP_MS", "AutopilotLink", "EndAction", "EndOutcome",
+           "EndReport", "Flavour", "LinkError", "PositionSample", "autopilot_mode_name",
+           "end_mode_name"]
 
 IDLE_STAMP_MS = 0xFFFFFFFF
 AUTOPILOT_COMPONENT_ID = 1
 # ArduCopter mode numbers; PX4 (main mode, sub mode) of px4_custom_mode.h.
 _ACM_MODE: Final = {"guided": 4, "hold": 17, "land": 9, "rtl": 6}  # hold = BRAKE
 _PX4_MODE: Final = {"offboard": (6, 0), "hold": (4, 3), "land": (4, 6), "rtl": (4, 5)}
-# pymavlink's name of each mode, as the HEARTBEAT shows it once the mode is in effect.
-_MODE_NAME: Final = {("ardupilot", "guided"): "GUIDED", ("ardupilot", "hold"): "BRAKE",
-                     ("ardupilot", "land"): "LAND", ("ardupilot", "rtl"): "RTL",
-                     ("px4", "offboard"): "OFFBOARD", ("px4", "hold"): "LOITER",
-                     ("px4", "land"): "LAND", ("px4", "rtl"): "RTL"}
+# pymavlink's name of each mode, as ``mode`` shows it once the HEARTBEAT has it in effect
+# (GUIDED, BRAKE, LAND, RTL; PX4: OFFBOARD, LOITER, LAND, RTL).
+_MODE_NAME: Final = {
+    **{("ardupilot", mode): mavutil.mode_mapping_acm[number]
+       for mode, number in _ACM_MODE.items()},
+    **{("px4", mode): mavutil.interpret_px4_mode(0, main << 16 | sub << 24)
+       for mode, (main, sub) in _PX4_MODE.items()}}
+# PX4's own names of its modes (its documentation, QGroundControl), for pymavlink's names of
+# them; ArduPilot's own names are pymavlink's. A mode missing here keeps pymavlink's name.
+_PX4_MODE_NAME: Final = {
+    "MANUAL": "Manual", "STABILIZED": "Stabilized", "ACRO": "Acro", "RATTITUDE": "Rattitude",
+    "ALTCTL": "Altitude", "POSCTL": "Position", "OFFBOARD": "Offboard", "MISSION": "Mission",
+    "TAKEOFF": "Takeoff", "LOITER": "Hold", "FOLLOWME": "Follow Me", "RTL": "Return",
+    "LAND": "Land"}
 _SETPOINT_PERIOD_S = 0.05  # idle setpoints during the handshake: 20 Hz
 _KEEPALIVE_PERIOD_S = 0.1
 _ZERO: frames.Xyz = (0.0, 0.0, 0.0)  # a setpoint's unused position, velocity or acceleration
@@ -205,6 +222,61 @@ class PositionSample:
 def _result_name(result: int) -> str:
     entry = mavlink2.enums["MAV_RESULT"].get(result)
     return entry.name if entry is not None else "UNKNOWN"
+
+
+def autopilot_mode_name(flavour: Flavour, mode: str) -> str:
+    """``mode`` (pymavlink's name, as ``AutopilotLink.mode`` gives it) as the autopilot names it:
+    PX4's "Hold" for AUTO.LOITER ("LOITER"), "Return", "Land", "Offboard", ...; ArduPilot's
+    own names are pymavlink's (BRAKE, LAND, RTL, GUIDED)."""
+    return _PX4_MODE_NAME.get(mode, mode) if flavour == "px4" else mode
+
+
+def end_mode_name(flavour: Flavour, action: EndAction) -> str:
+    """The mode the end action ``action`` asks for, as the autopilot names it."""
+    return autopilot_mode_name(flavour, _MODE_NAME[(flavour, action)])
+
+
+EndOutcome = Literal["accepted", "refused", "got no answer", "not sent"]
+_END_OUTCOMES: Final[tuple[EndOutcome, ...]] = ("accepted", "refused", "got no answer",
+                                                "not sent")
+_END_LINE = re.compile(r"drone (\d+): end action (hold|land|rtl) \((.+?)\) "
+                       r"(accepted|refused|got no answer|not sent)(?:: (.+))?")
+
+
+@dataclass(frozen=True)
+class EndReport:
+    """What became of one drone's end action: the autopilot accepted the mode, refused it,
+    did not answer, or it was not sent (``detail`` says why, and what the vehicle does then).
+    The agent logs it as one line (``line``); the launcher reads it back (``parse``)."""
+
+    drone: int
+    action: EndAction
+    mode: str  # as the autopilot names it (end_mode_name): BRAKE, Hold, Land, Return, ...
+    outcome: EndOutcome
+    detail: str = ""
+
+    def __post_init__(self) -> None:
+        if self.action not in END_ACTIONS or self.outcome not in _END_OUTCOMES:
+            raise ValueError(f"not an end action and its outcome: {self.action!r}, "
+                             f"{self.outcome!r}")
+
+    @property
+    def accepted(self) -> bool:
+        return self.outcome == "accepted"
+
+    def line(self) -> str:
+        detail = f": {_one_line(self.detail)}" if self.detail else ""
+        return (f"drone {self.drone}: end action {self.action} ({self.mode}) {self.outcome}"
+                f"{detail}")
+
+    @classmethod
+    def parse(cls, line: str) -> EndReport | None:
+        """The report ``line`` holds (as ``line()`` wrote it), or None."""
+        match = _END_LINE.fullmatch(line.strip())
+        if match is None:
+            return None
+        drone, action, mode, outcome, detail = match.groups()
+        return cls(int(drone), action, mode, outcome, detail or "")  # type: ignore[arg-type]
 
 
 def _is_vehicle_heartbeat(msg: Any) -> bool:
@@ -282,6 +354,7 @@ class AutopilotLink:
         self._peer: tuple[str, int] | None = None  # udpin: the vehicle's pinned address
         self._second_autopilot: str | None = None  # another autopilot heard: never fly then
         self._commanded = False  # a command that moves or arms the vehicle went out
+        self._end_report: EndReport | None = None
         self._foreign_parser = mavlink2.MAVLink(None)
         self._foreign_parser.robust_parsing = True
         self._last_heartbeat_request_s: float | None = None
@@ -683,17 +756,36 @@ class AutopilotLink:
     # ---------------------------------------------------------------- end of mission
     def end_mission(self, action: EndAction) -> bool:
         """Zero velocity now, then the end action's mode (module docstring); True when the
-        autopilot confirmed it. Never raises: this runs on every way out."""
+        autopilot confirmed it. What became of it is logged as one ``EndReport`` line and kept
+        in ``end_report``. Never raises: this runs on every way out."""
         if action not in END_ACTIONS:
             raise ValueError(f"end action must be one of {END_ACTIONS}, got {action!r}")
-        if self._closed or not self._commanded:
-            return False  # never flown (or two autopilots heard before any command): leave it
-        me = self._me
-        name = _MODE_NAME[(self._flavour, action)]
+        report = self._end(action)
+        self._end_report = report
+        self._log(report.line())
+        return report.accepted
+
+    @property
+    def end_report(self) -> EndReport | None:
+        """What became of the end action (None before ``end_mission``)."""
+        return self._end_report
+
+    def _end(self, action: EndAction) -> EndReport:
+        name = end_mode_name(self._flavour, action)
+
+        def report(outcome: EndOutcome, detail: str = "") -> EndReport:
+            return EndReport(self._drone_id, action, name, outcome, detail)
+
+        if self._closed:
+            return report("not sent", "the link to the vehicle was already closed")
+        if not self._commanded:  # never flown (or two autopilots heard first): leave it
+            return report("not sent", "the agent never commanded the vehicle (it left before "
+                                      "arming or moving it): the vehicle is as it was")
         try:
             self._hold_position_w = None
             self._send_idle()
-            self._log(f"{me}: mission over: zero velocity sent; end action {action} ({name})")
+            self._log(f"{self._me}: mission over: zero velocity sent; end action {action} "
+                      f"({name})")
             for attempt in (1, 2):
                 self._acks.pop(mavlink2.MAV_CMD_DO_SET_MODE, None)
                 self._conn.mav.command_long_send(self._sysid, AUTOPILOT_COMPONENT_ID,
@@ -703,16 +795,13 @@ class AutopilotLink:
                               self._clock() + _END_ACK_TIMEOUT_S, stream=False, check=False):
                     result = self._acks.pop(mavlink2.MAV_CMD_DO_SET_MODE)
                     if result == mavlink2.MAV_RESULT_ACCEPTED:
-                        self._log(f"{me}: end action {action} accepted ({name})")
-                        return True
-                    self._log(f"{me}: end action {action} ({name}) refused (result {result} "
-                              f"{_result_name(result)}); the vehicle keeps its own failsafe")
-                    return False
-            self._log(f"{me}: end action {action} ({name}) got no answer; the vehicle keeps "
-                      f"its own setpoint-loss failsafe")
+                        return report("accepted")
+                    return report("refused", f"result {result} {_result_name(result)}; the "
+                                             f"vehicle keeps its own failsafe")
+            return report("got no answer", f"none within {_END_ACK_TIMEOUT_S:g} s, twice; the "
+                                           f"vehicle keeps its own setpoint-loss failsafe")
         except Exception as exc:  # a closed socket on the way out: say so, never raise
-            self._log(f"{me}: end action {action} not sent: {type(exc).__name__}: {exc}")
-        return False
+            return report("not sent", f"{type(exc).__name__}: {exc}")
 
     def close(self) -> None:
         if not self._closed:

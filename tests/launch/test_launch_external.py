@@ -86,7 +86,8 @@ def test_launch_swarm_supervises_and_records_agents_on_autopilots_it_did_not_sta
         for i, text in logs.items():
             assert f"udpin:127.0.0.1:{base + i}" in text, text
             stop = text.index("mission over: zero velocity sent")
-            assert f"drone {i}: end action hold accepted (LOITER)" in text[stop:], text
+            assert f"drone {i}: end action hold (Hold) accepted" in text[stop:], text
+        assert "launch-swarm: drones 0, 1, 2: end action hold (Hold) accepted" in output, output
         assert (record_dir / "run.mcap").stat().st_size > 0
         # Nothing the launcher started is left; the vehicles it did not start still run.
         assert vehicles.poll() is None

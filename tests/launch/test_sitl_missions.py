@@ -134,7 +134,8 @@ def test_case1_flies_on_arducopter_sitl_through_the_soak_script(tmp_path: Path) 
         agent_log = (run / "logs" / f"agent{i}.log").read_text()
         assert "0 frames measured from the newest pose" in agent_log, agent_log
         assert "TAKEOFF to" in agent_log and "climb done" in agent_log, agent_log
-        assert "end action hold accepted (BRAKE)" in agent_log, agent_log
+        assert "end action hold (BRAKE) accepted" in agent_log, agent_log
+    assert "launch-swarm: drones 0, 1, 2: end action hold (BRAKE) accepted" in out, out
     assert sitl_processes(containing=str(tmp_path)) == []
 
 
@@ -277,7 +278,7 @@ def test_px4_flies_from_the_ground_on_tracked_setpoints_and_a_failsafe_is_watche
         assert tel[drone][-1].step == config.n_steps - 1
         agent_log = (tmp_path / "logs" / f"agent{drone}.log").read_text()
         for line in ("vehicle on the ground", "OFFBOARD accepted", "ARM accepted",
-                     "climb done", "mission complete", "end action hold accepted (LOITER)"):
+                     "climb done", "mission complete", "end action hold (Hold) accepted"):
             assert line in agent_log, agent_log
         events = _not_asked(agent_log)
         assert events and "(not OFFBOARD)" in events[0], agent_log

@@ -755,6 +755,10 @@ def test_position_is_awaited_up_to_the_deadline(served: Any, logs: list[str]) ->
 END_MODES = {("px4", "hold"): "LOITER", ("px4", "land"): "LAND", ("px4", "rtl"): "RTL",
              ("ardupilot", "hold"): "BRAKE", ("ardupilot", "land"): "LAND",
              ("ardupilot", "rtl"): "RTL"}
+# The same modes as each autopilot names them (PX4's documentation and QGroundControl).
+END_MODE_NAMES = {("px4", "hold"): "Hold", ("px4", "land"): "Land", ("px4", "rtl"): "Return",
+                  ("ardupilot", "hold"): "BRAKE", ("ardupilot", "land"): "LAND",
+                  ("ardupilot", "rtl"): "RTL"}
 
 
 @pytest.mark.parametrize(("flavour", "action"), list(END_MODES))
@@ -766,7 +770,8 @@ def test_end_mission_stops_then_commands_the_end_action(flavour: str, action: st
     assert pump_until(link, lambda: np.array_equal(server.applied[-1], u), 3.0, velocity=u)
     assert link.end_mission(action)  # type: ignore[arg-type]
     expected = END_MODES[(flavour, action)]
-    assert f"drone {DRONE}: end action {action} accepted ({expected})" in logs
+    assert f"drone {DRONE}: end action {action} ({END_MODE_NAMES[(flavour, action)]}) " \
+           f"accepted" in logs
     with server.lock:
         assert server.vehicle.mode == expected and not server.vehicle.failsafe_active
     # The vehicle slows down at once (zero velocity first, then its mode's own stop).
@@ -788,7 +793,7 @@ def test_end_mission_refused_is_logged_not_raised(served: Any, logs: list[str]) 
     with pytest.raises(LinkError):
         link.handshake(timeout_s=3.0, start_position_w=START, retries=1, ack_timeout_s=0.3)
     assert not link.end_mission("land")
-    assert any("end action land (LAND) refused (result 2 MAV_RESULT_DENIED)" in line
+    assert any("end action land (Land) refused: result 2 MAV_RESULT_DENIED" in line
                for line in logs), logs
 
 

@@ -148,7 +148,8 @@ def test_handshake_from_the_ground_then_in_the_air_through_mavproxy(kind: Kind,
 
             # end: zero velocity, then hold; the vehicle stops and stays armed in the air
             assert link.end_mission("hold")
-            assert f"drone 0: end action hold accepted ({hold})" in logs
+            assert f"drone 0: end action hold ({'Hold' if kind == 'px4' else hold}) " \
+                   f"accepted" in logs
             assert _pump_until(link, lambda: link.mode == hold, 3.0), link.mode
             assert _pump_until(link, lambda: (s := link.latest_position()) is not None
                                and np.linalg.norm(s.velocity_w) < 0.3, 8.0)
