@@ -26,6 +26,7 @@ EXIT_OK = 0
 EXIT_FAILED = 1  # the run failed (a mission, a link, a recording, a socket)
 EXIT_USAGE = 2  # input that cannot be used (UsageError, bad arguments)
 EXIT_END_MISSION = 3  # an agent's vehicle policy "end" ends the mission (the launcher stops all)
+EXIT_INCOMPLETE = 4  # a report of a run cut short with no invariant violated on what it holds
 EXIT_INTERRUPTED = 130  # 128 + SIGINT
 
 

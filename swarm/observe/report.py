@@ -23,6 +23,7 @@ from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
 
+from swarm.errors import EXIT_FAILED, EXIT_INCOMPLETE, EXIT_OK
 from swarm.messages.wire import TelemetryCounters
 from swarm.runs.checks import (
     SENSING_WEIGHT,
@@ -40,7 +41,7 @@ from swarm.runs.record import RunRecord
 
 Mode = Literal["lockstep", "realtime", "inprocess"]
 MODES: tuple[str, ...] = ("lockstep", "realtime", "inprocess")
-EXIT_OK, EXIT_VIOLATION = 0, 1
+EXIT_VIOLATION = EXIT_FAILED
 MISSING = "—"  # how a figure without any sample is shown in a table
 
 
@@ -141,12 +142,28 @@ class RunReport:
 
     @property
     def ok(self) -> bool:
-        return not self.violations
+        """Every SPEC invariant held over the whole mission."""
+        return not self.violations and not self.incomplete
+
+    @property
+    def incomplete(self) -> bool:
+        """The record ends before the mission did (its steps < the planned steps)."""
+        return self.coverage.cut_short
+
+    @property
+    def verdict(self) -> str:
+        """"ok", "violated" (an invariant broken on the steps recorded, cut short or not) or
+        "incomplete" (none broken, but the run was cut short: nothing to say of the rest)."""
+        if self.violations:
+            return "violated"
+        return "incomplete" if self.incomplete else "ok"
 
     @property
     def exit_code(self) -> int:
-        """0: every SPEC invariant held (on the samples present); 1: one did not."""
-        return EXIT_OK if self.ok else EXIT_VIOLATION
+        """0: every SPEC invariant held over the whole mission; 1: one did not (on the steps
+        recorded); 4 (``EXIT_INCOMPLETE``): none broken, but the run was cut short."""
+        return {"ok": EXIT_OK, "violated": EXIT_VIOLATION,
+                "incomplete": EXIT_INCOMPLETE}[self.verdict]
 
 
 # -- building ------------------------------------------------------------------------------
@@ -362,10 +379,23 @@ def report_to_json(report: RunReport) -> dict[str, Any]:
         "envelope_margins_m": report.envelope_margins_m,
         "envelope_tolerance_m": report.envelope_tolerance_m,
         "safety_conflicts": report.safety_conflicts,
-        "violations": [{"invariant": v.invariant, "detail": v.detail}
-                       for v in report.violations],
+        "planned_steps": cov.planned_steps,
+        "complete": not report.incomplete,
+        "violations": [_violation_json(v) for v in report.violations],
         "warnings": list(report.warnings),
-        "verdict": "ok" if report.ok else "violated",
+        "verdict": report.verdict,
+    }
+
+
+def _violation_json(v: Violation) -> dict[str, Any]:
+    """Which, when and by how much; None where the invariant could not be checked at all."""
+    return {
+        "invariant": v.invariant, "detail": v.detail, "subject": v.subject or None,
+        "worst_value": finite_or_none(v.worst_value), "limit": finite_or_none(v.limit),
+        "excess": finite_or_none(v.excess), "worst_time_s": finite_or_none(v.worst_time_s),
+        "first_time_s": finite_or_none(v.first_time_s),
+        "first_subject": v.first_subject or None,
+        "time_beyond_s": finite_or_none(v.time_beyond_s),
     }
 
 
@@ -483,10 +513,17 @@ def run_lines(report: RunReport) -> tuple[str, str]:
 
 
 def verdict_line(report: RunReport) -> str:
-    if report.ok:
+    """OK only for a whole mission with every invariant held; a run cut short is
+    INCOMPLETE (with how much it holds), or FAILED when it broke one on what it holds."""
+    steps = f"{report.steps} of {report.coverage.planned_steps} steps"
+    if report.verdict == "ok":
         return "verdict: OK (every SPEC invariant within tolerance)"
+    if report.verdict == "incomplete":
+        return (f"verdict: INCOMPLETE: {steps} (no SPEC invariant violated on the steps "
+                f"recorded; the rest of the mission was not run)")
     names = sorted({v.invariant for v in report.violations})
-    return f"verdict: FAILED ({', '.join(names)}: a SPEC invariant was violated or not checked)"
+    line = f"verdict: FAILED ({', '.join(names)}: a SPEC invariant was violated or not checked)"
+    return f"{line} in an INCOMPLETE run: {steps}" if report.incomplete else line
 
 
 def render_report(report: RunReport, console: Console) -> None:
@@ -499,6 +536,6 @@ def render_report(report: RunReport, console: Console) -> None:
         console.print(f"[bold yellow]warning[/] {escape(warning)}", highlight=False)
     for v in report.violations:
         console.print(f"[bold red]VIOLATION[/] {escape(str(v))}", highlight=False)
-    style = "bold green" if report.ok else "bold red"
+    style = {"ok": "bold green", "incomplete": "bold yellow"}.get(report.verdict, "bold red")
     console.print(f"[{style}]{verdict_line(report)}[/]", highlight=False)
 

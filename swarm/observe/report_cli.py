@@ -3,11 +3,12 @@
 Prints a table per target and per drone and a verdict line; ``--json`` prints one JSON object
 instead (warnings also go to stderr); ``--plots OUT`` writes the thesis figures as PNG files.
 
-Exit codes: 0 every SPEC invariant held on the samples present, 1 one was violated beyond
+Exit codes: 0 every SPEC invariant held over the whole mission, 1 one was violated beyond
 its tolerance (or had no sample to be checked on), 2 bad command line, unreadable recording
-or unwritable plot directory (one line on stderr, no traceback). A truncated recording (the
-run was killed, or is still being written) is reported with a warning and judged on the
-steps it holds: its exit code is 0 or 1 like any other.
+or unwritable plot directory (one line on stderr, no traceback), 4 the recording holds fewer
+steps than the mission (Ctrl-C, a crash, a killed launcher, or still being written) and no
+invariant was violated on the steps it holds: verdict INCOMPLETE, never OK. A violation in
+such a run is exit 1, and its verdict says both.
 """
 
 from __future__ import annotations

@@ -9,6 +9,7 @@ and an invariant with no sample at all to check is reported as not held ("not ch
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -28,8 +29,21 @@ FloatArray = NDArray[np.float64]
 
 @dataclass(frozen=True)
 class Violation:
+    """One invariant not held: which (``subject``: the pair, drone, target or boundary), when
+    (the worst point, and the first step past the limit) and by how much, as one line
+    (``detail``) and as fields. An invariant that could not be checked at all has only
+    ``detail``."""
+
     invariant: str
     detail: str
+    subject: str = ""  # e.g. "drones 1 and 3", "target 0, drone 5", "ceiling, drone 2"
+    worst_value: float | None = None  # the checked quantity at its worst point
+    limit: float | None = None  # the bound it must respect (tolerance included)
+    excess: float | None = None  # how far the worst point is past the limit (> 0)
+    worst_time_s: float | None = None
+    first_time_s: float | None = None  # the first step past the limit
+    first_subject: str = ""  # who crossed first
+    time_beyond_s: float | None = None  # steps past the limit × ΔT
 
     def __str__(self) -> str:
         return f"{self.invariant}: {self.detail}"
@@ -70,10 +84,17 @@ class Coverage:
     missing_telemetry: int  # drone-steps whose telemetry never arrived
     missing_truth: int  # steps without ground truth (drone and target positions)
     missing_per_drone: tuple[int, ...]
+    planned_steps: int = 0  # the mission's steps (scenario.duration_s / ΔT)
 
     @property
     def complete(self) -> bool:
+        """Every sample of every step recorded."""
         return self.missing_telemetry == 0 and self.missing_truth == 0
+
+    @property
+    def cut_short(self) -> bool:
+        """The record ends before the mission did (Ctrl-C, a crash, a killed launcher)."""
+        return self.steps < self.planned_steps
 
 
 def _quiet_nan(function: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
@@ -125,6 +146,7 @@ def coverage(record: RunRecord) -> Coverage:
         missing_telemetry=int(missing.sum()),
         missing_truth=int(truth_missing(record).sum()),
         missing_per_drone=tuple(int(v) for v in missing.sum(axis=0)),
+        planned_steps=record.config.n_steps,
     )
 
 
@@ -147,17 +169,39 @@ def final_values(series: FloatArray) -> FloatArray:
     return out
 
 
-def min_pairwise_distance(record: RunRecord) -> float:
-    """Smallest distance between two drones over the run, NaN-aware [m]; NaN if unknown.
+# Floats of pairwise differences held at once by ``closest_pair_per_step`` (8 MiB): the
+# memory stays O(K·N) plus this, whatever the number of pairs.
+_PAIR_CHUNK_VALUES = 1 << 20
 
-    One pass per drone instead of a (K, N, N) array: the memory stays O(K·N).
-    """
-    p = record.drone_positions_m
-    best = float("nan")
-    for i in range(p.shape[1] - 1):
-        dist = np.linalg.norm(p[:, i + 1:] - p[:, i:i + 1], axis=-1)
-        best = float(np.fmin(best, nanmin(dist)))
-    return best
+
+def closest_pair_per_step(positions: FloatArray) -> tuple[FloatArray, NDArray[np.intp]]:
+    """For each step of (K, N, 3) positions, the smallest distance between two drones [m] and
+    that pair (i < j), over every pair whose two positions are present: (K,) distances, NaN
+    where no pair is, and (K, 2) ids, −1 there. Steps are taken in chunks so the (steps,
+    pairs, 3) differences stay within ``_PAIR_CHUNK_VALUES`` floats."""
+    k, n = positions.shape[:2]
+    first, second = np.triu_indices(n, 1)
+    distance = np.full(k, np.nan)
+    pair = np.full((k, 2), -1, dtype=np.intp)
+    if first.size == 0:
+        return distance, pair
+    chunk = max(1, _PAIR_CHUNK_VALUES // (3 * first.size))
+    for start in range(0, k, chunk):
+        p = positions[start:start + chunk]
+        d = np.linalg.norm(p[:, first] - p[:, second], axis=-1)  # (C, P), NaN: a pair missing
+        present = ~np.isnan(d)
+        closest = np.argmin(np.where(present, d, np.inf), axis=1)
+        rows = np.arange(d.shape[0])
+        any_pair = present.any(axis=1)
+        distance[start:start + chunk] = np.where(any_pair, d[rows, closest], np.nan)
+        pair[start:start + chunk] = np.where(
+            any_pair[:, None], np.stack((first[closest], second[closest]), axis=1), -1)
+    return distance, pair
+
+
+def min_pairwise_distance(record: RunRecord) -> float:
+    """Smallest distance between two drones over the run, NaN-aware [m]; NaN if unknown."""
+    return nanmin(closest_pair_per_step(record.drone_positions_m)[0])
 
 
 def max_abs_velocity(record: RunRecord) -> float:
@@ -218,24 +262,91 @@ def summarize_drones(record: RunRecord) -> list[DroneSummary]:
     return out
 
 
+@dataclass(frozen=True)
+class _Crossing:
+    """Where a series (K, X) went past its limit: the worst sample, the first step past it
+    and how many steps were; ``subject(k, x)`` names column x at step k."""
+
+    worst_step: int
+    worst_column: int
+    worst_value: float
+    first_step: int
+    first_column: int
+    steps_beyond: int
+
+
+def _crossing(values: FloatArray, limit: float, *, below: bool) -> _Crossing | None:
+    """Where ``values`` (K, X) went below (``below``) or above ``limit``; None if nowhere.
+    NaN samples (missing) are never past the limit; the worst is the farthest past it, the
+    earliest such sample on a tie, and the first crossing the lowest column of the first
+    step past it."""
+    beyond = values < limit if below else values > limit
+    if not beyond.any():
+        return None
+    distance_past = np.where(beyond, (limit - values) if below else (values - limit), -1.0)
+    worst_step, worst_column = np.unravel_index(int(np.argmax(distance_past)), values.shape)
+    steps = beyond.any(axis=1)
+    first_step = int(np.argmax(steps))
+    return _Crossing(int(worst_step), int(worst_column),
+                     float(values[worst_step, worst_column]), first_step,
+                     int(np.argmax(beyond[first_step])), int(steps.sum()))
+
+
+def _violation(invariant: str, crossing: _Crossing, limit: float, record: RunRecord,
+               subject: Callable[[int, int], str], what: str, when: str = "") -> Violation:
+    """A ``Violation`` of ``crossing`` (steps counted from the record's first); ``what`` is
+    the line's head (which, the value and the limit), ``when`` the words for past it."""
+    times = record.times_s
+    dt = record.config.scenario.dt_s
+    worst_subject = subject(crossing.worst_step, crossing.worst_column)
+    first_subject = subject(crossing.first_step, crossing.first_column)
+    worst_t, first_t = float(times[crossing.worst_step]), float(times[crossing.first_step])
+    beyond_s = crossing.steps_beyond * dt
+    word = when or "past the limit"
+    detail = (f"{what} at t = {worst_t:.2f} s; first {word} at t = {first_t:.2f} s "
+              f"({first_subject}), {word} for {beyond_s:.2f} s")
+    return Violation(
+        invariant, detail, subject=worst_subject, worst_value=crossing.worst_value,
+        limit=limit, excess=abs(limit - crossing.worst_value), worst_time_s=worst_t,
+        first_time_s=first_t, first_subject=first_subject, time_beyond_s=beyond_s)
+
+
+_TELEMETRY_FIELDS = ("command", "estimate", "λ̄")
+
+
 def _check_finite(record: RunRecord) -> list[Violation]:
-    """Present samples must be finite; ±inf is never a missing sample."""
+    """Present samples must be finite; ±inf is never a missing sample. Says how many, and
+    which drone's which field first, when."""
     present = ~telemetry_missing(record)
     telemetry = (record.velocities_m_s, record.estimates, record.lambda_bar)
-    bad = [int((np.any(~np.isfinite(a), axis=tuple(range(2, a.ndim))) & present).sum())
-           for a in telemetry]
-    infinite = any(np.isinf(a).any() for a in (record.drone_positions_m,
-                                                record.target_positions_m))
-    if sum(bad) == 0 and not infinite:
+    bad = [np.any(~np.isfinite(a), axis=tuple(range(2, a.ndim))) & present for a in telemetry]
+    counts = [int(b.sum()) for b in bad]
+    infinite_drones = np.isinf(record.drone_positions_m).any(axis=2)  # (K, N)
+    infinite_targets = np.isinf(record.target_positions_m).any(axis=2)  # (K, M)
+    infinite = bool(infinite_drones.any() or infinite_targets.any())
+    if sum(counts) == 0 and not infinite:
         return []
-    return [Violation("finite", f"a position, command, estimate or λ̄ is NaN/inf "
-                                f"({sum(bad)} received samples non-finite"
-                                f"{', a position is inf' if infinite else ''})")]
+    firsts: list[tuple[float, str]] = []
+    for name, b in zip(_TELEMETRY_FIELDS, bad, strict=True):
+        if b.any():
+            k, i = np.argwhere(b)[0]
+            firsts.append((float(record.times_s[k]), f"drone {i}'s {name}"))
+    for name, b in (("drone", infinite_drones), ("target", infinite_targets)):
+        if b.any():
+            k, i = np.argwhere(b)[0]
+            firsts.append((float(record.times_s[k]), f"{name} {i}'s position (inf)"))
+    first_t, first_subject = min(firsts)
+    return [Violation(
+        "finite", f"a position, command, estimate or λ̄ is NaN/inf ({sum(counts)} received "
+                  f"samples non-finite{', a position is inf' if infinite else ''}); first: "
+                  f"{first_subject} at t = {first_t:.2f} s",
+        subject=first_subject, first_time_s=first_t, first_subject=first_subject)]
 
 
 def _check_lambda_bar(record: RunRecord) -> list[Violation]:
     cfg = record.config
     eps, tol = cfg.gramian.epsilon, cfg.checks.lambda_tolerance
+    floor = eps - tol
     k0 = start_index(record)
     violations = []
     for r in range(record.target_positions_m.shape[1]):
@@ -245,26 +356,37 @@ def _check_lambda_bar(record: RunRecord) -> list[Violation]:
                 "lambda_bar", f"target {r}: not checked: no λ̄ sample after control.start_s = "
                               f"{cfg.control.start_s} s"))
             continue
-        low = nanmin(lam)
-        if low < eps - tol:
-            k, i = np.unravel_index(int(np.nanargmin(lam)), lam.shape)
-            violations.append(Violation(
-                "lambda_bar",
-                f"target {r}: drone {i} has λ̄ = {low:.4f} < ε − tol = {eps - tol:.4f} "
-                f"at t = {record.times_s[k0 + k]:.2f} s"))
+        crossing = _crossing(lam, floor, below=True)
+        if crossing is None:
+            continue
+        crossing = dataclasses.replace(crossing, worst_step=crossing.worst_step + k0,
+                                       first_step=crossing.first_step + k0)
+        violations.append(_violation(
+            "lambda_bar", crossing, floor, record,
+            lambda _k, i, r=r: f"target {r}, drone {i}",
+            f"target {r}: drone {crossing.worst_column} has λ̄ = {crossing.worst_value:.4f} "
+            f"< ε − tol = {floor:.4f} (by {floor - crossing.worst_value:.4f})", "below"))
     return violations
 
 
 def _check_collision(record: RunRecord) -> list[Violation]:
     cfg = record.config
-    min_dist = min_pairwise_distance(record)
+    distance, pair = closest_pair_per_step(record.drone_positions_m)
     floor = cfg.control.collision_distance_m - cfg.checks.collision_tolerance_m
-    if np.isnan(min_dist):
+    if np.isnan(distance).all():
         return [Violation("collision", "not checked: no step with two drone positions")]
-    if min_dist < floor:
-        return [Violation(
-            "collision", f"min pairwise distance {min_dist:.4f} m < Δ − tol = {floor:.4f} m")]
-    return []
+    crossing = _crossing(distance[:, None], floor, below=True)
+    if crossing is None:
+        return []
+
+    def drones(k: int, _column: int) -> str:
+        return f"drones {pair[k, 0]} and {pair[k, 1]}"
+
+    worst = crossing.worst_value
+    return [_violation(
+        "collision", crossing, floor, record, drones,
+        f"min pairwise distance {worst:.4f} m < Δ − tol = {floor:.4f} m (by "
+        f"{floor - worst:.4f} m): {drones(crossing.worst_step, 0)}", "below")]
 
 
 def envelope_margin_series(record: RunRecord) -> dict[str, FloatArray]:
@@ -291,27 +413,44 @@ def min_envelope_margins(record: RunRecord) -> dict[str, float]:
 
 
 def _check_envelope(record: RunRecord) -> list[Violation]:
-    margins = min_envelope_margins(record)
     tolerance = record.config.checks.envelope_tolerance_m
     out = []
-    for kind, margin in margins.items():
-        if np.isnan(margin):
+    for kind, margins in envelope_margin_series(record).items():
+        if np.isnan(margins).all():
             out.append(Violation("envelope", f"{kind}: not checked: no drone position"))
-        elif margin < -tolerance:
-            out.append(Violation("envelope", f"a drone went {-margin:.4f} m beyond the "
-                                             f"{kind} (tolerance {tolerance} m)"))
+            continue
+        crossing = _crossing(margins, -tolerance, below=True)
+        if crossing is None:
+            continue
+        out.append(_violation(
+            "envelope", crossing, -tolerance, record,
+            lambda _k, i, kind=kind: f"{kind}, drone {i}",
+            f"drone {crossing.worst_column} went {-crossing.worst_value:.4f} m beyond the "
+            f"{kind} (tolerance {tolerance} m)", "beyond"))
     return out
+
+
+_AXES = "xyz"
 
 
 def _check_velocity_bound(record: RunRecord) -> list[Violation]:
     u_max = record.config.control.u_max_m_s
-    peak = max_abs_velocity(record)
-    if np.isnan(peak):
+    speeds = np.abs(record.velocities_m_s)  # (K, N, 3)
+    if np.isnan(speeds).all():
         return [Violation("velocity_bound", "not checked: no command in the record")]
-    if peak > u_max + 1e-9:
-        return [Violation("velocity_bound",
-                          f"a command reaches |u_k| = {peak:.4f} m/s > u_max = {u_max} m/s")]
-    return []
+    k, n = speeds.shape[:2]
+    limit = u_max + 1e-9
+    crossing = _crossing(speeds.reshape(k, n * 3), limit, below=False)
+    if crossing is None:
+        return []
+
+    def axis(_k: int, column: int) -> str:
+        return f"drone {column // 3}, u_{_AXES[column % 3]}"
+
+    return [_violation(
+        "velocity_bound", crossing, u_max, record, axis,
+        f"a command reaches |u_k| = {crossing.worst_value:.4f} m/s > u_max = {u_max} m/s "
+        f"({axis(0, crossing.worst_column)})", "above")]
 
 
 def check_invariants(record: RunRecord) -> list[Violation]:

@@ -69,6 +69,7 @@ CONFIGS = ROOT / "configs"
 CASE1 = CONFIGS / "case1.toml"
 KILL_AFTER_SIM_S = 2.0
 DT_S = 0.02  # Case 1's step
+CASE1_DURATION_S = 30.0  # Case 1's mission
 DURABILITY_S = 1.0  # what the issue allows to be lost before a kill -9
 
 
@@ -444,6 +445,16 @@ def test_a_stopped_launcher_leaves_a_readable_recording(tmp_path: Path, signum: 
             assert recording.truncated
         else:
             assert (code, recording.truncated) == (130, False)
+        # Cut short either way: swarm-report never says OK of it (issue 41, point 2).
+        result = subprocess.run([sys.executable, "-m", "swarm.observe.report_cli",
+                                 str(directory), "--json"], cwd=ROOT, capture_output=True,
+                                text=True, timeout=120, check=False)
+        document = json.loads(result.stdout)
+        planned = round(CASE1_DURATION_S / DT_S)
+        assert (document["complete"], document["planned_steps"]) == (False, planned)
+        assert document["steps"] == recording.record.n_steps < planned
+        assert (document["verdict"], result.returncode) in {("incomplete", 4),
+                                                            ("violated", 1)}, result.stderr
         poll(lambda: not processes_of(run_id), 5.0, "every child of the launcher gone:",
              on_timeout=lambda: describe(processes_of(run_id)))
 
