@@ -9,7 +9,6 @@ becomes one ``ConfigError`` whose text is a single line naming the key and the r
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import tomllib
 import typing
@@ -19,6 +18,7 @@ from typing import Literal
 
 import msgspec
 import numpy as np
+import tomlkit
 
 from swarm.core import icf
 from swarm.core.graph import CommunicationGraph, pi_consensus_is_stable
@@ -719,58 +719,38 @@ def _every_field(value: object) -> object:
 def config_to_toml(config: ScenarioConfig) -> str:
     """The resolved config as TOML text that ``load_config`` reads back into an equal config
     (``launch-swarm --print-config``): every key of every section, the defaults and the
-    fitted values included. A key whose value is none (an altitude bound not set) is shown
-    as a comment; ``vehicles.setpoint_timeout_s = 0`` says which failsafe delay it means."""
+    fitted values included, written by ``tomlkit``. TOML has no null: a key whose value is
+    none (an altitude bound not set) is left out and named in the header, which also says
+    which failsafe delay ``vehicles.setpoint_timeout_s = 0`` means."""
     data = config_to_data(config)
+    unset = sorted(_unset_keys(data))
     lines = [f"# The resolved config of {config.source}: every value a run of it uses,",
              "# the defaults of the sections and keys it leaves out filled in."]
-    for name, value in data.items():
-        _toml_table(name, value, lines)
-    return "\n".join(lines) + "\n"
+    if unset:
+        lines.append(f"# Not set: {', '.join(unset)}.")
+    vehicles = config.vehicles
+    if vehicles.setpoint_timeout_s == 0:
+        lines.append(f"# vehicles.setpoint_timeout_s = 0: the flavour's default, "
+                     f"{DEFAULT_SETPOINT_TIMEOUT_S[vehicles.flavour]:g} s "
+                     f"({vehicles.flavour}).")
+    return "\n".join(lines) + "\n\n" + tomlkit.dumps(_without_none(data))
 
 
-def _toml_table(path: str, value: object, lines: list[str]) -> None:
-    """Append ``value`` (a dict: ``[path]``; a list of dicts: one ``[[path]]`` each)."""
+def _unset_keys(value: object, path: str = "") -> list[str]:
+    """The dotted names of the keys whose value is None."""
+    if isinstance(value, dict):
+        return [name for key, item in value.items()
+                for name in ([f"{path}{key}"] if item is None
+                             else _unset_keys(item, f"{path}{key}."))]
+    return []
+
+
+def _without_none(value: object) -> object:
+    if isinstance(value, dict):
+        return {key: _without_none(item) for key, item in value.items() if item is not None}
     if isinstance(value, list):
-        for item in value:
-            lines.extend(("", f"[[{path}]]"))
-            _toml_keys(path, item, lines)
-        return
-    lines.extend(("", f"[{path}]"))
-    _toml_keys(path, value, lines)
-
-
-def _toml_keys(path: str, table: object, lines: list[str]) -> None:
-    assert isinstance(table, dict)
-    nested = []
-    for key, value in table.items():
-        if isinstance(value, dict) or (isinstance(value, list) and value
-                                       and all(isinstance(v, dict) for v in value)):
-            nested.append((key, value))
-        elif value is None:
-            lines.append(f"# {key}: not set")
-        else:
-            note = ""
-            if path == "vehicles" and key == "setpoint_timeout_s" and value == 0:
-                flavour = table["flavour"]
-                note = (f"  # 0: the flavour's default, "
-                        f"{DEFAULT_SETPOINT_TIMEOUT_S[flavour]:g} s ({flavour})")
-            lines.append(f"{key} = {_toml_value(value)}{note}")
-    for key, value in nested:
-        _toml_table(f"{path}.{key}", value, lines)
-
-
-def _toml_value(value: object) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int | float):
-        return repr(value)
-    if isinstance(value, str):
-        # A JSON string is a TOML basic string, once DEL (which TOML wants escaped) is.
-        return json.dumps(value, ensure_ascii=False).replace("\x7f", "\\u007F")
-    if isinstance(value, list):
-        return "[" + ", ".join(_toml_value(item) for item in value) + "]"
-    raise TypeError(f"no TOML form for {type(value).__name__}")
+        return [_without_none(item) for item in value]
+    return value
 
 
 def write_resolved_config(config: ScenarioConfig, path: str | Path) -> Path:

@@ -597,9 +597,11 @@ def test_the_toml_text_keeps_odd_strings_and_says_the_failsafe_delay() -> None:
     config = config_from_dict(data)
     text = config_to_toml(config)
     assert config_from_dict(tomllib.loads(text)) == config
-    assert 'setpoint_timeout_s = 0.0  # 0: the flavour\'s default, 3 s (ardupilot)' in text
-    assert "floor_m = 1.0\n# ceiling_m: not set\n" in text
-    assert "\n[[safety.keep_out]]\ncenter_m = [9.0, 9.0]\nradius_m = 1.0\n" in text
+    assert "# vehicles.setpoint_timeout_s = 0: the flavour's default, 3 s (ardupilot)." in text
+    [unset] = [line for line in text.splitlines() if line.startswith("# Not set: ")]
+    assert "safety.ceiling_m" in unset and "safety.floor_m" not in unset
+    assert tomllib.loads(text)["safety"]["keep_out"] == [{"center_m": [9.0, 9.0],
+                                                          "radius_m": 1.0}]
 
 
 def test_print_config_shows_what_the_run_would_use(tmp_path: Path) -> None:
