@@ -418,16 +418,67 @@ def _late(d: DroneReport) -> str:
     return f"{d.late_steps} ({100.0 * d.late_steps / d.steps_run:.2f} %)"
 
 
-def target_table(report: RunReport) -> Table:
-    table = Table(title=f"{report.scenario}: targets (ε = {report.epsilon}; margins λ − ε "
-                        f"after t = {report.start_s} s)", title_justify="left")
-    columns = ["target", "min λ̄−ε", "time λ̄<ε [s]", "min true λ−ε", "min meas. λ",
-               "final err [m]", "RMS err [m]", f"sensing (w>{SENSING_WEIGHT})"]
+# Which columns a narrow console keeps longest (0: never left out). The events column (vehicle
+# events, λ̄ breaches) is the last to go; figures --json always has go first.
+# Headers break into two lines where they are wider than their figures.
+_TARGET_PRIORITY = {"target": 0, "min λ̄−ε": 1, "time λ̄<ε\n[s]": 2, "final err\n[m]": 3,
+                    f"sensing\n(w>{SENSING_WEIGHT})": 4, "RMS err\n[m]": 5,
+                    "min true\nλ−ε": 6, "min meas.\nλ": 7, "missing": 8}
+_DRONE_PRIORITY = {"drone": 0, "state": 1, "vehicle\nevents": 2, "λ̄\nbreaches": 2,
+                   "QP\nfallbacks": 3, "final |u|\n[m/s]": 4, "final w": 5, "late\nsteps": 6,
+                   "rejected": 7, "bearing\nerr": 8, "missing": 9, "step µs\nmean/p99": 10}
+
+
+@dataclass(frozen=True)
+class FittedTable:
+    """A table as wide as the console allows: the columns it had to leave out, by name."""
+
+    table: Table
+    left_out: tuple[str, ...]
+
+
+def fitted_table(title: str, columns: Sequence[str], rows: Sequence[Sequence[str]],
+                 priority: Mapping[str, int], width: int | None) -> FittedTable:
+    """A table of ``columns`` no wider than ``width`` (None: all columns): columns without any
+    figure (every cell MISSING) are left out first, then by ``priority`` (highest number
+    first), never one of priority 0; cells are never wrapped."""
+    keep = list(range(len(columns)))
+
+    def build() -> Table:
+        table = Table(title=title, title_justify="left")
+        for k in keep:
+            table.add_column(escape(columns[k]), justify="right", no_wrap=True)
+        for row in rows:
+            table.add_row(*(row[k] for k in keep))
+        return table
+
+    table = build()
+    if width is None:
+        return FittedTable(table, ())
+    empty = [all(row[k] == MISSING for row in rows) for k in range(len(columns))]
+    order = sorted((k for k in keep if priority[columns[k]] > 0),
+                   key=lambda k: (not empty[k], -priority[columns[k]]))
+    measure = Console(width=10_000).measure
+    left_out: list[str] = []
+    for k in order:
+        if measure(table).maximum <= width:
+            break
+        keep.remove(k)
+        left_out.append(columns[k])
+        table = build()
+    return FittedTable(table, tuple(left_out))
+
+
+def target_table(report: RunReport, width: int | None = None) -> FittedTable:
+    """The per-target table, within ``width`` console columns (None: every column)."""
+    title = (f"{report.scenario}: targets (ε = {report.epsilon}; margins λ − ε after t = "
+             f"{report.start_s} s)")
+    columns = ["target", "min λ̄−ε", "time λ̄<ε\n[s]", "min true\nλ−ε", "min meas.\nλ",
+               "final err\n[m]", "RMS err\n[m]", f"sensing\n(w>{SENSING_WEIGHT})"]
     incomplete = not report.coverage.complete
     if incomplete:
         columns.append("missing")
-    for column in columns:
-        table.add_column(escape(column), justify="right")
+    rows = []
     for t in report.targets:
         row = [str(t.id), _fmt(t.min_lambda_bar_margin, "+.4f"),
                f"{t.time_below_epsilon_s:.2f}", _fmt(t.min_true_lambda_margin, "+.4f"),
@@ -435,19 +486,19 @@ def target_table(report: RunReport) -> Table:
                _fmt(t.rms_position_error_m, ".4f"), str(t.drones_sensing_final)]
         if incomplete:
             row.append(str(t.missing_samples))
-        table.add_row(*row)
-    return table
+        rows.append(row)
+    return fitted_table(title, columns, rows, _TARGET_PRIORITY, width)
 
 
-def drone_table(report: RunReport) -> Table:
-    table = Table(title="drones", title_justify="left")
-    columns = ["drone", "final |u| [m/s]", "final w", "state", "QP fallbacks", "late steps",
-               "rejected", "step µs mean/p99", "bearing err", "vehicle events", "λ̄ breaches"]
+def drone_table(report: RunReport, width: int | None = None) -> FittedTable:
+    """The per-drone table, within ``width`` console columns (None: every column)."""
+    columns = ["drone", "final |u|\n[m/s]", "final w", "state", "QP\nfallbacks", "late\nsteps",
+               "rejected", "step µs\nmean/p99", "bearing\nerr", "vehicle\nevents",
+               "λ̄\nbreaches"]
     incomplete = not report.coverage.complete
     if incomplete:
         columns.append("missing")
-    for column in columns:
-        table.add_column(escape(column), justify="right")
+    rows = []
     for d in report.drones:
         weights = " ".join(_fmt(w, ".2f") for w in d.final_weights)
         state = ("sensing " + ",".join(f"T{r}" for r in d.sensing_targets)
@@ -458,14 +509,14 @@ def drone_table(report: RunReport) -> Table:
                _fmt(d.final_bearing_error, ".4f"), _vehicle(d), _breaches(d)]
         if incomplete:
             row.append(str(d.missing_samples))
-        table.add_row(*row)
-    return table
+        rows.append(row)
+    return fitted_table("drones", columns, rows, _DRONE_PRIORITY, width)
 
 
 def _vehicle(d: DroneReport) -> str:
     """Vehicle events (not asked for), and what was still wrong at the end."""
     if d.vehicle_events is None:
-        return "—"
+        return MISSING
     return f"{d.vehicle_events} ({d.vehicle_status})" if d.vehicle_status \
         else str(d.vehicle_events)
 
@@ -473,7 +524,7 @@ def _vehicle(d: DroneReport) -> str:
 def _breaches(d: DroneReport) -> str:
     """λ̄ breaches the agent said, and from when."""
     if d.lambda_breaches is None:
-        return "—"
+        return MISSING
     if not d.lambda_breaches:
         return "0"
     return f"{d.lambda_breaches} (from {_fmt(d.first_lambda_breach_s, '.2f')} s)"
@@ -527,9 +578,16 @@ def verdict_line(report: RunReport) -> str:
 
 
 def render_report(report: RunReport, console: Console) -> None:
-    """Tables per target and per drone, warnings, violations and the verdict line."""
-    console.print(target_table(report))
-    console.print(drone_table(report))
+    """Tables per target and per drone (as wide as the console: columns left out by
+    priority, and said), warnings, violations and the verdict line."""
+    left_out: list[str] = []
+    for fitted in (target_table(report, console.width), drone_table(report, console.width)):
+        console.print(fitted.table)
+        left_out += fitted.left_out
+    if left_out:
+        names = ", ".join(name.replace("\n", " ") for name in left_out)
+        console.print(f"(left out at {console.width} columns: {names}; "
+                      "--json has every figure)", highlight=False, markup=False)
     for line in run_lines(report):
         console.print(line, highlight=False, markup=False)
     for warning in report.warnings:
@@ -538,4 +596,3 @@ def render_report(report: RunReport, console: Console) -> None:
         console.print(f"[bold red]VIOLATION[/] {escape(str(v))}", highlight=False)
     style = {"ok": "bold green", "incomplete": "bold yellow"}.get(report.verdict, "bold red")
     console.print(f"[{style}]{verdict_line(report)}[/]", highlight=False)
-
