@@ -50,6 +50,11 @@ _EVENT_LABELS = {"late_steps": "late", "stale_neighbour_messages": "stale",
 TARGET_COLUMNS = ("target", "min λ̄ (drone)", "λ̄−ε", "min ψ0", "sensing", "spread [m]")
 DRONE_COLUMNS = ("drone", "λ̄", "ψ0", "w", "‖u‖ [m/s]", "slack", "step [µs]", "nbr age [ms]",
                  "MAVLink", "events")
+# The order in which a narrow console leaves columns out (first listed, first out); the
+# events and the vehicle's state are the last to go, the id never.
+TARGET_DROP_ORDER = ("spread [m]", "min ψ0", "sensing")
+DRONE_DROP_ORDER = ("step [µs]", "nbr age [ms]", "slack", "ψ0", "‖u‖ [m/s]", "w", "λ̄",
+                    "MAVLink")
 PROGRESS_BAR_CELLS = 30
 
 
@@ -316,7 +321,8 @@ class Dashboard:
                 Text(f"{r.margin:+.3f}", style=bad),
                 Text(f"{r.min_psi0:+.3f}", style="red" if r.min_psi0 < 0 else ""),
                 Text(f"{r.sensing}/{r.reporting}"), Text(f"{r.spread_m:.3f}")])
-        return text_table(f"targets (ε = {eps:g})", TARGET_COLUMNS, cells)
+        return text_table(f"targets (ε = {eps:g})", TARGET_COLUMNS, cells,
+                          width=self.console.width, drop_order=TARGET_DROP_ORDER)
 
     def _drone_table(self, rows: list[DroneRow]) -> Text:
         eps = self.config.gramian.epsilon
@@ -342,7 +348,8 @@ class Dashboard:
                      style="red" if d.counters.vehicle_status
                      or d.mavlink_state.startswith("disarmed") else ""),
                 _events(d.counters)])
-        return text_table("drones", DRONE_COLUMNS, cells)
+        return text_table("drones", DRONE_COLUMNS, cells, width=self.console.width,
+                          drop_order=DRONE_DROP_ORDER)
 
     # -- lifecycle --------------------------------------------------------------------------------
 
@@ -408,17 +415,31 @@ class Dashboard:
 # -- text pieces ---------------------------------------------------------------------------------
 
 
-def text_table(title: str, headers: Sequence[str], rows: Sequence[Sequence[Text]]) -> Text:
+def text_table(title: str, headers: Sequence[str], rows: Sequence[Sequence[Text]], *,
+               width: int | None = None, drop_order: Sequence[str] = ()) -> Text:
     """A borderless table as one Text: title, bold header, rule, right-aligned columns.
 
     Rich's ``Table`` measures and wraps every cell on every frame — about ten times the cost
     of this for the same picture — and the live display redraws several times a second next
-    to a realtime swarm. Cells never wrap; the display crops long lines.
+    to a realtime swarm. Cells never wrap. Wider than ``width``, the columns named in
+    ``drop_order`` are left out in that order until it fits (the title says how many); what
+    still does not fit is cropped by the display.
     """
     widths = [cell_len(h) for h in headers]
     for row in rows:
         for k, cell in enumerate(row):
             widths[k] = max(widths[k], cell.cell_len)
+    keep = list(range(len(headers)))
+    if width is not None:
+        for name in drop_order:
+            if sum(widths[k] for k in keep) + 2 * (len(keep) - 1) <= width:
+                break
+            keep.remove(headers.index(name))
+    if len(keep) < len(headers):
+        title = f"{title} ({len(headers) - len(keep)} columns left out: too narrow)"
+        headers = [headers[k] for k in keep]
+        widths = [widths[k] for k in keep]
+        rows = [[row[k] for k in keep] for row in rows]
     out = Text()
     out.append(title, style="italic")
     out.append("\n")

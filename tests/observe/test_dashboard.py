@@ -129,6 +129,28 @@ def test_tables_show_every_drone_and_target_with_their_numbers(
     assert f"t = {final_diagnostics[0].time_s:.2f} / 2.00 s" in text
 
 
+def test_at_80_columns_the_events_and_vehicle_state_stay(
+        config: ScenarioConfig, final_diagnostics: list[StepDiagnostics]) -> None:
+    """A narrow terminal leaves out the step time and the neighbour age first, never the
+    events or the vehicle's state, and says so in the title (issue 41, point 6)."""
+    console = Console(record=True, width=80, force_terminal=True, file=io.StringIO(),
+                      color_system="standard")
+    dashboard = Dashboard(config, console, headless=True)
+    for d in final_diagnostics:
+        dashboard.on_telemetry(telemetry(d, neighbour_age_ms=12.0, late_steps=d.drone_id + 1,
+                                         mavlink_state="armed OFFBOARD"))
+    dashboard.advance(final_diagnostics[0].step)
+    console.print(dashboard.render())
+    text = console.export_text()
+    assert max(len(line.rstrip()) for line in text.splitlines()) <= 80
+    title = next(line for line in text.splitlines() if line.startswith("drones"))
+    assert "columns left out: too narrow" in title
+    header = text.splitlines()[text.splitlines().index(title) + 1]
+    assert "events" in header and "MAVLink" in header and "step [µs]" not in header
+    for drone, row in rows_of(text, "drones").items():
+        assert f"late {drone + 1}" in row and "armed OFFBOARD" in row
+
+
 def test_row_numbers_match_the_diagnostics(
         config: ScenarioConfig, final_diagnostics: list[StepDiagnostics]) -> None:
     tels = [telemetry(d) for d in final_diagnostics]
