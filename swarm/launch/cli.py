@@ -9,9 +9,12 @@ on after losing an agent, 2 bad command line or config (one line on stderr, no t
 from __future__ import annotations
 
 import argparse
+import atexit
 import dataclasses
 import math
+import shutil
 import sys
+import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
@@ -48,6 +51,7 @@ from swarm.scenario.cli_common import (
     OneLineParser,
     add_foxglove_argument,
     add_gcs_arguments,
+    config_assignment,
     exit_code,
     fail,
     fail_on,
@@ -60,7 +64,12 @@ from swarm.scenario.cli_common import (
     seed,
     terminate_on_sigterm,
 )
-from swarm.scenario.config import ScenarioConfig, config_to_toml, realtime_only_reason
+from swarm.scenario.config import (
+    ScenarioConfig,
+    config_to_toml,
+    realtime_only_reason,
+    write_resolved_config,
+)
 
 PROG = "launch-swarm"
 # Live tables at 4 Hz at most on a terminal; a line every 5 simulated seconds otherwise.
@@ -81,6 +90,12 @@ def build_parser() -> OneLineParser:
                         help="random seed (default: scenario.seed of the config)")
     parser.add_argument("--duration", type=positive_float, default=None, metavar="S",
                         help="simulated seconds (default: scenario.duration_s)")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        type=config_assignment, dest="overrides",
+                        help="change one config value by its dotted key, checked as if the "
+                             "file said so (repeatable; e.g. gramian.epsilon=0.06, "
+                             "targets.0.velocity_m_s=[0.4,0,0], swarm.n_drones=12: the graph "
+                             "and start box fitted; the README's 'Sweeps')")
     parser.add_argument("--headless", action="store_true",
                         help="no live display: a one-line log every few simulated seconds")
     parser.add_argument("--mavlink-base", type=port, default=0, metavar="PORT",
@@ -202,6 +217,13 @@ def with_mavlink_urls(config: ScenarioConfig, urls: dict[int, str]) -> ScenarioC
     return dataclasses.replace(config, vehicles=vehicles)
 
 
+def resolved_config_file(config: ScenarioConfig) -> str:
+    """``config`` written where the world and agents read it (removed at exit)."""
+    directory = Path(tempfile.mkdtemp(prefix="vigil-set-"))
+    atexit.register(shutil.rmtree, directory, ignore_errors=True)
+    return str(write_resolved_config(config, directory / "config.json"))
+
+
 def print_summary(record: RunRecord, console: Console, mode: str = "inprocess",
                   counters: Mapping[int, TelemetryCounters] | None = None) -> int:
     """The run's report (the same tables and verdict as ``swarm-report``); its exit code."""
@@ -216,7 +238,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not console.is_terminal:
         console = Console(width=140)  # logs and CI: keep table columns unwrapped
     try:
-        config = load_scenario(args.config, args.duration)
+        config = load_scenario(args.config, args.duration, overrides=args.overrides)
     except ConfigError as err:
         return fail_on(PROG, err, "config error: ")
     seed_value = config.scenario.seed if args.seed is None else args.seed
@@ -230,7 +252,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         autopilot = sitl.kind if sitl is not None else config.vehicles.flavour
         try:
             config = with_mavlink_urls(load_scenario(args.config, args.duration,
-                                                     autopilot=autopilot), dict(args.mavlink))
+                                                     autopilot=autopilot,
+                                                     overrides=args.overrides),
+                                       dict(args.mavlink))
         except ConfigError as err:
             return fail_on(PROG, err, "config error: ")
     if args.print_config:
@@ -275,8 +299,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     options = None
     if not args.inprocess:
         try:
+            config_path = str(Path(args.config).resolve())
+            if args.overrides:  # the children read the config as resolved here, --set applied
+                config_path = resolved_config_file(config)
             options = LaunchOptions(
-                config=config, config_path=str(Path(args.config).resolve()), seed=seed_value,
+                config=config, config_path=config_path, seed=seed_value,
                 mode=args.mode, run_id=args.run_id or "", mavlink_base=args.mavlink_base,
                 log_dir=Path(args.log_dir) if args.log_dir else None, record_dir=args.record,
                 agent_restarts=args.agent_restarts,

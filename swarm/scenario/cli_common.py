@@ -9,6 +9,7 @@ import signal
 import socket
 import sys
 import typing
+from collections.abc import Sequence
 
 from swarm.errors import (  # noqa: F401 (the executables import the codes from here too)
     EXIT_FAILED,
@@ -19,6 +20,7 @@ from swarm.errors import (  # noqa: F401 (the executables import the codes from 
 )
 from swarm.mavlink.udpin import DEFAULT_MAVLINK_BASE  # noqa: F401 (the executables' default)
 from swarm.scenario.config import ConfigError, ScenarioConfig, load_config
+from swarm.scenario.overrides import Override, OverrideError, parse_assignment
 
 RUN_ID_PATTERN = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 
@@ -158,14 +160,23 @@ def add_run_arguments(parser: argparse.ArgumentParser, *, run_id_help: str) -> N
     parser.add_argument("--duration", type=positive_float, default=None, metavar="S")
 
 
-def load_scenario(path: str, duration_s: float | None, *,
-                  autopilot: str | None = None) -> ScenarioConfig:
+def load_scenario(path: str, duration_s: float | None, *, autopilot: str | None = None,
+                  overrides: Sequence[Override] = ()) -> ScenarioConfig:
     """Config file plus an optional --duration; ConfigError (one line) when unusable.
-    ``autopilot``: real autopilots of that flavour fly the drones (``load_config``)."""
-    config = load_config(path, autopilot=autopilot)
+    ``autopilot``: real autopilots of that flavour fly the drones; ``overrides``: ``--set``
+    (``load_config``)."""
+    config = load_config(path, autopilot=autopilot, overrides=overrides)
     if duration_s is not None:
         config = config.with_duration(duration_s)
     return config
+
+
+def config_assignment(text: str) -> Override:
+    """argparse type of ``--set KEY=VALUE`` (``swarm.scenario.overrides``)."""
+    try:
+        return parse_assignment(text)
+    except OverrideError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
 
 
 def terminate_on_sigterm() -> None:

@@ -12,9 +12,10 @@ import dataclasses
 import math
 import tomllib
 import typing
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import msgspec
 import numpy as np
@@ -51,6 +52,7 @@ from swarm.models.targets import (
     Trajectory,
 )
 from swarm.net.security import OBSERVER_ROLE, SecurityError, TlsIdentity, check_tls_dir
+from swarm.scenario.overrides import Override, OverrideError, apply_overrides
 from swarm.watch.vehicle_watch import VEHICLE_EVENT_POLICIES, VehicleEventPolicy
 
 Vector3 = tuple[float, float, float]
@@ -762,13 +764,15 @@ def write_resolved_config(config: ScenarioConfig, path: str | Path) -> Path:
     return path
 
 
-def load_config(path: str | Path, *, autopilot: str | None = None) -> ScenarioConfig:
+def load_config(path: str | Path, *, autopilot: str | None = None,
+                overrides: Sequence[Override] = ()) -> ScenarioConfig:
     """Read and validate a scenario TOML file, or a resolved config written by
     ``write_resolved_config`` (``.json``); raises ConfigError, one line. ``autopilot``: see
-    ``config_from_dict``."""
+    ``config_from_dict``; ``overrides``: ``--set`` values applied to the document before it
+    is validated (``swarm.scenario.overrides``)."""
     path = Path(path)
     if path.suffix == ".json":
-        return _load_resolved(path, autopilot)
+        return _load_resolved(path, autopilot, overrides)
     try:
         with path.open("rb") as handle:
             data = tomllib.load(handle)
@@ -782,6 +786,7 @@ def load_config(path: str | Path, *, autopilot: str | None = None) -> ScenarioCo
         raise ConfigError(f"{path}: not valid TOML: {err}") from None
     except UnicodeDecodeError:
         raise ConfigError(f"{path}: not a UTF-8 text file") from None
+    data = _overridden(data, overrides, path)
     _resolve_signing_key_file(data, path.parent)
     _resolve_path(data, "security", "tls_dir", path.parent)
     try:
@@ -793,7 +798,16 @@ def load_config(path: str | Path, *, autopilot: str | None = None) -> ScenarioCo
     return config
 
 
-def _load_resolved(path: Path, autopilot: str | None = None) -> ScenarioConfig:
+def _overridden(data: dict[str, Any], overrides: Sequence[Override],
+                path: Path) -> dict[str, Any]:
+    try:
+        return apply_overrides(data, overrides)
+    except OverrideError as err:
+        raise ConfigError(f"{path}: --set {err}") from None
+
+
+def _load_resolved(path: Path, autopilot: str | None = None,
+                   overrides: Sequence[Override] = ()) -> ScenarioConfig:
     try:
         data = msgspec.json.decode(path.read_bytes())
     except FileNotFoundError:
@@ -804,6 +818,7 @@ def _load_resolved(path: Path, autopilot: str | None = None) -> ScenarioConfig:
         raise ConfigError(f"{path}: not valid JSON: {err}") from None
     if not isinstance(data, dict):
         raise ConfigError(f"{path}: expected a JSON object (a resolved config)")
+    data = _overridden(data, overrides, path)
     try:
         config = config_from_dict(data, source=str(path), autopilot=autopilot)
         config.vehicles.signing_key()
