@@ -1,0 +1,1 @@
+"""Sweeps: many missions from one file, on Dask distributed (``swarm-sweep``)."""
