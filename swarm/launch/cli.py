@@ -15,12 +15,12 @@ import math
 import shutil
 import sys
 import tempfile
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
 from rich.console import Console
 
-from swarm.launch.launcher import LaunchOptions, MissionError, SwarmLauncher, TelemetryCollector
+from swarm.launch.launcher import LaunchOptions, MissionError, SwarmLauncher
 from swarm.mavlink.sitl import (
     ENV_ARDUCOPTER,
     ENV_PX4,
@@ -31,7 +31,6 @@ from swarm.mavlink.sitl import (
     SitlError,
     firmware_from_env,
 )
-from swarm.messages.wire import TelemetryCounters
 from swarm.models.kinematics import InitialPlacementError
 from swarm.observe.dashboard import Dashboard, DashboardSettings, InProcessFeed
 from swarm.observe.live_view import LiveViewAddressError, check_address
@@ -41,8 +40,7 @@ from swarm.observe.recording import (
     record_directory,
     record_reference,
 )
-from swarm.observe.report import build_report, render_report
-from swarm.runs.record import RunRecord
+from swarm.observe.run_observer import print_process_counters, print_summary
 from swarm.runs.reference import run_reference
 from swarm.scenario.cli_common import (
     DEFAULT_MAVLINK_BASE,
@@ -224,14 +222,6 @@ def resolved_config_file(config: ScenarioConfig) -> str:
     return str(write_resolved_config(config, directory / "config.json"))
 
 
-def print_summary(record: RunRecord, console: Console, mode: str = "inprocess",
-                  counters: Mapping[int, TelemetryCounters] | None = None) -> int:
-    """The run's report (the same tables and verdict as ``swarm-report``); its exit code."""
-    report = build_report(record, mode, counters)
-    render_report(report, console)
-    return report.exit_code
-
-
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     console = Console()
@@ -379,22 +369,6 @@ def record_dir_problem(directory: Path | None, *, overwrite: bool) -> str | None
         return (f"--record {directory}: {existing} holds a recording already; record to "
                 f"another directory, or add --overwrite to replace it")
     return None
-
-
-def print_process_counters(collector: TelemetryCollector, console: Console) -> None:
-    counts = collector.counters()
-    steps = max(counts["agent_steps"], 1)
-    console.print(
-        f"agent steps {counts['agent_steps']} (telemetry received "
-        f"{counts['telemetry_received']}), late {counts['late_steps']} "
-        f"({100.0 * counts['late_steps'] / steps:.2f} %), stale neighbour messages "
-        f"{counts['stale_neighbour_messages']}, rejected messages "
-        f"{counts['rejected_messages']}, QP fallbacks {counts['qp_fallbacks']}, vehicle "
-        f"events {counts['vehicle_events']}, rate-box releases "
-        f"{counts['rate_limit_releases']}, reference resets {counts['reference_resets']}, "
-        f"λ̄ breaches said by the agents {counts['lambda_breaches']}, steps the safety "
-        f"envelope overruled localization {counts['safety_conflicts']}",
-        highlight=False)
 
 
 if __name__ == "__main__":

@@ -32,7 +32,6 @@ from pathlib import Path
 from typing import IO
 
 import numpy as np
-import zenoh
 
 from swarm.children import child_environment
 from swarm.errors import EXIT_END_MISSION, VigilError
@@ -46,26 +45,12 @@ from swarm.mavlink.sitl import (
     VehicleView,
     try_exclusive_lock,
 )
-from swarm.messages.wire import (
-    BeaconWire,
-    CameraFrameWire,
-    ClockWire,
-    TelemetryWire,
-    TruthWire,
-)
 from swarm.models import frames
-from swarm.net.observer import FEED_BACKLOG, ObserverFeed, join_router, subscribe_observer
-from swarm.net.security import OBSERVER_ROLE
-from swarm.net.transport import (
-    Keys,
-    LatestValues,
-    RejectionCounter,
-    TransportError,
-    local_endpoint,
-)
+from swarm.net.transport import TransportError, local_endpoint
 from swarm.observe.collector import TelemetryCollector
-from swarm.observe.live_view import LiveView, LiveViewError
-from swarm.observe.recording import AutopilotState, Recorder, RecordingError, RecordingMetadata
+from swarm.observe.live_view import LiveViewError
+from swarm.observe.recording import AutopilotState, RecordingError, RecordingMetadata
+from swarm.observe.run_observer import RunObserver, TelemetryListener
 from swarm.runs.record import RunRecord
 from swarm.scenario.cli_common import DEFAULT_MAVLINK_BASE
 from swarm.scenario.config import ScenarioConfig, realtime_only_reason, write_resolved_config
@@ -310,29 +295,21 @@ def _last_end_report(log_path: Path, drone: int) -> EndReport | None:
 
 
 ProgressCallback = Callable[[int, "TelemetryCollector"], None]
-# Extra consumers of the telemetry stream (e.g. the live dashboard), called on Zenoh's
-# callback thread with each decoded message after the collector has stored it.
-TelemetryListener = Callable[[TelemetryWire], None]
 
 
-class SwarmLauncher:
-    """Runs one mission with the world and every agent as separate OS processes."""
+class SwarmLauncher(RunObserver):
+    """Runs one mission with the world and every agent as separate OS processes; observes
+    it as ``RunObserver`` (collector, recording, live view, telemetry listeners)."""
 
     def __init__(self, options: LaunchOptions, log: Callable[[str], None] = print) -> None:
         self.options = options
-        self.log = log
         cfg = options.config
+        super().__init__(cfg, options.run_id or f"run{secrets.token_hex(4)}",
+                         prog="launch-swarm", log=log)
         self.n = cfg.swarm.n_drones
-        self.run_id = options.run_id or f"run{secrets.token_hex(4)}"
-        self.keys = Keys(self.run_id)
         self.children: list[Child] = []
         self.stop_requested = threading.Event()
-        self._state_changed = threading.Event()  # the world's clock changed state
         self._clean_exits: dict[str, float] = {}  # child name → when its exit 0 was first seen
-        self.clock: LatestValues[ClockWire] = LatestValues()
-        self.codec = cfg.wire_codec()
-        self.collector = TelemetryCollector(cfg)
-        self.rejections = RejectionCounter()
         self.zenoh_port = options.zenoh_port or free_tcp_port()
         self.endpoint = local_endpoint(self.zenoh_port, tls=cfg.security.enabled)
         # SITL: agent i listens on base + i, the launcher's monitor link of autopilot i on
@@ -350,18 +327,12 @@ class SwarmLauncher:
         except OSError:
             self._port_lock.close()
             raise
-        # The config every child reads: the user's file, or the one resolved here (SITL: the
-        # flavour of the firmware and the origin offsets measured on the autopilots).
-        self.config = cfg
+        # The config every child reads (``self.config``): the user's file, or the one resolved
+        # here (SITL: the flavour of the firmware and the origin offsets measured on the
+        # autopilots).
         self.config_path = options.config_path
         self.sitl_fleet: SitlFleet | None = None
         self._autopilot_seen: dict[int, tuple[str, bool]] = {}
-        self.session: zenoh.Session | None = None
-        self._feed: ObserverFeed | None = None
-        self.recorder: Recorder | None = None
-        self.live_view: LiveView | None = None
-        self.recording_problem: str | None = None  # the recording is incomplete, and why
-        self.telemetry_listeners: tuple[TelemetryListener, ...] = ()
         self.agent_losses: list[AgentLoss] = []
         self._restarts_due: dict[int, float] = {}  # drone → monotonic time of its restart
         self._killed: set[int] = set()  # drones killed by kill_agents
@@ -688,50 +659,12 @@ class SwarmLauncher:
                     raise self._failure(child)
 
         try:
-            self.session = join_router(
-                [self.endpoint], timeout_s,
-                tls=self.options.config.security.identity(OBSERVER_ROLE),
-                before_each_try=children_alive, pause=self.stop_requested.wait)
+            self.connect([self.endpoint], timeout_s, before_each_try=children_alive,
+                         pause=self.stop_requested.wait)
         except TransportError as err:
             raise MissionError(f"cannot reach the world's Zenoh router at "
                                f"{self.endpoint}: {err}") from None
-        recording = self.recorder is not None
-        self._feed = ObserverFeed(subscribe_observer(
-            self.session, self.keys, self.codec, self.rejections,
-            on_telemetry=self._on_telemetry, on_truth=self._on_truth, on_clock=self._on_clock,
-            on_beacon=self._record if recording else None,
-            on_camera=self._record if recording else None, backlog=FEED_BACKLOG))
-
-    def _on_clock(self, _key: str, clock: ClockWire) -> None:
-        latest = self.clock.get(0)
-        self.clock.put(0, clock)
-        if latest is None or latest[0].state != clock.state:
-            self._state_changed.set()  # the supervisor reacts now, not at its next poll
-
-    def _on_telemetry(self, key: str, tel: TelemetryWire) -> None:
-        """One decode, every consumer: the collector, then each listener."""
-        self.collector.on_telemetry(key, tel)
-        self._record(key, tel)
-        if self.live_view is not None:
-            self.live_view.put(tel)
-        for listener in self.telemetry_listeners:
-            listener(tel)
-
-    def _on_truth(self, key: str, truth: TruthWire) -> None:
-        self.collector.on_truth(key, truth)
-        self._record(key, truth)
-        if self.live_view is not None:
-            self.live_view.put(truth)
-
-    def _record(self, _key: str,
-                message: TelemetryWire | TruthWire | BeaconWire | CameraFrameWire) -> None:
-        """Hand a message to the recorder's queue (its own thread writes it)."""
-        if self.recorder is not None:
-            self.recorder.put(message)
-
-    def _mission_state(self) -> str:
-        latest = self.clock.get(0)
-        return "starting" if latest is None else latest[0].state
+        self.subscribe()
 
     # -- the mission -------------------------------------------------------------------------
 
@@ -851,53 +784,24 @@ class SwarmLauncher:
         metadata = RecordingMetadata.for_run(self.config, opts.seed, opts.mode, self.run_id,
                                              opts.config_path)
         try:
-            self.recorder = Recorder(opts.record_dir, metadata,
-                                     autopilots=self.sitl_fleet is not None)
+            self.open_recorder(opts.record_dir, metadata, autopilots=self.sitl_fleet is not None)
         except RecordingError as err:
             raise MissionError(str(err)) from None
-        self.log(f"launch-swarm: recording to {self.recorder.path}")
 
     def _open_live_view(self) -> None:
         if self.options.foxglove is None:
             return
         try:
-            self.live_view = LiveView(self.config, *self.options.foxglove)
+            self.open_live_view(self.options.foxglove)
         except LiveViewError as err:
             raise MissionError(str(err)) from None
-        self.log(f"launch-swarm: live 3D view for Foxglove at {self.live_view.url} "
-                 f"(Open connection → Foxglove WebSocket)")
-
-    def _close_recorder(self) -> None:
-        recorder, self.recorder = self.recorder, None
-        if recorder is None:
-            return
-        recorder.close()
-        problem = f"; {recorder.dropped} not written: {recorder.error}" if recorder.error else ""
-        if recorder.error:
-            self.recording_problem = (f"{recorder.path}: {recorder.dropped} messages not "
-                                      f"written: {recorder.error}")
-        self.log(f"launch-swarm: recorded {recorder.written} messages to {recorder.path}"
-                 f"{problem}")
 
     def close(self) -> None:
         """Leave Zenoh, finish the recording and stop every child; safe to call more than
         once."""
-        self._leave_zenoh()
-        self._close_recorder()
-        view, self.live_view = self.live_view, None
-        if view is not None:
-            view.close()
+        self.stop_observing()
         self.stop_children()  # the agents' end actions go out before their autopilots stop
         self._report_end_actions()
         if self.sitl_fleet is not None:
             self.sitl_fleet.stop()
         self._port_lock.close()  # the children that used the ports are gone
-
-    def _leave_zenoh(self) -> None:
-        feed, self._feed = self._feed, None
-        if feed is not None:
-            feed.close()  # what came before this is handed over; nothing after it
-        if self.session is not None:
-            with contextlib.suppress(Exception):
-                self.session.close()
-            self.session = None

@@ -12,14 +12,14 @@ Each namespace has its own loopback, its own ports and sees only this LAN, like 
 machine: nothing reaches the host's 127.0.0.1. Creating namespaces needs root or
 CAP_NET_ADMIN (and the ``ip`` tool); ``NetnsUnavailable`` says why it could not.
 
-``python -m tests.helpers.netns_tools observe ...`` is a consumer of a running swarm (a Zenoh client
-of the world's router, like ``launch-swarm``): it records telemetry, truth, beacons and camera
-frames to ``DIR/run.mcap`` (``swarm.observe.recording``) until the world says "done".
+``python -m tests.helpers.netns_tools observe ...`` is the package's ``swarm-observe``
+(``swarm.observe.observe_cli``) under the options this helper always took: it watches, records
+and judges a running swarm until the world says "done" (``--timeout S``: how long it keeps
+trying the world's router).
 """
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import ctypes
 import os
@@ -28,25 +28,17 @@ import shutil
 import signal
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from swarm.messages.wire import ClockWire, TelemetryWire
-from swarm.net.observer import join_router, subscribe_observer
-from swarm.net.transport import (
-    Keys,
-    RejectionCounter,
-)
-from swarm.observe.recording import Recordable, Recorder, RecordingMetadata
-from swarm.scenario.cli_common import load_scenario
+from swarm.observe import observe_cli
 
 NS_PATTERN = re.compile(r"^vigil-[a-z]-(\d+)(?:-\w+)?$")
 PR_SET_PDEATHSIG = 1
 STOP_GRACE_S = 4.0
-OBSERVER_READY = "observer: subscribed"
+OBSERVER_READY = f"{observe_cli.PROG}: {observe_cli.READY}"
 
 
 class NetnsUnavailable(RuntimeError):
@@ -218,78 +210,15 @@ def stop(procs: Sequence[Proc]) -> None:
 # -- the observer ----------------------------------------------------------------------------
 
 
-def observe(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="netns_tools observe")
-    parser.add_argument("config")
-    parser.add_argument("--connect", required=True, action="append")
-    parser.add_argument("--run-id", required=True)
-    parser.add_argument("--seed", type=int, required=True)
-    parser.add_argument("--mode", default="lockstep")
-    parser.add_argument("--duration", type=float, default=None)
-    parser.add_argument("--record", required=True, type=Path)
-    parser.add_argument("--timeout", type=float, default=300.0)
-    args = parser.parse_args(argv)
-
-    config = load_scenario(args.config, args.duration)
-    keys = Keys(args.run_id)
-    n = config.swarm.n_drones
-    codec = config.wire_codec()
-    rejections = RejectionCounter()
-    metadata = RecordingMetadata.for_run(config, args.seed, args.mode, args.run_id, args.config)
-    last_step = [-1] * n
-    state = {"clock": "starting", "detail": ""}
-    changed = threading.Event()
-
-    with Recorder(args.record, metadata) as recorder:
-        def record(_key: str, message: Recordable) -> None:
-            recorder.put(message)
-
-        def on_telemetry(_key: str, tel: TelemetryWire) -> None:
-            recorder.put(tel)
-            last_step[tel.drone] = max(last_step[tel.drone], tel.step)
-            changed.set()
-
-        def on_clock(_key: str, clock: ClockWire) -> None:
-            state["clock"], state["detail"] = clock.state, clock.detail
-            changed.set()
-
-        # The world may still be starting: try its router until the deadline, as agents do.
-        deadline = time.monotonic() + args.timeout
-        session = join_router(args.connect, args.timeout)
-        try:
-            subs = subscribe_observer(session, keys, codec, rejections,
-                                      on_telemetry=on_telemetry, on_clock=on_clock,
-                                      on_truth=record, on_beacon=record, on_camera=record)
-            print(f"{OBSERVER_READY} to {', '.join(args.connect)}, recording to "
-                  f"{recorder.path}", flush=True)
-            done_at = None
-            while time.monotonic() < deadline:
-                changed.wait(0.2)
-                changed.clear()
-                if state["clock"] == "aborted":
-                    print(f"observer: the world aborted: {state['detail']}", flush=True)
-                    return 1
-                if state["clock"] == "done":
-                    done_at = done_at or time.monotonic()
-                    # the last step's telemetry may follow "done": wait for it, a little
-                    if (min(last_step) >= config.n_steps - 1
-                            or time.monotonic() - done_at > 5.0):
-                        break
-            else:
-                print(f"observer: no 'done' within {args.timeout} s", flush=True)
-                return 1
-            for sub in subs:
-                sub.undeclare()
-        finally:
-            session.close()
-    print(f"observer: done; {recorder.written} messages written, {recorder.dropped} dropped, "
-          f"{rejections.total()} rejected; last telemetry steps {last_step}", flush=True)
-    return 0 if recorder.dropped == 0 and rejections.total() == 0 else 1
+def observe(argv: Sequence[str]) -> int:
+    """``swarm-observe ARGV``, with ``--timeout S`` for its ``--connect-timeout S``."""
+    args = ["--connect-timeout" if arg == "--timeout" else arg for arg in argv]
+    return observe_cli.main(args)
 
 
 if __name__ == "__main__":
     if len(sys.argv) < 2 or sys.argv[1] != "observe":
         sys.exit("usage: python -m tests.helpers.netns_tools observe CONFIG --connect EP "
                  "--run-id ID "
-                 "--seed S --record DIR [--mode M] [--duration S] [--timeout S]")
+                 "[--seed S] [--record DIR] [--mode M] [--duration S] [--timeout S]")
     sys.exit(observe(sys.argv[2:]))
