@@ -26,6 +26,7 @@ from swarm.sweep.rows import MissionTask, mission_key
 from swarm.sweep.spec import SweepError, SweepSpec, expand, parse_spec
 
 RECORDINGS = "recordings"
+CODE_VERSION_VARIABLE = "VIGIL_CODE_VERSION"
 
 
 @dataclass(frozen=True)
@@ -40,7 +41,12 @@ class SweepPlan:
 @cache
 def code_version() -> str:
     """The package version and the checkout it runs from (``git describe --always
-    --dirty``: the commit, marked when the tree has changes), e.g. "0.1.0 1892c80-dirty"."""
+    --dirty``: the commit, marked when the tree has changes), e.g. "0.1.0 1892c80-dirty";
+    or ``$VIGIL_CODE_VERSION`` when set (a sweep resumed after a commit that changes no
+    mission, e.g. a README edit, or tests in a tree others commit to)."""
+    pinned = os.environ.get(CODE_VERSION_VARIABLE, "").strip()
+    if pinned:
+        return pinned
     version = package_version()
     root = Path(__file__).resolve().parents[2]
     try:
