@@ -12,7 +12,8 @@ drone per ``warning_period_s`` (the counts are aggregated, never dropped).
 
 Feeds: ``SwarmLauncher.run(telemetry_listeners=[dashboard.on_telemetry])`` in the process
 swarm, ``InProcessFeed`` as ``run_reference``'s ``on_step`` for ``--inprocess``, and
-``watch`` (``python -m swarm.observe.dashboard``) as a Zenoh client of a swarm running elsewhere.
+``swarm-observe`` (``swarm.observe.observe_cli``; ``watch`` here, and ``python -m
+swarm.observe.dashboard`` under its former name) as a Zenoh client of a swarm running elsewhere.
 
 Rendering is cheap by construction: telemetry callbacks only store the newest message per
 drone; the tables are built from those messages only on refresh (≤ ``refresh_hz``, and not
@@ -562,121 +563,27 @@ def watch(connect_endpoint: str, run_id: str, config: ScenarioConfig, *,
           stop: threading.Event | None = None, connect_timeout_s: float = 30.0,
           foxglove: tuple[str, int] | None = None) -> str:
     """Show the dashboard of the swarm ``run_id`` behind the Zenoh router at
-    ``connect_endpoint`` until its world says done or aborted (or ``stop`` is set).
+    ``connect_endpoint`` until its world says done or aborted, falls silent, or ``stop`` is
+    set: ``swarm-observe``'s watch without its recording and summary
+    (``swarm.observe.observe_cli.observe_run``, which says what it raises).
 
-    Returns the last mission state seen ("waiting", "running", "done", "aborted", or
-    "unknown" if the world's clock never arrived). Raises ``TransportError`` when the router
-    cannot be reached within ``connect_timeout_s`` (the world may still be starting).
+    Returns how watching ended: "done", "aborted", "silent" or "interrupted".
     ``foxglove``: also serve the live 3D view there (``swarm.observe.live_view``).
     """
-    from swarm.messages.wire import ClockWire
-    from swarm.net.observer import join_router, subscribe_observer
-    from swarm.net.security import OBSERVER_ROLE
-    from swarm.net.transport import Keys, LatestValues, RejectionCounter
+    from swarm.observe.observe_cli import observe_run
 
-    console = console or Console()
-    stop = stop or threading.Event()
-    keys = Keys(run_id)
-    codec = config.wire_codec()
-    rejections = RejectionCounter()
-    clock: LatestValues[ClockWire] = LatestValues()
-    dashboard = Dashboard(config, console, headless=headless, settings=settings,
-                          title=f"{config.scenario.name} ({run_id})")
-    session = join_router([connect_endpoint], 0.0, connect_timeout_s=connect_timeout_s,
-                          tls=config.security.identity(OBSERVER_ROLE))  # one try
-    state = "unknown"
-    view = None
-    try:
-        on_telemetry, on_truth = dashboard.on_telemetry_sample, None
-        if foxglove is not None:
-            from swarm.observe.live_view import LiveView
-
-            view = LiveView(config, *foxglove)
-            console.print(f"swarm-dashboard: live 3D view for Foxglove at {view.url}")
-
-            def on_telemetry(key, tel, _view=view):
-                dashboard.on_telemetry_sample(key, tel)
-                _view.put(tel)
-
-            def on_truth(_key, truth, _view=view):
-                _view.put(truth)
-
-        subscribers = subscribe_observer(  # held: a subscriber lives as long as its handle
-            session, keys, codec, rejections, on_telemetry=on_telemetry, on_truth=on_truth,
-            on_clock=lambda _k, c: clock.put(0, c))
-        with dashboard:
-            while not stop.wait(0.1):
-                latest = clock.get(0)
-                if latest is None:
-                    continue
-                state = latest[0].state
-                if state == "running":
-                    dashboard.advance(latest[0].step)
-                if state in ("done", "aborted"):
-                    break
-        for sub in subscribers:
-            sub.undeclare()
-    finally:
-        session.close()
-        if view is not None:
-            view.close()
-    return state
+    return observe_run([connect_endpoint], run_id, config, console=console or Console(),
+                       headless=headless, settings=settings, stop=stop,
+                       connect_timeout_s=connect_timeout_s, foxglove=foxglove,
+                       prog="swarm-dashboard").ending
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m swarm.observe.dashboard CONFIG --connect ENDPOINT --run-id ID [--duration S]
-    [--headless]``: exit 0 when the mission completed, 1 otherwise, 2 on a bad command line."""
-    from swarm.net.transport import TransportError, check_tls_endpoints
-    from swarm.observe.live_view import LiveViewError, check_address
-    from swarm.scenario.cli_common import (
-        EXIT_FAILED,
-        EXIT_OK,
-        ConfigError,
-        OneLineParser,
-        add_foxglove_argument,
-        exit_code,
-        fail,
-        fail_on,
-        load_scenario,
-        positive_float,
-        run_id,
-        terminate_on_sigterm,
-    )
+    """``python -m swarm.observe.dashboard``: ``swarm-observe`` under its former name (the
+    same options, tables, verdict, recording and exit codes)."""
+    from swarm.observe.observe_cli import main as observe_main
 
-    prog = "swarm-dashboard"
-    parser = OneLineParser(prog=prog, description="Watch a running Vigil swarm.")
-    parser.add_argument("config", help="the scenario the swarm runs")
-    parser.add_argument("--connect", required=True, metavar="ENDPOINT",
-                        help="the world's Zenoh router, e.g. tcp/127.0.0.1:7447")
-    parser.add_argument("--run-id", type=run_id, required=True, help="the swarm's run id")
-    parser.add_argument("--duration", type=positive_float, default=None, metavar="S",
-                        help="the swarm's simulated seconds (default: scenario.duration_s)")
-    parser.add_argument("--headless", action="store_true",
-                        help="no live display: a one-line log every few simulated seconds")
-    add_foxglove_argument(parser)
-    args = parser.parse_args(argv)
-    try:
-        config = load_scenario(args.config, args.duration)
-    except ConfigError as err:
-        return fail_on(prog, err, "config error: ")
-    try:
-        check_tls_endpoints([args.connect], tls=config.security.enabled)
-    except ValueError as err:
-        return fail(prog, str(err))
-    try:
-        if args.foxglove is not None:  # before waiting for the router
-            check_address(*args.foxglove)
-    except LiveViewError as err:
-        return fail_on(prog, err)
-    terminate_on_sigterm()
-    try:
-        state = watch(args.connect, args.run_id, config, headless=args.headless,
-                      foxglove=args.foxglove)
-    except (TransportError, LiveViewError) as err:
-        return fail_on(prog, err)
-    except KeyboardInterrupt as err:
-        return exit_code(err)
-    return EXIT_OK if state == "done" else EXIT_FAILED
+    return observe_main(argv, prog="swarm-dashboard")
 
 
 if __name__ == "__main__":

@@ -33,7 +33,7 @@ from swarm.errors import EXIT_FAILED, EXIT_INTERRUPTED, UsageError, VigilError
 from swarm.messages.wire import ClockWire
 from swarm.net.transport import TransportError, check_tls_endpoints, subscribe
 from swarm.observe.dashboard import Dashboard, DashboardSettings
-from swarm.observe.live_view import LiveViewError
+from swarm.observe.live_view import LiveViewError, check_address
 from swarm.observe.recording import RecordingError, RecordingMetadata, record_directory
 from swarm.observe.run_observer import RunObserver, print_process_counters, print_summary
 from swarm.runs.record import RunRecord
@@ -113,15 +113,11 @@ class RemoteObserver(RunObserver):
         return heard[0]
 
     def check_clock(self, clock: ClockWire, mode: str) -> None:
-        """``UsageError`` when the world's clock says this is not the run described."""
+        """``UsageError`` when the world's clock says the run has another mode (the
+        recording would say the wrong one)."""
         if clock.mode != mode:
             raise UsageError(f"run {self.run_id} runs in {clock.mode}, not {mode}: give "
                              f"--mode {clock.mode} (or leave --mode out)")
-        # A shorter run ends early, which the report says; a longer one would not fit.
-        if clock.state == "running" and clock.step >= self.config.n_steps:
-            raise UsageError(f"run {self.run_id} lasts more than "
-                             f"{self.config.scenario.duration_s:g} s: give the world's "
-                             f"--duration")
 
     def _telemetry_caught_up(self) -> bool:
         """Every drone's telemetry has reached the last truth step seen."""
@@ -137,9 +133,10 @@ class RemoteObserver(RunObserver):
         """Follow the world's clock until "done" (and the last telemetry, ``done_grace_s`` at
         most), "aborted", ``silence_s`` without a clock ("silent") or ``stop`` / Ctrl-C
         ("interrupted"); (that ending, detail). ``on_progress(step)`` runs on this thread
-        whenever the truth step moves."""
+        whenever the step moves (the newest of the truth's and the running clock's)."""
         last_progress = -1
         done_at: float | None = None
+        longer = False  # the run goes on past this observer's duration (said once)
         try:
             while not stop.is_set():
                 self._state_changed.wait(POLL_S)
@@ -153,7 +150,14 @@ class RemoteObserver(RunObserver):
                     return "aborted", clock.detail
                 if age_s > silence_s:
                     return "silent", f"no clock from the world for {silence_s:g} s"
-                step = self.collector.last_truth_step
+                if clock.state == "running" and clock.step >= self.config.n_steps and not longer:
+                    longer = True  # a shorter run ends early, which the report says
+                    self.log(f"{self.prog}: run {self.run_id} lasts longer than "
+                             f"{self.config.scenario.duration_s:g} s: the tables cover that "
+                             f"much of it (give the world's --duration)")
+                # The truth's step (as launch-swarm's dashboard), or the clock's if ahead.
+                step = max(self.collector.last_truth_step,
+                           clock.step if clock.state == "running" else -1)
                 if step != last_progress:
                     last_progress = step
                     on_progress(step)
@@ -249,6 +253,8 @@ def main(argv: Sequence[str] | None = None, *, prog: str = PROG) -> int:
         return fail(prog, str(err))
     terminate_on_sigterm()
     try:
+        if args.foxglove is not None:  # a taken port is said now, not after the router
+            check_address(*args.foxglove)
         seen = observe_run(args.connect, args.run_id, config, console=console,
                            headless=args.headless, mode=args.mode, seed=args.seed,
                            config_path=str(Path(args.config).resolve()),
