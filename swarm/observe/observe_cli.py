@@ -265,7 +265,10 @@ def main(argv: Sequence[str] | None = None, *, prog: str = PROG) -> int:
     except KeyboardInterrupt as err:
         print(f"{prog}: interrupted before the run was reached", file=sys.stderr)
         return exit_code(err)
-    return summarize(seen, console, prog)
+    try:
+        return summarize(seen, console, prog)
+    except KeyboardInterrupt as err:  # a second Ctrl-C while the tables are printed
+        return exit_code(err)
 
 
 def summarize(seen: Observation, console: Console, prog: str = PROG) -> int:
