@@ -59,10 +59,13 @@ def test_every_exception_class_of_the_project_derives_from_the_root() -> None:
 USAGE = {"swarm.scenario.config.ConfigError", "swarm.models.kinematics.InitialPlacementError",
          "swarm.mavlink.signing.SigningKeyError", "swarm.net.security.SecurityError",
          "swarm.mavlink.sitl.FirmwareError", "swarm.runs.failed_qp.FailedQpFileError",
-         "swarm.agent.exchange.ExchangeError"}
+         "swarm.agent.exchange.ExchangeError", "swarm.scenario.overrides.OverrideError",
+         "swarm.sweep.spec.SweepError", "swarm.sweep.results.ResultsError",
+         "swarm.observe.live_view.LiveViewAddressError"}
 EXECUTABLES = ("swarm.launch.cli", "swarm.agent.cli", "sim_world.cli", "sim_world.vehicles_cli",
                "swarm.observe.report_cli", "swarm.observe.dashboard", "swarm.agent.process",
-               "sim_world.world", "swarm.runs.failed_qp")
+               "sim_world.world", "swarm.runs.failed_qp", "swarm.observe.observe_cli",
+               "swarm.sweep.cli")
 
 
 def test_exit_codes_come_from_one_table() -> None:

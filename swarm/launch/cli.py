@@ -45,6 +45,7 @@ from swarm.runs.reference import run_reference
 from swarm.scenario.cli_common import (
     DEFAULT_MAVLINK_BASE,
     EXIT_FAILED,
+    EXIT_OK,
     ConfigError,
     OneLineParser,
     add_foxglove_argument,
@@ -253,7 +254,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         except ConfigError as err:
             return fail_on(PROG, err, "config error: ")
         sys.stdout.write(config_to_toml(shown))
-        return 0
+        return EXIT_OK
     reason = realtime_only_reason(config.vehicles, mode=args.mode, inprocess=args.inprocess,
                                   external=real, restarts_agents=bool(args.agent_restarts),
                                   kills_agents=bool(args.kill_agents))

@@ -35,6 +35,7 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
+from swarm.errors import VigilError
 from swarm.sweep.missions import STOPPED, run_mission
 from swarm.sweep.plan import SweepPlan
 from swarm.sweep.results import ResultsWriter
@@ -46,7 +47,7 @@ STOP_GRACE_S = 30.0  # after Ctrl-C, how long running missions get to stop [s]
 CONNECT_TIMEOUT_S = 15.0
 
 
-class SchedulerError(RuntimeError):
+class SchedulerError(VigilError, RuntimeError):
     """The scheduler given cannot be reached; one line."""
 
 

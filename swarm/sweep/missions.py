@@ -43,7 +43,7 @@ TERM_GRACE_S = 15.0  # SIGTERM → SIGKILL of a stopped launch-swarm [s]
 STOPPED = "stopped:"  # how the reason of a mission stopped by the sweep begins
 
 
-class MissionStopped(Exception):
+class MissionStopped(VigilError):
     """The sweep was stopped, or the mission ran past its timeout."""
 
 
