@@ -15,6 +15,7 @@ import io
 import itertools
 import json
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -28,6 +29,9 @@ from swarm.errors import EXIT_FAILED, EXIT_INCOMPLETE, EXIT_OK
 from swarm.observe.report import build_report, report_to_json, verdict_line
 from swarm.runs import checks
 from swarm.runs.checks import (
+    Coverage,
+    DroneSummary,
+    TargetSummary,
     Violation,
     check_invariants,
     closest_pair_per_step,
@@ -398,3 +402,296 @@ def test_report_json_and_launcher_summary_agree_with_the_check() -> None:
     for v in expected:
         assert f"VIOLATION {v}" in text
     assert "verdict: FAILED (collision, lambda_bar, velocity_bound" in text
+
+
+# -- what mutation testing found untested (issue 46, point 2; docs/mutation.md) ------------
+# Each test below kills mutants of swarm/runs/checks.py that the tests above let survive:
+# a line is asserted whole where a word of it could change, and records are shaped so that
+# a wrong axis, index or offset gives a different answer (N != M, K != 2 * k0, ...).
+
+
+def starting_at(record: RunRecord, start_s: float) -> RunRecord:
+    config = record.config
+    return dataclasses.replace(record, config=dataclasses.replace(
+        config, control=dataclasses.replace(config.control, start_s=start_s)))
+
+
+def test_start_index_is_the_first_step_at_or_after_start_despite_rounding() -> None:
+    record = clean_record(2)  # ΔT = 0.02 s
+    assert start_index(record) == 50  # 1 s
+    assert start_index(starting_at(record, 0.14)) == 7  # 0.14 / 0.02 = 7.000000000000001
+    assert start_index(starting_at(record, 0.58)) == 29  # 28.999999999999996
+    assert start_index(starting_at(record, 0.0)) == 0
+
+
+def test_nan_reductions_of_nothing_one_value_and_only_missing_values() -> None:
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # an all-NaN slice is NaN without a RuntimeWarning
+        for reduce in (checks.nanmin, checks.nanmax):
+            assert math.isnan(reduce(np.array([])))
+            assert reduce(np.array([2.5])) == 2.5
+            assert math.isnan(reduce(np.array([np.nan, np.nan])))
+        assert checks.nanmin(np.array([3.0, np.nan, -1.0])) == -1.0
+        assert checks.nanmax(np.array([3.0, np.nan, -1.0])) == 3.0
+
+
+def test_coverage_counts_what_never_arrived_per_drone_and_per_step() -> None:
+    record = clean_record(3)
+    velocities, lam = record.velocities_m_s.copy(), record.lambda_bar.copy()
+    positions, targets = record.drone_positions_m.copy(), record.target_positions_m.copy()
+    velocities[5:7, 1] = lam[5:7, 1] = np.nan  # drone 1's telemetry of steps 5 and 6 lost
+    velocities[7, 2] = np.nan  # a command NaN but λ̄ there: received, not missing
+    lam[8, 0] = np.nan  # λ̄ NaN but a command there: received
+    positions[9] = targets[9] = np.nan  # no ground truth at step 9
+    positions[10, 0] = np.nan  # one drone's position: the step's truth is there
+    targets[11] = np.nan  # the targets' only: there too
+    record = changed(record, velocities_m_s=velocities, lambda_bar=lam,
+                     drone_positions_m=positions, target_positions_m=targets)
+    assert checks.coverage(record) == Coverage(
+        steps=100, drone_steps=300, missing_telemetry=2, missing_truth=1,
+        missing_per_drone=(0, 2, 0), planned_steps=100)
+    assert np.flatnonzero(checks.truth_missing(record)).tolist() == [9]
+    assert np.argwhere(checks.telemetry_missing(record)).tolist() == [[5, 1], [6, 1]]
+
+
+def test_last_present_and_final_values_take_each_drones_last_sample() -> None:
+    assert checks.last_present(np.empty((0, 3))) is None
+    assert checks.last_present(np.full((4, 2), np.nan)) is None
+    assert checks.last_present(np.array([7.0])) == 0
+    assert checks.last_present(np.array([np.nan, 1.0, 2.0, np.nan])) == 2
+    series = np.full((5, 3), np.nan)
+    series[0, 1], series[1, 0], series[3, 2] = 0.5, 1.0, 2.0  # step 3: one component only
+    assert checks.last_present(series) == 3
+    per_drone = np.full((4, 3, 2), np.nan)  # (K, N, M): N != M
+    per_drone[:, 0] = [[1, 2], [3, 4], [5, 6], [7, 8]]
+    per_drone[2, 2] = [9, 10]  # drone 2's last sample at step 2; drone 1 has none
+    final = checks.final_values(per_drone)
+    assert final.dtype == np.float64 and final.shape == (3, 2)
+    np.testing.assert_array_equal(final, [[7, 8], [np.nan, np.nan], [9, 10]])
+
+
+def summaries_record() -> RunRecord:
+    """case2 (two targets), 4 drones, each figure of the summaries set apart: values before
+    control.start_s that would win if counted, exactly-at-the-threshold values, a drone with
+    no telemetry at all."""
+    record = clean_record(4, case="case2")
+    k0 = start_index(record)
+    eps = record.config.gramian.epsilon
+    lam = record.lambda_bar.copy()
+    lam[k0 - 1, 0, 0] = -1.0  # warm-up: not counted
+    lam[k0 + 4, 1, 0] = 0.04
+    lam[k0 + 4, 2, 0] = 0.03  # the same step: counted once
+    lam[k0 + 5, 2, 0] = 0.045
+    lam[k0 + 6, 2, 0] = eps  # at ε: not below
+    lam[:, 3] = np.nan  # drone 3: no telemetry
+    lam[k0 + 1, 0, 1] = np.nan  # one λ̄ of target 1 missing (its command arrived)
+    true_min, measured_min = record.true_lambda_min.copy(), record.measured_lambda_min.copy()
+    true_min[k0 - 1, 0], true_min[k0 + 2, 0] = 0.01, 0.5
+    measured_min[k0 - 1, 1], measured_min[k0 + 3, 1] = 0.02, 0.7
+    estimates = record.estimates.copy()
+    estimates[k0 + 10, 1, 0, 0] = 0.3  # one error of 0.3 m after the start
+    estimates[-1, 2, 1, 1] = 0.4  # target 1's final error: drone 2's last
+    estimates[k0 - 1, 0, 0, 0] = 9.0  # before the start: not in the RMS
+    weights = record.weights.copy()
+    weights[-1, 0] = [SENSING, 0.05]  # drone 0 idle: w <= 0.1 for both targets
+    weights[-1, 1] = [0.5, SENSING]
+    weights[:, 3] = np.nan
+    velocities = record.velocities_m_s.copy()
+    velocities[-1, 1] = [0.0, 3.0, 4.0]  # drone 1's last command: 5 m/s
+    velocities[-2:, 2] = np.nan  # drone 2's last command at step K - 3
+    velocities[-3, 2] = [0.0, 0.0, 2.0]
+    velocities[:, 3] = np.nan
+    weights[-3, 2] = [0.2, 0.3]
+    step_us = record.step_us.copy()
+    step_us[:, 0] = np.arange(1.0, 101.0)  # p99 = 99.01, p100 would be 100
+    step_us[:, 3] = np.nan
+    fallbacks = record.qp_fallback.copy()
+    fallbacks[[3, 60, 61], 1] = True
+    bearing = np.full_like(record.bearing_errors, 0.25)  # not a formation: never reported
+    return changed(record, lambda_bar=lam, true_lambda_min=true_min,
+                   measured_lambda_min=measured_min, estimates=estimates, weights=weights,
+                   velocities_m_s=velocities, step_us=step_us, qp_fallback=fallbacks,
+                   bearing_errors=bearing)
+
+
+SENSING = checks.SENSING_WEIGHT
+
+
+def assert_same(got: object, want: object) -> None:
+    """Two summaries field by field: floats (and tuples of them) to 1e-12, NaN equal to NaN."""
+    for f in dataclasses.fields(want):  # type: ignore[arg-type]
+        a, b = getattr(got, f.name), getattr(want, f.name)
+        if isinstance(b, float) or (isinstance(b, tuple) and b):
+            assert a == pytest.approx(b, rel=1e-12, abs=1e-12, nan_ok=True), f.name
+        else:
+            assert a == b and type(a) is type(b), f.name
+
+
+def test_target_summaries_count_after_the_start_and_the_final_samples() -> None:
+    record = summaries_record()
+    eps = record.config.gramian.epsilon
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        first, second = checks.summarize_targets(record)
+    assert_same(first, TargetSummary(
+        target=0, min_lambda_bar_margin=0.03 - eps, time_below_epsilon_s=2 * 0.02,
+        min_true_lambda_margin=0.5 - eps, min_measured_lambda=1.0,
+        final_position_error_m=0.0, rms_position_error_m=math.sqrt(0.09 / (50 * 4)),
+        drones_sensing_final=2, missing_samples=100))  # drones 1, 2; 0 is at 0.1
+    assert_same(second, TargetSummary(
+        target=1, min_lambda_bar_margin=1.0 - eps, time_below_epsilon_s=0.0,
+        min_true_lambda_margin=1.0 - eps, min_measured_lambda=0.7,
+        final_position_error_m=0.4, rms_position_error_m=math.sqrt(0.16 / (50 * 4)),
+        drones_sensing_final=1, missing_samples=101))
+
+
+def test_a_record_cut_short_before_the_start_has_no_figure_after_it() -> None:
+    record = clean_record(2, steps=40)  # control.start_s is step 50
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        [summary] = checks.summarize_targets(record)
+    assert math.isnan(summary.rms_position_error_m)
+    assert math.isnan(summary.min_lambda_bar_margin) and summary.time_below_epsilon_s == 0.0
+
+
+def test_drone_summaries_take_each_drones_last_telemetry() -> None:
+    record = summaries_record()
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a drone without telemetry gives NaN, not warnings
+        summaries = checks.summarize_drones(record)
+    expected = [
+        DroneSummary(0, 0.1, (SENSING, 0.05), True, 0, 50.5, 99.01, None, 0),
+        DroneSummary(1, 5.0, (0.5, SENSING), False, 3, 50.0, 50.0, None, 0),
+        DroneSummary(2, 2.0, (0.2, 0.3), False, 0, 50.0, 50.0, None, 0),
+        DroneSummary(3, math.nan, (math.nan, math.nan), False, 0, math.nan, math.nan, None,
+                     100),
+    ]
+    assert len(summaries) == 4
+    for got, want in zip(summaries, expected, strict=True):
+        assert_same(got, want)
+
+
+def test_a_formation_reports_each_drones_last_bearing_error() -> None:
+    record = summaries_record()
+    control = dataclasses.replace(record.config.control, task="bearing_formation")
+    bearing = record.bearing_errors.copy()
+    bearing[-1, 1] = 0.75
+    bearing[-4:, 2] = np.nan  # drone 2's last bearing error at step K - 5
+    bearing[-5, 2] = 0.125
+    bearing[:, 3] = np.nan
+    record = changed(dataclasses.replace(
+        record, config=dataclasses.replace(record.config, control=control)),
+        bearing_errors=bearing)
+    errors = [s.final_bearing_error for s in checks.summarize_drones(record)]
+    assert errors == [0.25, 0.75, 0.125, None]
+
+
+def test_min_envelope_margins_are_each_kinds_closest_approach() -> None:
+    record = clean_record(3, case="case2_envelope")
+    ceiling = record.config.safety.params.ceiling_m
+    positions = record.drone_positions_m.copy()
+    positions[20, 1, 2] = ceiling - 0.25
+    margins = checks.min_envelope_margins(changed(record, drone_positions_m=positions))
+    assert margins["ceiling"] == 0.25
+    assert set(margins) == set(checks.envelope_margins((0.0, 0.0, 0.0),
+                                                       record.config.safety.params))
+
+
+def test_every_envelope_kind_without_a_position_is_said_not_checked() -> None:
+    record = clean_record(3, case="case2_envelope")
+    record = changed(record, drone_positions_m=np.full_like(record.drone_positions_m, np.nan))
+    kinds = list(checks.envelope_margin_series(record))
+    assert len(kinds) >= 2
+    assert [v for v in check_invariants(record) if v.invariant == "envelope"] == [
+        Violation("envelope", f"{kind}: not checked: no drone position") for kind in kinds]
+
+
+def test_the_not_checked_lines_are_exact() -> None:
+    nowhere = clean_record(2)
+    nowhere = changed(nowhere, drone_positions_m=np.full_like(nowhere.drone_positions_m,
+                                                              np.nan),
+                      velocities_m_s=np.full_like(nowhere.velocities_m_s, np.nan))
+    lines = {v.invariant: v.detail for v in check_invariants(nowhere)}
+    assert lines["collision"] == "not checked: no step with two drone positions"
+    assert lines["velocity_bound"] == "not checked: no command in the record"
+
+
+def test_each_violation_line_is_exact() -> None:
+    record = broken_everywhere()  # case1: Δ = 0.5 m, tol 0.001 m; ε = 0.05, tol 0.005
+    lines = {v.invariant: v.detail for v in check_invariants(record)}
+    assert lines == {
+        "collision": "min pairwise distance 0.2000 m < Δ − tol = 0.4990 m (by 0.2990 m): "
+                     "drones 1 and 2 at t = 0.14 s; first below at t = 0.14 s (drones 1 and "
+                     "2), below for 0.02 s",
+        "lambda_bar": "target 0: drone 2 has λ̄ = 0.0000 < ε − tol = 0.0450 (by 0.0450) at "
+                      "t = 1.02 s; first below at t = 1.02 s (target 0, drone 2), below for "
+                      "0.02 s",
+        "velocity_bound": "a command reaches |u_k| = 3.5000 m/s > u_max = 3.0 m/s (drone 0, "
+                          "u_z) at t = 0.80 s; first above at t = 0.80 s (drone 0, u_z), "
+                          "above for 0.02 s",
+    }
+
+
+def test_the_envelope_line_is_exact() -> None:
+    record = clean_record(3, case="case2_envelope")
+    ceiling = record.config.safety.params.ceiling_m
+    tolerance = record.config.checks.envelope_tolerance_m
+    positions = record.drone_positions_m.copy()
+    positions[30, 2, 2] = ceiling + 0.5
+    [v] = [v for v in check_invariants(changed(record, drone_positions_m=positions))
+           if v.invariant == "envelope"]
+    assert v.detail == (f"drone 2 went 0.5000 m beyond the ceiling (tolerance {tolerance} m) "
+                        "at t = 0.60 s; first beyond at t = 0.60 s (ceiling, drone 2), beyond "
+                        "for 0.02 s")
+
+
+def test_finite_lines_name_a_target_and_say_whether_a_position_is_infinite() -> None:
+    base = clean_record(3, case="case2")
+    targets = base.target_positions_m.copy()
+    targets[3, 1, 0] = np.inf
+    v = only(check_invariants(changed(base, target_positions_m=targets)), "finite")
+    assert (v.subject, v.first_subject) == ("target 1's position (inf)",) * 2
+    assert v.detail == ("a position, command, estimate or λ̄ is NaN/inf (0 received samples "
+                        "non-finite, a position is inf); first: target 1's position (inf) at "
+                        "t = 0.06 s")
+    estimates = base.estimates.copy()
+    estimates[4, 0, 1, 2] = np.nan
+    v = only(check_invariants(changed(base, estimates=estimates)), "finite")
+    assert v.first_subject == "drone 0's estimate"
+    assert v.detail == ("a position, command, estimate or λ̄ is NaN/inf (1 received samples "
+                        "non-finite); first: drone 0's estimate at t = 0.08 s")
+
+
+def test_lambda_bar_checks_every_target_after_one_not_checked_or_held() -> None:
+    base = clean_record(3, case="case2")
+    k0 = start_index(base)
+    floor = lambda_floor(base.config)
+    lam = base.lambda_bar.copy()
+    lam[k0 + 2, 1, 1] = floor - 0.01  # target 1 breached; target 0 holds
+    v = only(check_invariants(changed(base, lambda_bar=lam)), "lambda_bar")
+    assert v.subject == "target 1, drone 1"
+    lam[k0:, :, 0] = np.nan  # target 0 not checked
+    found = [v for v in check_invariants(changed(base, lambda_bar=lam))
+             if v.invariant == "lambda_bar"]
+    assert [v.subject or v.detail.split(":")[0] for v in found] == ["target 0",
+                                                                    "target 1, drone 1"]
+
+
+def test_lambda_bar_times_are_counted_from_the_records_first_step() -> None:
+    base = clean_record(3, steps=80)  # not twice control.start_s: an offset shows
+    k0 = start_index(base)
+    v = only(check_invariants(put_lambda(base, k0 + 3, 1, 0.0)), "lambda_bar")
+    assert v.worst_time_s == v.first_time_s == float(base.times_s[k0 + 3])
+
+
+def test_velocity_bound_names_the_drone_and_axis_of_the_worst_command() -> None:
+    base = clean_record(3)
+    u_max = base.config.control.u_max_m_s
+    velocities = base.velocities_m_s.copy()
+    velocities[10, 1, 0] = u_max + 1e-9  # the check's own rounding margin: held
+    assert check_invariants(changed(base, velocities_m_s=velocities)) == []
+    velocities[10, 1, 0] = u_max + 0.1  # drone 1, u_x: column 3
+    velocities[12, 2, 1] = -(u_max + 0.5)  # the worst, later
+    v = only(check_invariants(changed(base, velocities_m_s=velocities)), "velocity_bound")
+    assert (v.subject, v.first_subject) == ("drone 2, u_y", "drone 1, u_x")
+    assert v.worst_value == pytest.approx(u_max + 0.5)

@@ -69,3 +69,33 @@ def test_a_restarted_reference_starts_on_the_vehicle_again() -> None:
     sp = reference.setpoint((5.0, 0.0, 3.0), (0.0, 0.0, 0.0), (0.5, 0.0, 0.0), 0.3)
     assert sp.position_w == (5.0, 0.0, 3.0) and not sp.reset and reference.resets == 0
     assert sp.velocity_error_m_s is None and sp.acceleration_w == (0.0, 0.0, 0.0)
+
+
+# -- what mutation testing found untested (issue 46, point 2; docs/mutation.md) ------------
+
+
+def test_no_reference_before_the_first_setpoint_and_no_velocity_error_at_it() -> None:
+    reference = CommandReference(reset_distance_m=0.5)
+    assert reference.position_w is None
+    sp = reference.setpoint((0.0, 0.0, 3.0), (0.2, 0.0, 0.0), (1.0, 0.0, 0.0), 0.02)
+    assert sp.velocity_error_m_s is None  # no earlier command to compare with
+
+
+def test_a_vehicle_exactly_at_the_reset_distance_is_kept_and_each_reset_counts() -> None:
+    reference = CommandReference(reset_distance_m=0.5)
+    reference.setpoint((0.0, 0.0, 3.0), None, (1.0, 0.0, 0.0), 0.02)
+    sp = reference.setpoint((0.0, 0.0, 3.0), None, (0.0, 0.0, 0.0), 0.5)  # r 0.5 m ahead
+    assert sp.position_error_m == 0.5 and not sp.reset and reference.resets == 0
+    reference.setpoint((0.0, 0.0, 3.0), None, (2.0, 0.0, 0.0), 0.25)  # r stays 0.5 m ahead
+    sp = reference.setpoint((0.0, 0.0, 3.0), None, (2.0, 0.0, 0.0), 0.25)  # r 1 m ahead
+    assert sp.reset and reference.resets == 1
+    sp = reference.setpoint((0.0, 0.0, 3.0), None, (0.0, 0.0, 0.0), 0.5)  # 1 m again
+    assert sp.reset and reference.resets == 2
+
+
+def test_the_tracking_error_is_the_distance_in_all_three_axes() -> None:
+    reference = CommandReference(reset_distance_m=1.0)
+    reference.setpoint((0.0, 0.0, 3.0), None, (0.0, 0.0, 0.0), 0.02)
+    sp = reference.setpoint((0.0, 0.3, 3.4), (0.0, 0.6, 0.8), (0.0, 0.0, 0.0), 0.02)
+    assert sp.position_error_m == pytest.approx(0.5) and not sp.reset
+    assert sp.velocity_error_m_s == pytest.approx(1.0)

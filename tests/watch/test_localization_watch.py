@@ -155,3 +155,25 @@ def test_the_agents_say_at_the_very_step_their_copy_falls_below_the_floor(
         assert d.lambda_breaches == counters[i].lambda_breaches >= 1
         assert any(w.startswith(f"drone {i}: said it could not hold λ̄ ≥ ε − tol from t = "
                                 f"{d.first_lambda_breach_s:.2f} s") for w in report.warnings)
+
+
+# -- what mutation testing found untested (issue 46, point 2; docs/mutation.md) ------------
+
+
+def test_a_copy_exactly_at_the_floor_holds() -> None:
+    watch = LocalizationWatch(1, epsilon=0.05, tolerance=0.0)
+    assert watch.update(1.0, [0.05], control_active=True) == [] and watch.below == ()
+
+
+def test_events_carry_the_copy_the_floor_the_swarm_and_the_breach() -> None:
+    watch = LocalizationWatch(2, epsilon=0.05, tolerance=0.005)
+    [start] = watch.update(1.0, [0.06, 0.03], control_active=True)  # swarm size not given
+    assert (start.time_s, start.target, start.below, start.lambda_bar, start.floor,
+            start.swarm_size, start.lowest, start.since_s) == (
+        1.0, 1, True, 0.03, watch.floor, 0, 0.03, 1.0)
+    assert start.describe(0).endswith("< ε − tol = 0.0450")  # no "(swarm of 0)"
+    watch.update(1.2, [0.01, 0.02], control_active=True, swarm_size=4)
+    assert watch.status() == "λ̄ < ε − tol: target 0 since 1.2 s, 1 since 1.0 s"
+    back = watch.update(1.5, [0.01, 0.05], control_active=True, swarm_size=4)
+    assert [(e.target, e.below, e.lambda_bar, e.floor, e.swarm_size, e.lowest, e.since_s)
+            for e in back] == [(1, False, 0.05, watch.floor, 4, 0.02, 1.0)]

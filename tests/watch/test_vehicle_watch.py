@@ -40,3 +40,32 @@ def test_bad_arguments_are_refused() -> None:
         VehicleWatch("")
     with pytest.raises(ValueError, match="position_timeout_s"):
         VehicleWatch("OFFBOARD", position_timeout_s=0.0)
+
+
+# -- what mutation testing found untested (issue 46, point 2; docs/mutation.md) ------------
+
+
+def test_each_event_says_exactly_what_is_wrong_and_what_was() -> None:
+    watch = VehicleWatch("GUIDED")
+    event = watch.update(1.0, armed=False, mode="LOITER", position_age_s=None)
+    assert event is not None
+    assert (event.problem, event.previous) == (
+        "disarmed, mode LOITER (not GUIDED), position estimate none", "")
+    event = watch.update(2.0, armed=True, mode="LOITER", position_age_s=0.02)
+    assert event is not None
+    assert (event.problem, event.previous) == (
+        "mode LOITER (not GUIDED)", "disarmed, mode LOITER (not GUIDED), position estimate none")
+    back = watch.update(3.0, armed=True, mode="GUIDED", position_age_s=0.02)
+    assert back is not None and (back.problem, back.previous) == ("", "mode LOITER (not GUIDED)")
+
+
+def test_a_position_exactly_the_timeout_old_is_still_fresh() -> None:
+    watch = VehicleWatch("OFFBOARD")
+    assert watch.update(0.0, armed=True, mode="OFFBOARD",
+                        position_age_s=POSITION_TIMEOUT_S) is None
+
+
+def test_an_empty_mode_is_refused_with_its_line() -> None:
+    with pytest.raises(ValueError,
+                       match=r"^expected_mode must name a mode \(got an empty string\)$"):
+        VehicleWatch("")
