@@ -208,10 +208,10 @@ class DroneAgent:
         # Rows for the drones within R_ca only: the QP's size depends on them, not on N.
         self._qp_relaxed = LocalQpWorkspace(
             m, relaxed=True, slack_weight=ctrl.slack_weight, weight_floor=ctrl.weight_floor,
-            u_max=ctrl.u_max_m_s)
+            u_max=ctrl.u_max_m_s, solver=ctrl.qp_solver)
         self._qp_hard = (LocalQpWorkspace(
             m, relaxed=False, slack_weight=ctrl.slack_weight, weight_floor=ctrl.weight_floor,
-            u_max=ctrl.u_max_m_s) if ctrl.qp == "hard" else None)
+            u_max=ctrl.u_max_m_s, solver=ctrl.qp_solver) if ctrl.qp == "hard" else None)
         # |u_k − u_(k−1)| ≤ a_max·ΔT per component (0: no limit), from the last command.
         self._max_change = ctrl.command_accel_limit_m_s2 * setup.dt_s
         self._n_safety_rows = setup.safety.n_rows  # the last rows of every QP
@@ -514,7 +514,7 @@ class DroneAgent:
     def section_us(self) -> dict[str, float]:
         """Compute time of the last step by section [µs] (estimation: ICF local steps;
         consensus: rounds and the consensus/Gramian update; barrier: perception, barrier and
-        constraint rows; qp: solver matrices, DAQP update and solve, feasibility check;
+        constraint rows; qp: solver matrices, the solver's update and solve, feasibility check;
         other: the rest), for benchmarks/bench_step.py."""
         return {name: 1e6 * t for name, t in zip(SECTIONS, self._clock.seconds, strict=True)}
 

@@ -125,6 +125,7 @@ class GramianParams:
 
 
 QpMode = Literal["hard", "relaxed"]
+QpSolverName = Literal["daqp", "piqp"]  # swarm.core.qp.QP_SOLVERS
 NominalTask = Literal["zero", "bearing_formation"]
 
 
@@ -134,6 +135,9 @@ class ControlParams:
 
     start_s: float = 1.0  # localization rows from here; only safety rows before [s]
     qp: QpMode = "relaxed"  # "hard" = 3.37 (no slacks), "relaxed" = 3.36
+    # The QP's solver: "daqp" (dual active set, exact; the default) or "piqp" (proximal
+    # interior point, the design's); swarm.core.qp_daqp, swarm.core.qp_piqp.
+    qp_solver: QpSolverName = "daqp"
     gamma: float = 0.5  # γ, lower bound on Σ_i w_ir [1]
     slack_weight: float = 1e6  # K_δ [1]
     weight_floor: float = 1e-3  # w_floor in K_δ·max(w, w_floor) keeps the QP strictly convex [1]
@@ -154,6 +158,8 @@ class ControlParams:
         require(math.isfinite(self.start_s) and self.start_s >= 0, "start_s",
                 "must be a finite number >= 0", self.start_s)
         require(self.qp in ("hard", "relaxed"), "qp", "must be 'hard' or 'relaxed'", self.qp)
+        require(self.qp_solver in ("daqp", "piqp"), "qp_solver", "must be 'daqp' or 'piqp'",
+                self.qp_solver)
         require_finite_positive("gamma", self.gamma)
         require_finite_positive("slack_weight", self.slack_weight)
         require(math.isfinite(self.weight_floor) and 0 < self.weight_floor <= 1, "weight_floor",

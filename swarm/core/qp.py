@@ -1,25 +1,27 @@
-"""The local QP of each drone, built as plain matrices and solved with DAQP (SPEC §9).
+"""The local QP of each drone, built as plain matrices and solved by DAQP or PIQP (SPEC §9).
 
 Decision vector ``z = [u (3), δ_1..δ_M, δw_1..δw_M]`` (relaxed, 3.36) or ``z = u`` (hard, 3.37).
 Cost ``‖u − u_d‖² + Σ_r K_δ max(w_r, w_floor)(δ_r² + δw_r²)``, written for the solver as
 ``½ zᵀPz + qᵀz``. Rows ``a·z ≥ lower``: M localization, M weight-sum and one collision row per
-drone within R_ca, so the QP's size depends on the drones near this one, not on N; a DAQP
-workspace per number of rows is set up once and updated each step. (``0 ≥ −1``,
+drone within R_ca, so the QP's size depends on the drones near this one, not on N; a solver
+instance per number of rows is set up once and updated each step. (``0 ≥ −1``,
 ``INACTIVE_ROW_LOWER``, is an always-true row a caller may pad with.)
 
-DAQP is a dual active-set method: it ends on the active set of the optimum and solves its
-equations, so u is the exact optimum up to round-off even when slacks of weight K_δ ~ 1e6
-are large (an interior-point solver stops at residuals relative to an objective that is then
-~1e9: PIQP's u was up to 9e-3 m/s off there).
+The solver is a backend behind ``QpBackend``, chosen by name (``[control] qp_solver``):
+``"daqp"`` (``qp_daqp``, the default), a dual active-set method that ends on the optimum's
+active set, so u is exact up to round-off however large the slacks of weight K_δ ~ 1e6; or
+``"piqp"`` (``qp_piqp``, the design's solver), a proximal interior-point method whose u is
+within a tolerance of the optimum (``tests/core/test_qp.py`` states both).
 """
 
 from __future__ import annotations
 
+import importlib
 import math
 import time
 from dataclasses import dataclass, field
+from typing import Protocol
 
-import daqp
 import numpy as np
 from numpy.typing import NDArray
 
@@ -148,88 +150,78 @@ class FailedQp:
                 f"{self.max_violation:.3g}; {n} variables, {rows} rows)")
 
 
-# DAQP (a dual active-set method) ends on the active set of the optimum and solves its
-# equations exactly, so its answer is the optimum up to round-off, however large the slacks.
-# A constraint counts as met when violated by at most PRIMAL_TOLERANCE (DAQP's default is
-# 1e-6, which lets u sit up to ~1e-6/|row| off the optimum); the iteration limit is far above
-# what these 7-variable QPs take (measured: at most 3 iterations on 60 active Case 2 QPs,
-# each solved cold).
-PRIMAL_TOLERANCE = 1e-12
-ITERATION_LIMIT = 1000
-SOLVED = "DAQP_OPTIMAL"
-_EXIT_NAMES = {1: SOLVED, 2: "DAQP_SOFT_OPTIMAL", -1: "DAQP_INFEASIBLE", -2: "DAQP_CYCLE",
-               -3: "DAQP_UNBOUNDED", -4: "DAQP_ITERLIMIT", -5: "DAQP_NONCONVEX",
-               -6: "DAQP_OVERDETERMINED_INITIAL", -7: "DAQP_TIMELIMIT"}
+QP_SOLVERS = ("daqp", "piqp")  # [control] qp_solver: the backends, by name
+DEFAULT_QP_SOLVER = "daqp"
+_BACKEND_MODULES = {"daqp": ("swarm.core.qp_daqp", "DaqpBackend"),
+                    "piqp": ("swarm.core.qp_piqp", "PiqpBackend")}
 
 
-def _status_name(exit_flag: int) -> str:
-    return _EXIT_NAMES.get(exit_flag, f"DAQP_EXIT_{exit_flag}")
+class QpBackend(Protocol):
+    """What the local QP asks of a solver: one instance per QP shape, set up on its first
+    solve and updated after, for ``min ½zᵀPz + qᵀz`` s.t. ``z_min ≤ z ≤ z_max`` and
+    ``rows·z ≥ lower``, given in DAQP's bound form: ``bounds_lower`` = [z_min, lower] and
+    ``bounds_upper`` = [z_max, +inf per row] (the first n bound z, the rest the rows). The
+    arrays are C-contiguous and the caller does not change them between solves;
+    ``hessian_changed`` False says P is the one of the last solve."""
 
-
-class _DaqpModel:
-    """One DAQP workspace for QPs of one shape: ``min ½zᵀPz + qᵀz`` s.t. ``z_min ≤ z ≤ z_max``
-    and ``rows·z ≥ lower``, in DAQP's form: ``bounds_lower`` = [z_min, lower] and
-    ``bounds_upper`` = [z_max, +inf per row] (the first n bound z, the rest the rows). Set up
-    on the first solve, updated after: DAQP keeps the active set of the last solve as its
-    starting guess. DAQP reads the arrays it is given at each update (it holds on to them
-    until the next one): the model keeps a reference to them until then, so a caller may
-    pass temporaries; it must not change them between solves."""
-
-    def __init__(self) -> None:
-        self._model: daqp.Model | None = None
-        self._held: tuple[Array, ...] = ()  # what DAQP points into, alive until the next solve
+    solved_status: str  # the status of an optimal solve, e.g. "DAQP_OPTIMAL"
 
     def solve(self, hessian: Array, linear: Array, rows: Array, bounds_lower: Array,
-              bounds_upper: Array, *, hessian_changed: bool = True) -> tuple[Array, int, int]:
-        """(z, DAQP exit flag, iterations) of the QP with these matrices (C-contiguous)."""
-        self._held = (hessian, linear, rows, bounds_lower, bounds_upper)
-        if self._model is None:
-            model = daqp.Model()
-            exit_flag, _ = model.setup(hessian, linear, rows, bounds_upper, bounds_lower,
-                                       np.zeros(bounds_upper.shape, dtype=np.intc))
-            if exit_flag < 0:  # P not positive definite: nothing to solve with
-                return np.full(linear.shape[0], np.nan), int(exit_flag), 0
-            settings = model.settings
-            settings["primal_tol"] = PRIMAL_TOLERANCE
-            settings["iter_limit"] = ITERATION_LIMIT
-            model.settings = settings
-            self._model = model
-        else:
-            exit_flag = self._model.update(H=hessian if hessian_changed else None, f=linear,
-                                           A=rows, bupper=bounds_upper, blower=bounds_lower)
-            if exit_flag < 0:  # a new P that is not positive definite: not solved
-                self._model = None  # set up afresh next time
-                return np.full(linear.shape[0], np.nan), int(exit_flag), 0
-        z, _objective, exit_flag, info = self._model.solve()
-        return z, int(exit_flag), int(info["iterations"])
+              bounds_upper: Array, *, hessian_changed: bool = True
+              ) -> tuple[Array, bool, str, int]:
+        """(z, optimal, status, iterations): ``optimal`` when the solver says z is its
+        optimum (the caller checks that z is finite and feasible)."""
+        ...
+
+
+def backend_class(name: str) -> type[QpBackend]:
+    """The backend named ``name`` (one of ``QP_SOLVERS``), its module imported on first use
+    (an agent loads only the solver it runs); ValueError for any other name."""
+    if name not in _BACKEND_MODULES:
+        raise ValueError(f"qp_solver must be one of {', '.join(map(repr, QP_SOLVERS))} "
+                         f"(got {name!r})")
+    module, cls = _BACKEND_MODULES[name]
+    backend: type[QpBackend] = getattr(importlib.import_module(module), cls)
+    return backend
+
+
+def solved_status(name: str) -> str:
+    """The status of an optimal solve by the backend ``name`` ("DAQP_OPTIMAL", "PIQP_SOLVED")."""
+    return backend_class(name).solved_status
 
 
 @dataclass
 class QpSolver:
-    """Solves ``LocalQp``s with DAQP: one workspace per QP shape, set up once and updated."""
+    """Solves ``LocalQp``s with the backend ``solver`` (``QP_SOLVERS``): one instance per QP
+    shape, set up once and updated."""
 
     feasibility_tolerance: float = 1e-6
-    _model: _DaqpModel | None = field(default=None, init=False, repr=False)
+    solver: str = DEFAULT_QP_SOLVER
+    _model: QpBackend | None = field(default=None, init=False, repr=False)
     _shape: tuple[int, int] | None = field(default=None, init=False, repr=False)
+    _backend: type[QpBackend] = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self._backend = backend_class(self.solver)
 
     def solve(self, qp: LocalQp) -> QpSolution:
         start = time.perf_counter()
         shape = qp.rows.shape
         if self._model is None or self._shape != shape:
-            self._model, self._shape = _DaqpModel(), shape
-        z, exit_flag, iterations = self._model.solve(
+            self._model, self._shape = self._backend(), shape
+        z, optimal, status, iterations = self._model.solve(
             np.ascontiguousarray(qp.cost_hessian, dtype=float),
             np.ascontiguousarray(qp.cost_linear, dtype=float),
             np.ascontiguousarray(qp.rows, dtype=float),
             np.concatenate((qp.z_min, qp.lower)).astype(float),
             np.concatenate((qp.z_max, np.full(qp.lower.shape, np.inf))).astype(float))
-        solved = exit_flag == 1 and bool(np.all(np.isfinite(z)))
+        solved = optimal and bool(np.all(np.isfinite(z)))
         elapsed = time.perf_counter() - start
         violation = qp.max_violation(z) if solved else float("inf")
         return QpSolution(
             found=solved and violation <= self.feasibility_tolerance,
             z=z,
-            status=_status_name(exit_flag),
+            status=status,
             iterations=iterations,
             solve_time_s=elapsed,
             max_violation=violation,
@@ -269,13 +261,13 @@ def estimate_free_rows(u_columns: list[float], lower: list[float], n_estimate_ro
 
 @dataclass
 class _RowBlock:
-    """The rows and bounds of the local QP for one number of collision rows, with their DAQP
-    workspace: the bounds in DAQP's form, [z_min, lower] and [z_max, +inf per row]."""
+    """The rows and bounds of the local QP for one number of collision rows, with their solver
+    instance: the bounds in the backends' form, [z_min, lower] and [z_max, +inf per row]."""
 
     rows: Array  # (2M + collisions, n), C order
     bounds_lower: Array  # (n + rows,)
     bounds_upper: Array  # (n + rows,)
-    model: _DaqpModel
+    model: QpBackend
     hessian_version: int = -1  # the P its model was last given (``LocalQpWorkspace``)
 
     @property
@@ -285,27 +277,30 @@ class _RowBlock:
 
 
 class LocalQpWorkspace:
-    """The local QP of one drone in preallocated matrices, with its own DAQP workspaces.
+    """The local QP of one drone in preallocated matrices, with its own solver instances.
 
-    ``solve(...)`` is ``QpSolver().solve(build_local_qp(...))`` for a drone whose M targets
-    and kind (relaxed or hard) never change: the same matrices, the same solver settings,
+    ``solve(...)`` is ``QpSolver(solver=...).solve(build_local_qp(...))`` for a drone whose M
+    targets and kind (relaxed or hard) never change: the same matrices, the same settings,
     set up on the first solve and updated afterwards, so the same solution up to round-off.
     The collision rows are those of the drones within R_ca at this step, so their number
-    changes: each number gets its own rows and DAQP workspace the first time it comes up
+    changes: each number gets its own rows and solver instance the first time it comes up
     (``n_collision``: the one to prepare first), kept for when it comes back. Only the entries
     that change are written: the velocity columns of the rows, the bounds, u_d, the slack
-    penalties and the box of u (a rate box, ``rate_limited_box``, moves every solve); DAQP
-    refactors P only when the penalties changed since its workspace last saw them.
+    penalties and the box of u (a rate box, ``rate_limited_box``, moves every solve); the
+    solver is given P only when the penalties changed since its workspace last saw them.
     """
 
     def __init__(self, m_targets: int, n_collision: int = 0, *, relaxed: bool,
                  slack_weight: float, weight_floor: float, u_max: float,
-                 feasibility_tolerance: float = 1e-6) -> None:
+                 feasibility_tolerance: float = 1e-6, solver: str = DEFAULT_QP_SOLVER
+                 ) -> None:
         n_slack = 2 * m_targets if relaxed else 0
         n = 3 + n_slack
         self.m_targets, self.relaxed, self.u_max = m_targets, relaxed, float(u_max)
         self.slack_weight, self.weight_floor = slack_weight, weight_floor
         self.feasibility_tolerance = feasibility_tolerance
+        self.solver = solver
+        self._backend = backend_class(solver)
         self.hessian = np.zeros((n, n))
         self.hessian[0, 0] = self.hessian[1, 1] = self.hessian[2, 2] = 2.0
         self.linear = np.zeros(n)
@@ -323,7 +318,8 @@ class LocalQpWorkspace:
 
     @property
     def rows(self) -> Array:
-        """The rows of the last solve that reached DAQP (or of the first block prepared)."""
+        """The rows of the last solve that reached the solver (or of the first block
+        prepared)."""
         return self._block.rows
 
     @property
@@ -332,7 +328,7 @@ class LocalQpWorkspace:
 
     @property
     def z_min(self) -> Array:
-        """The lower bounds of z of the last solve that reached DAQP (a view)."""
+        """The lower bounds of z of the last solve that reached the solver (a view)."""
         return self._block.bounds_lower[:self.linear.shape[0]]
 
     @property
@@ -352,7 +348,7 @@ class LocalQpWorkspace:
                 rows[np.arange(n_slack), 3 + np.arange(n_slack)] = 1.0
             block = self._blocks[n_rows] = _RowBlock(
                 rows, np.concatenate((self._z_min, np.zeros(n_rows))),
-                np.concatenate((self._z_max, np.full(n_rows, np.inf))), _DaqpModel())
+                np.concatenate((self._z_max, np.full(n_rows, np.inf))), self._backend())
         return block
 
     def solve(self, nominal: tuple[float, float, float], u_columns: list[float],
@@ -365,7 +361,7 @@ class LocalQpWorkspace:
 
         When u_d itself meets every row with zero slacks and lies in the box, it is the
         optimum: the cost is a sum of squares that is zero there and positive elsewhere (P is
-        positive definite), so DAQP is not called (status ``NOMINAL_FEASIBLE``, 0 iterations).
+        positive definite), so the solver is not called (status ``NOMINAL_FEASIBLE``, 0 iterations).
         Only exact feasibility counts (no tolerance), so the answer is the QP's own optimum,
         not an approximation of it. Checked before any matrix is touched: the matrices stay
         as they were at the last solve.
@@ -385,21 +381,21 @@ class LocalQpWorkspace:
                     self.weight_floor, block.rows, block.bounds_lower, block.bounds_upper,
                     self.linear, self.hessian):
             self._hessian_version += 1  # new slack penalties
-        z, exit_flag, iterations = block.model.solve(
+        z, optimal, status, iterations = block.model.solve(
             self.hessian, self.linear, block.rows, block.bounds_lower, block.bounds_upper,
             hessian_changed=block.hessian_version != self._hessian_version)
         block.hessian_version = self._hessian_version
         values = z.tolist()
-        solved = exit_flag == 1 and all(map(math.isfinite, values))
+        solved = optimal and all(map(math.isfinite, values))
         elapsed = time.perf_counter() - start
         violation = self._max_violation(values, u_columns, lower) if solved else float("inf")
         return record(QpSolution, dict(
             found=solved and violation <= self.feasibility_tolerance, z=z,
-            status=_status_name(exit_flag), iterations=iterations,
+            status=status, iterations=iterations,
             solve_time_s=elapsed, max_violation=violation))
 
     def current_qp(self) -> LocalQp:
-        """The QP of the last solve that reached DAQP, as a solver-independent ``LocalQp`` of
+        """The QP of the last solve that reached the solver, as a solver-independent ``LocalQp`` of
         copies: ``build_local_qp`` of the same inputs, with the box of u that solve had. (A
         ``NOMINAL_FEASIBLE`` solve writes nothing, so it is not this QP.)"""
         return LocalQp(self.hessian.copy(), self.linear.copy(), self.rows.copy(),
