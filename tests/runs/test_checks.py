@@ -695,3 +695,18 @@ def test_velocity_bound_names_the_drone_and_axis_of_the_worst_command() -> None:
     v = only(check_invariants(changed(base, velocities_m_s=velocities)), "velocity_bound")
     assert (v.subject, v.first_subject) == ("drone 2, u_y", "drone 1, u_x")
     assert v.worst_value == pytest.approx(u_max + 0.5)
+
+
+def test_a_drone_without_telemetry_in_a_record_shorter_than_the_swarm() -> None:
+    record = clean_record(4, steps=2)
+    velocities, lam = record.velocities_m_s.copy(), record.lambda_bar.copy()
+    velocities[:, 3] = lam[:, 3] = np.nan
+    last = checks.summarize_drones(changed(record, velocities_m_s=velocities, lambda_bar=lam))[3]
+    assert math.isnan(last.final_speed_m_s) and last.missing_samples == 2
+
+
+def test_the_lambda_bar_line_says_by_how_much() -> None:
+    record = put_lambda(clean_record(3), 60, 1, 0.02)  # ε − tol = 0.045
+    v = only(check_invariants(record), "lambda_bar")
+    assert v.detail.startswith("target 0: drone 1 has λ̄ = 0.0200 < ε − tol = 0.0450 (by "
+                               "0.0250) at t = 1.20 s")
