@@ -912,8 +912,10 @@ py_qp_max_violation(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     return result;
 }
 
-/* Row constants of qp_rows, in this order. */
-enum { R_N, R_GAMMA, R_RADIUS, R_DELTA, R_GAIN, R_BOUND, N_ROW_CONSTANTS };
+/* Row constants of qp_rows, in this order. R_SHARE: 0 = each drone's share of the
+ * localization condition is 1/N (SPEC 8, 3.32), 1 = w_ir / max(S_wr, w_ir) (3.27-3.28,
+ * barrier.localization_share). */
+enum { R_N, R_GAMMA, R_RADIUS, R_DELTA, R_GAIN, R_BOUND, R_SHARE, N_ROW_CONSTANTS };
 
 /* The float triples of a list or tuple of `count` triples, into out (3 count); -1 with a
  * one-line error naming `what` and the entry otherwise. */
@@ -960,7 +962,9 @@ PyDoc_STRVAR(qp_rows_doc,
 "(4.1-4.2: 2(p_i - p_j) and -alpha h/2) per entry of `others` (float triples, in their order)\n"
 "within the collision radius of `position`, then the `envelope_rows` (triples) with their\n"
 "`envelope_lower`. Every bound is then tightened to b + e||a|| when e > 0 (robust_lower_bound).\n"
-"`constants`: N, gamma, collision radius, collision distance, collision gain, e.");
+"`constants`: N, gamma, collision radius, collision distance, collision gain, e, share:\n"
+"0 keeps the localization bounds (each drone's share 1/N of 3.27), 1 gives drone i the share\n"
+"k = w_ir / max(S_w, w_ir) (0 if w_ir = 0): bound -k(c + psi1) - d_i.");
 
 static PyObject *
 py_qp_rows(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
@@ -1001,10 +1005,26 @@ py_qp_rows(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
         goto done;
     const double *terms = v[0].buf, *velocity = v[1].buf;
     Py_ssize_t r = 0;
+    if (c[R_SHARE] != 0.0 && c[R_SHARE] != 1.0) {
+        PyErr_Format(PyExc_ValueError, "qp_rows: constants[%d] (the localization share) must "
+                     "be 0 (1/N) or 1 (weighted), got %R", (int)R_SHARE,
+                     PySequence_Fast_ITEMS(args[7])[R_SHARE]);
+        goto done;
+    }
     for (Py_ssize_t t = 0; t < m; t++, r++) {  /* localization (3.32) */
-        const double *barrier = terms + t * (N_PERCEPTION + N_BARRIER) + N_PERCEPTION;
+        const double *row = terms + t * (N_PERCEPTION + N_BARRIER),
+                     *barrier = row + N_PERCEPTION;
         for (int k = 0; k < 3; k++) a[3 * r + k] = barrier[B_LIE + k];
         lower[r] = barrier[B_LOWER];
+        if (c[R_SHARE] == 1.0) {  /* (3.27) with k = w / max(S_w, w): -k(c + psi1) - d_i */
+            const double *vel = velocity + 3 * t;
+            double w = row[P_WEIGHT], sum = weight_sums[t];
+            double share = w > 0.0 ? w / (sum > w ? sum : w) : 0.0;
+            /* d_i as localization_barrier computes it; B_LOWER + d_i = -(c + psi1)/N */
+            double drift = -(barrier[B_LIE] * vel[0] + barrier[B_LIE + 1] * vel[1]
+                             + barrier[B_LIE + 2] * vel[2]);
+            lower[r] = c[R_N] * share * (barrier[B_LOWER] + drift) - drift;
+        }
     }
     for (Py_ssize_t t = 0; t < m; t++, r++) {  /* weight sum (3.34-3.36) */
         const double *grad = terms + t * (N_PERCEPTION + N_BARRIER) + P_GRAD,

@@ -494,10 +494,12 @@ class DroneAgent:
             epsilon=gram.epsilon, exponent=gram.smooth_min_exponent, info_gain=est.info_gain)
 
     def _qp_row_constants(self, n_agents: int) -> list[float]:
-        """``kernels.qp_rows``' constants for N = ``n_agents``: N, γ, R_ca, Δ, α_ca, ē."""
+        """``kernels.qp_rows``' constants for N = ``n_agents``: N, γ, R_ca, Δ, α_ca, ē and the
+        localization share (0 = 1/N, 1 = weighted; ``control.localization_share``)."""
         ctrl = self.setup.control
         return [float(n_agents), ctrl.gamma, ctrl.collision_radius_m, ctrl.collision_distance_m,
-                ctrl.collision_gain, ctrl.tracking_error_bound_m_s]
+                ctrl.collision_gain, ctrl.tracking_error_bound_m_s,
+                kernels.LOCALIZATION_SHARES[ctrl.localization_share]]
 
     # -- helpers ------------------------------------------------------------------------
 

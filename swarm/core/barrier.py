@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from swarm.core.params import LocalizationShare
 from swarm.core.perception import PerceptionTerms, weighted_projector_derivative
 from swarm.core.projector import Mat3, Vec3
 from swarm.core.smooth_min import SmoothMin, inner, smooth_min_eigenvalue
@@ -37,6 +38,40 @@ class LocalizationBarrier:
     def lower_bound(self) -> float:
         """Right-hand side of L_gi ψ1·u + δ ≥ −(c + ψ1)/N − d_i (thesis 3.32)."""
         return -(self.coupling + self.psi1) / self.n_agents - self.drift
+
+    def shared_lower_bound(self, share: float) -> float:
+        """Right-hand side of L_gi ψ1·u + δ ≥ −k_i(c + ψ1) − d_i: (3.27) with drone i's share
+        k_i of the condition (``localization_share``); k_i = 1/N is ``lower_bound``."""
+        return -share * (self.coupling + self.psi1) - self.drift
+
+
+def localization_share(rule: LocalizationShare, weight: float, weight_sum_estimate: float,
+                       n_agents: int) -> float:
+    """Drone i's share k_ir of target r's localization condition (thesis 3.27-3.28).
+
+    The local rows (3.27) add up to the centralized condition (3.21) when the k_i are a
+    convex combination, k_i ≥ 0 and Σ_i k_i = 1: summed over the drones they give
+    Σ_i (L_gi ψ1·u_i + d_i) ≥ −(Σ_i k_i)(c + ψ1) (3.28). The thesis takes k_i = 1/N and says
+    other choices are possible.
+
+    ``"equal"``: 1/N, SPEC §8 (3.32). A drone that does not see the target (w_ir ≈ 0, so
+    L_gi ψ1 ≈ 0) cannot meet its share with its velocity; in the relaxed QP it buys it with a
+    slack at the cost K_δ·max(w_ir, w_floor), and nobody takes the part it dropped.
+
+    ``"weighted"``: w_ir / max(S_wr, w_ir), with S_wr = N·s_wr drone i's consensus estimate of
+    Σ_j w_jr (the one the weight-sum row 3.34-3.36 uses); 0 when w_ir = 0, and 1 when the
+    estimate is below drone i's own weight. The condition goes to the drones that see the
+    target, in proportion to how well. With S_wr the exact sum, Σ_i k_ir = 1 and (3.28) is
+    (3.21). Each drone divides by its own estimate, so Σ_i k_ir = 1 holds only up to the
+    consensus error on S_w: the rows then add up to −(Σ_i k_ir)(c + ψ1), which implies (3.21)
+    when c + ψ1 ≥ 0 and Σ_i k_ir ≤ 1 or when c + ψ1 < 0 and Σ_i k_ir ≥ 1, and otherwise falls
+    short of it by |1 − Σ_i k_ir|·|c + ψ1|.
+    """
+    if rule == "equal":
+        return 1.0 / n_agents
+    if not weight > 0.0:
+        return 0.0
+    return weight / (weight_sum_estimate if weight_sum_estimate > weight else weight)
 
 
 def gramian_rate_model(

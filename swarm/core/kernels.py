@@ -185,10 +185,13 @@ qp_load = _kernels.qp_load
 # The rows of the local QP (SPEC §8) from ``perception_barrier_rows`` and the drone's
 # surroundings, as ``LocalQpWorkspace.solve`` takes them: ``qp_rows(terms, velocities,
 # weight_sums, position, others, envelope_rows, envelope_lower, constants) -> (columns,
-# lower)``, constants = [N, γ, R_ca, Δ, α_ca, ē]. ``tests/core/test_kernels.py`` binds it to
-# ``localization_barrier``, ``weight_sum_row``, ``collision_row``, ``safety_rows`` and
+# lower)``, constants = [N, γ, R_ca, Δ, α_ca, ē, share] (share: ``LOCALIZATION_SHARES``).
+# ``tests/core/test_kernels.py`` binds it to ``localization_barrier`` with
+# ``localization_share``, ``weight_sum_row``, ``collision_row``, ``safety_rows`` and
 # ``robust_lower_bound``.
 qp_rows = _kernels.qp_rows
+# ``qp_rows``' last constant for each ``control.localization_share``.
+LOCALIZATION_SHARES: dict[str, float] = {"equal": 0.0, "weighted": 1.0}
 # Whether every float64 of native-order bytes is finite: ``native_finite(*parts)``, the wire
 # rules' check of every float a peer sends (``swarm.messages.rules``).
 native_finite = _kernels.native_finite

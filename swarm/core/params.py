@@ -126,6 +126,7 @@ class GramianParams:
 
 QpMode = Literal["hard", "relaxed"]
 QpSolverName = Literal["daqp", "piqp"]  # swarm.core.qp.QP_SOLVERS
+LocalizationShare = Literal["equal", "weighted"]  # swarm.core.barrier.localization_share
 NominalTask = Literal["zero", "bearing_formation"]
 
 
@@ -138,6 +139,10 @@ class ControlParams:
     # The QP's solver: "daqp" (dual active set, exact; the default) or "piqp" (proximal
     # interior point, the design's); swarm.core.qp_daqp, swarm.core.qp_piqp.
     qp_solver: QpSolverName = "daqp"
+    # Drone i's share k_ir of the localization condition (thesis 3.27-3.28): "equal" is
+    # k = 1/N (SPEC §8, 3.32; the default), "weighted" is k = w_ir / max(S_wr, w_ir)
+    # (swarm.core.barrier.localization_share)
+    localization_share: LocalizationShare = "equal"
     gamma: float = 0.5  # γ, lower bound on Σ_i w_ir [1]
     slack_weight: float = 1e6  # K_δ [1]
     weight_floor: float = 1e-3  # w_floor in K_δ·max(w, w_floor) keeps the QP strictly convex [1]
@@ -160,6 +165,8 @@ class ControlParams:
         require(self.qp in ("hard", "relaxed"), "qp", "must be 'hard' or 'relaxed'", self.qp)
         require(self.qp_solver in ("daqp", "piqp"), "qp_solver", "must be 'daqp' or 'piqp'",
                 self.qp_solver)
+        require(self.localization_share in ("equal", "weighted"), "localization_share",
+                "must be 'equal' or 'weighted'", self.localization_share)
         require_finite_positive("gamma", self.gamma)
         require_finite_positive("slack_weight", self.slack_weight)
         require(math.isfinite(self.weight_floor) and 0 < self.weight_floor <= 1, "weight_floor",

@@ -9,8 +9,9 @@ forms the finite-difference tests check, and their own derivatives by central di
   below the clipping floor;
 - ``perception_barrier`` ↔ ``perception_terms`` then ``localization_barrier`` (SPEC §8), one
   target and a stack;
-- ``qp_rows`` ↔ the rows of ``weight_sum_row``, ``collision_row`` and ``robust_lower_bound``
-  (SPEC §8) after the localization rows of ``perception_barrier_rows``, and the envelope's;
+- ``qp_rows`` ↔ the localization rows of ``localization_barrier`` with each
+  ``localization_share``, then the rows of ``weight_sum_row``, ``collision_row`` and
+  ``robust_lower_bound`` (SPEC §8), and the envelope's;
 - ``icf.StackedFilter`` (``filter_stack``) ↔ ``posterior``, ``posterior_covariance`` and
   ``predict`` per target (SPEC §5, 2.8-2.11, 2.21-2.22), and its pseudo-inverse fallback;
 - bad buffers are refused with a one-line error.
@@ -35,8 +36,10 @@ from scipy.stats import special_ortho_group
 
 from swarm.core import icf, kernels
 from swarm.core.barrier import (
+    LocalizationBarrier,
     collision_row,
     localization_barrier,
+    localization_share,
     robust_lower_bound,
     weight_sum_row,
 )
@@ -295,11 +298,14 @@ def test_perception_barrier_refuses_a_non_finite_gramian() -> None:
 
 
 def _readable_rows(terms, velocities, weight_sums, position, others, envelope_rows,
-                   envelope_lower, constants):
-    """The rows of SPEC §8 from the readable functions, one by one: (rows (R × 3), lower)."""
-    n, gamma, radius, delta, gain, bound = constants
+                   envelope_lower, constants, barriers: list[LocalizationBarrier]):
+    """The rows of SPEC §8 from the readable functions, one by one: (rows (R × 3), lower).
+    The localization rows' bounds are ``barriers``' with each drone's share of (3.27)."""
+    n, gamma, radius, delta, gain, bound, share = constants
+    rule = {code: name for name, code in kernels.LOCALIZATION_SHARES.items()}[share]
     rows = [row[kernels.ROW.LIE_G] for row in terms]
-    lower = [float(row[kernels.ROW.LOWER]) for row in terms]
+    lower = [b.shared_lower_bound(localization_share(rule, row[kernels.ROW.WEIGHT], s_w, int(n)))
+             for b, row, s_w in zip(barriers, terms, weight_sums, strict=True)]
     for row, velocity, s_w in zip(terms, velocities, weight_sums, strict=True):
         pair = PerceptionTerms(row[kernels.ROW.WEIGHT], row[kernels.ROW.WEIGHT_GRAD],
                                row[kernels.ROW.UNIT_BEARING], row[kernels.ROW.DISTANCE],
@@ -319,13 +325,16 @@ def _readable_rows(terms, velocities, weight_sums, position, others, envelope_ro
     return np.array(rows).reshape(-1, 3), np.array(lower)
 
 
+@pytest.mark.parametrize("rule", ["equal", "weighted"])
 @settings(max_examples=200, deadline=None)
 @given(seed=st.integers(0, 2**32 - 1), m=st.integers(1, 3), n_others=st.integers(0, 8),
        n_envelope=st.integers(0, 4), bound=st.sampled_from([0.0, 0.1, 0.2]))
-def test_the_qp_rows_are_the_rows_of_the_readable_functions(seed, m, n_others, n_envelope,
-                                                            bound) -> None:
+def test_the_qp_rows_are_the_rows_of_the_readable_functions(rule, seed, m, n_others,
+                                                            n_envelope, bound) -> None:
     """``kernels.qp_rows`` on the agent's inputs (the barrier kernel's rows of M targets,
-    others near and far) gives the rows the readable functions give, in the agent's order."""
+    others near and far) gives the rows the readable functions give, in the agent's order,
+    with either share of the localization condition (the weight sums S_w span below and
+    above the drone's own weight, so k = w/S_w and k = 1 both occur)."""
     rng = np.random.default_rng(seed)
     drone = rng.normal(size=3) + np.array([0.0, 0.0, 3.0])
     estimates, velocities = rng.normal(size=(m, 6)), rng.normal(size=(m, 3))
@@ -333,22 +342,68 @@ def test_the_qp_rows_are_the_rows_of_the_readable_functions(seed, m, n_others, n
                          for _ in range(m)])
     means = np.array([_gramian(rng.uniform(0.0, 1.0, 3), rng.uniform(0, 6, 3))
                       for _ in range(m)])
-    terms = kernels.perception_barrier_rows(drone, estimates, velocities, gramians.reshape(-1),
-                                            means.reshape(-1), _constants(4, 0.5, 0.05, -10.0,
-                                                                          1.3))
+    n_agents, forgetting, epsilon, exponent, info_gain = 4, 0.5, 0.05, -10.0, 1.3
+    terms = kernels.perception_barrier_rows(
+        drone, estimates, velocities, gramians.reshape(-1), means.reshape(-1),
+        _constants(n_agents, forgetting, epsilon, exponent, info_gain))
+    pairs = [perception_terms(drone, estimates[r, :3], PARAMS) for r in range(m)]
+    barriers = [localization_barrier(gramians[r], means[r], pairs[r], velocities[r],
+                                     n_agents=n_agents, forgetting=forgetting, epsilon=epsilon,
+                                     exponent=exponent, info_gain=info_gain)
+                for r in range(m)]
     weight_sums = rng.uniform(0.0, 4.0, m).tolist()
     position = drone.tolist()
     others = (drone + rng.normal(scale=1.5, size=(n_others, 3))).tolist()
     envelope_rows = [tuple(a) for a in rng.normal(size=(n_envelope, 3)).tolist()]
     envelope_lower = rng.normal(size=n_envelope).tolist()
-    constants = [4.0, 0.3, 1.5, 0.5, 1.2, bound]
+    constants = [float(n_agents), 0.3, 1.5, 0.5, 1.2, bound, kernels.LOCALIZATION_SHARES[rule]]
     columns, lower = kernels.qp_rows(terms, velocities, weight_sums, position, others,
                                      envelope_rows, envelope_lower, constants)
     rows, readable_lower = _readable_rows(terms, velocities, weight_sums, position, others,
-                                          envelope_rows, envelope_lower, constants)
+                                          envelope_rows, envelope_lower, constants, barriers)
     assert len(lower) == rows.shape[0] and len(columns) == 3 * len(lower)
     np.testing.assert_array_equal(np.array(columns).reshape(3, -1).T, rows)
-    np.testing.assert_allclose(lower, readable_lower, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(lower[m:], readable_lower[m:], rtol=1e-12, atol=1e-12)
+    # The localization bounds: the two barrier forms agree to round-off of the terms' scales
+    # (test_perception_barrier_equals_localization_barrier); share·(c + ψ1) and d_i = −L_gi ψ1·v̂.
+    for r, (b, pair) in enumerate(zip(barriers, pairs, strict=True)):
+        share = localization_share(rule, pair.weight, weight_sums[r], n_agents)
+        lie_scale = info_gain * float(np.sum(b.smooth_min.eigen_gradient)) * (
+            float(np.linalg.norm(pair.weight_grad_drone)) + 2.0 * pair.weight / pair.distance_m)
+        _close(lower[r], readable_lower[r],
+               max(abs(readable_lower[r]), share * abs(b.coupling), share * abs(b.psi1),
+                   share * b.lambda_bar, lie_scale * float(np.linalg.norm(velocities[r]))))
+        if rule == "equal" and bound == 0.0:  # 1/N: the barrier kernel's bound as it is
+            assert lower[r] == terms[r, kernels.ROW.LOWER]
+
+
+def test_weighted_shares_put_the_condition_on_the_drones_that_see_the_target() -> None:
+    """Three drones, w = (1, 0, 0), S_w = 1 at each: the first drone's localization row
+    carries the whole condition −(c + ψ1) (3.27 with k = 1), the others' none (k = 0), and
+    the rows add up to the centralized condition (3.28 = 3.21); equal shares give each a
+    third of it."""
+    n, combined = 3, -0.6  # c + ψ1 < 0: the swarm must gain information
+    weights = (1.0, 0.0, 0.0)
+    assert [localization_share("weighted", w, 1.0, n) for w in weights] == [1.0, 0.0, 0.0]
+    assert [localization_share("equal", w, 1.0, n) for w in weights] == [1 / 3] * 3
+    rng = np.random.default_rng(7)
+    lie_g = [rng.normal(size=3) if w > 0 else np.zeros(3) for w in weights]  # w = 0: no gradient
+    velocity = np.array([[0.4, -0.2, 0.1]])
+    for rule, expected in (("weighted", [1.0, 0.0, 0.0]), ("equal", [1 / 3] * 3)):
+        parts = []
+        for w, a in zip(weights, lie_g, strict=True):
+            row = np.zeros((1, kernels.ROW_SIZE))
+            row[0, kernels.ROW.WEIGHT] = w
+            row[0, kernels.ROW.LIE_G] = a
+            drift = -float(a @ velocity[0])  # d_i = −L_gi ψ1·v̂
+            row[0, kernels.ROW.LOWER] = -combined / n - drift  # the barrier kernel's 1/N bound
+            _, lower = kernels.qp_rows(row, velocity, [1.0], [0.0, 0.0, 3.0], [], [], [],
+                                       [float(n), 0.5, 3.0, 0.5, 1.0, 0.0,
+                                        kernels.LOCALIZATION_SHARES[rule]])
+            parts.append(lower[0] + drift)  # what the row asks of L_gi ψ1·(u_i − v̂)
+        np.testing.assert_allclose(parts, [-k * combined for k in expected], rtol=1e-15,
+                                   atol=1e-16)
+        assert sum(parts) == pytest.approx(-combined, rel=1e-15)
 
 
 def test_a_drone_exactly_at_the_collision_radius_has_a_row_and_one_beyond_has_none() -> None:
@@ -359,7 +414,7 @@ def test_a_drone_exactly_at_the_collision_radius_has_a_row_and_one_beyond_has_no
     beyond = [math.nextafter(1.5, 2.0), 0.0, 3.0]
     columns, lower = kernels.qp_rows(terms, np.zeros((1, 3)), [1.0], [0.0, 0.0, 3.0],
                                      [beyond, beside, beyond], [], [],
-                                     [4.0, 0.3, 1.5, 0.5, 1.0, 0.0])
+                                     [4.0, 0.3, 1.5, 0.5, 1.0, 0.0, 0.0])
     assert len(lower) == 3  # localization, weight sum, the one at R_ca
     assert columns[2::3] == [-3.0, 0.0, 0.0]  # x, y, z of the collision row: 2(p_i − p_j)
     assert lower[2] == -0.5 * (1.5**2 - 0.5**2)
@@ -372,12 +427,14 @@ def test_a_drone_exactly_at_the_collision_radius_has_a_row_and_one_beyond_has_no
     ({"others": [[1.0, 2.0, 3.0], [1.0, 2.0]]}, ValueError, r"others\[1\]: expected 3"),
     ({"others": [[1.0, 2.0, "3"]]}, TypeError, r"others\[0\]\[2\]: expected a float"),
     ({"envelope_lower": [0.0]}, ValueError, "envelope_lower: expected 0 floats"),
-    ({"constants": [1.0] * 5}, ValueError, "constants: expected 6 floats"),
+    ({"constants": [1.0] * 6}, ValueError, "constants: expected 7 floats"),
+    ({"constants": [1.0] * 6 + [0.5]}, ValueError,
+     r"constants\[6\] \(the localization share\) must be 0 \(1/N\) or 1 \(weighted\), got 0.5"),
 ])
 def test_qp_rows_names_what_it_was_given_wrong(change, error, message) -> None:
     args = {"terms": np.zeros((1, kernels.ROW_SIZE)), "velocities": np.zeros((1, 3)),
             "weight_sums": [1.0], "position": [0.0, 0.0, 3.0], "others": [],
-            "envelope_rows": [], "envelope_lower": [], "constants": [1.0] * 6} | change
+            "envelope_rows": [], "envelope_lower": [], "constants": [1.0] * 6 + [0.0]} | change
     with pytest.raises(error, match=message) as err:
         kernels.qp_rows(*args.values())
     assert "\n" not in str(err.value)
