@@ -120,3 +120,51 @@ def test_a_drone_pushed_outward_stays_inside_when_it_flies_the_qps_answer(
     # (h' = (1 − αΔT)h on a flat boundary: never negative); the cylinder's curvature adds
     # ΔT²‖u‖² ≈ 0.0036 m² to h = d² − r² per step at most.
     assert worst >= -0.005
+
+
+# -- what mutation testing found untested (issue 46, point 2; docs/mutation.md) ------------
+
+
+def test_bad_polygons_are_refused_with_their_whole_line() -> None:
+    def refused(vertices: tuple[tuple[float, float], ...]) -> str:
+        with pytest.raises(ValueError) as caught:
+            convex_counter_clockwise(vertices)
+        return str(caught.value)
+
+    assert refused(((0, 0), (1, 0))) == "keep_in needs at least 3 vertices [x, y] (got 2)"
+    assert refused(((0, 0), (1, 0), (math.nan, 1))) == (
+        "keep_in vertices must be finite (got (nan, 1.0))")
+    assert refused(((0, 0), (4, 0), (1, 1), (0, 4))) == (
+        "keep_in must be a convex polygon (every turn the same way, no three vertices on a "
+        "line) (got [(0.0, 0.0), (4.0, 0.0), (1.0, 1.0), (0.0, 4.0)])")
+    pentagram = tuple((math.cos(4 * math.pi * k / 5), math.sin(4 * math.pi * k / 5))
+                      for k in range(5))
+    assert refused(pentagram).startswith(
+        "keep_in must not cross itself (its edges wind more than once) (got [(1.0, 0.0), ")
+
+
+@pytest.mark.parametrize("vertices", [
+    ((0, 0), (2, 0), (3, 1), (2, 2), (1, 1.5), (0, 2)),  # a reflex vertex among six
+    ((2, 5), (0, 1), (6, 4), (6, 5), (5, 5)),  # a reflex vertex among five
+    ((2, 3), (4, 0), (2, 0), (0, 0)),  # clockwise, three on a line
+    ((0, 0), (0.4, 0), (0.1, 0.1), (0, 0.4)),  # reflex, every turn smaller than 1
+])
+def test_every_turn_is_checked_however_many_vertices_and_however_small(
+        vertices: tuple[tuple[float, float], ...]) -> None:
+    with pytest.raises(ValueError, match="convex polygon"):
+        convex_counter_clockwise(vertices)
+
+
+def test_convex_polygons_of_more_vertices_and_small_turns_are_accepted() -> None:
+    for n in (3, 5, 6):
+        polygon = tuple((math.cos(2 * math.pi * k / n), math.sin(2 * math.pi * k / n))
+                        for k in range(n))
+        assert convex_counter_clockwise(polygon) == polygon
+    small = ((0.0, 0.0), (0.5, 0.0), (0.0, 0.5))  # every turn 0.25
+    assert convex_counter_clockwise(small) == small
+
+
+def test_a_non_finite_obstacle_centre_is_refused_with_its_key() -> None:
+    with pytest.raises(ValueError,
+                       match=r"^keep_out\.center_m must be a finite number \(got inf\)$"):
+        KeepOutCylinder((0.0, math.inf), 1.0)
