@@ -252,3 +252,15 @@ def test_second_derivative_is_finite_for_ill_conditioned_gramians(p: float,
     expected = _reference_second_derivative(np.array(eigenvalues), direction, p)
     assert sm.second_derivative(direction) == pytest.approx(
         expected, rel=1e-9, abs=50 * 2.2e-16 * (1.0 - p) / min(eigenvalues))
+
+
+# -- what mutation testing found untested (issue 46, point 2; docs/mutation.md) ------------
+
+
+def test_the_diagonal_of_the_divided_differences_is_their_repeated_limit() -> None:
+    """θ_kk = (p − 1) g_k/λ_k is what θ_kl tends to as λ_l → λ_k."""
+    sm = smooth_min_eigenvalue(np.diag([2.0, 2.0 + 1e-9, 5.0]), -10.0)
+    theta = sm.divided_differences
+    assert theta[0, 0] == pytest.approx(-11.0 * sm.eigen_gradient[0] / 2.0, rel=1e-12)
+    assert theta[0, 1] == pytest.approx(theta[0, 0], rel=1e-6)
+    assert theta[1, 1] == pytest.approx(theta[0, 1], rel=1e-6)
