@@ -1,14 +1,15 @@
 """``swarm-sweep``: thousands of missions from one file, on Dask (README, "Sweeps").
 
     swarm-sweep SWEEP.toml --out DIR [--scheduler tcp://HOST:8786] [--workers N]
-    swarm-sweep report DIR [--heatmap AXIS [AXIS]]
+    swarm-sweep report DIR [--heatmap AXIS [AXIS]] [--columns KEY ...]
 
 The first validates every point of the sweep (one line and exit 2 for the first bad one,
 nothing started), runs the points ``DIR/results.jsonl`` does not hold yet, appending a row as
 each mission ends, then prints the per-cell summary and writes the figures into DIR. The
 second prints the summary and redraws the figures from ``DIR/results.jsonl`` alone.
 
-Exit codes: 0 every mission of the sweep OK; 1 one VIOLATED or FAILED; 2 bad command line,
+Exit codes: 0 every mission of the sweep OK (with a ``[gate]``: the gate held,
+``swarm.sweep.gate``); 1 one VIOLATED or FAILED (the gate not held); 2 bad command line,
 sweep file, point or results file (one line on stderr, no traceback); 130 interrupted
 (Ctrl-C or SIGTERM: the missions stopped, the rows written so far kept; the same command
 again runs the rest).
@@ -26,9 +27,11 @@ from rich.console import Console
 from swarm.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, UsageError
 from swarm.scenario.cli_common import OneLineParser, fail
 from swarm.sweep.driver import SchedulerError, new_stop_event, run_sweep
+from swarm.sweep.gate import judge_gate
 from swarm.sweep.plan import local_workers, plan_sweep
 from swarm.sweep.results import RESULTS_FILE, ResultsWriter, read_rows
 from swarm.sweep.rows import OK
+from swarm.sweep.spec import GateSpec, check_columns
 from swarm.sweep.stats import cell_stats
 from swarm.sweep.summary import render_summary, write_figures, write_summary
 
@@ -79,6 +82,9 @@ def build_report_parser() -> OneLineParser:
     parser.add_argument("--heatmap", nargs="+", default=None, metavar="AXIS",
                         help="the heatmap's one or two axes (default: the first two axes "
                              "with more than one value)")
+    parser.add_argument("--columns", nargs="+", default=[], metavar="KEY",
+                        help="row keys shown per cell as ranges, dotted into a row's tables "
+                             "(e.g. tracking.velocity_error_rms_m_s loss.said)")
     return parser
 
 
@@ -129,12 +135,13 @@ def main(argv: Sequence[str] | None = None) -> int:
               f"{writer.path}; run the same command to run the rest", file=sys.stderr)
         return EXIT_INTERRUPTED
     return _summarize(rows, args.out, console, plan.spec.heatmap,
-                      f"{plan.path.name}: {len(rows)} missions")
+                      f"{plan.path.name}: {len(rows)} missions", plan.spec.gate,
+                      plan.spec.columns)
 
 
 def _summarize(rows: list[dict], out: Path, console: Console, heatmap: Sequence[str],
-               title: str) -> int:
-    cells = cell_stats(rows)
+               title: str, gate: GateSpec | None = None, columns: Sequence[str] = ()) -> int:
+    cells = cell_stats(rows, columns=columns)
     render_summary(cells, console, title)
     try:
         written = [write_summary(cells, out), *write_figures(cells, out, heatmap)]
@@ -144,6 +151,11 @@ def _summarize(rows: list[dict], out: Path, console: Console, heatmap: Sequence[
         return fail(PROG, f"{out}: cannot write the summary: {err.strerror or err}",
                     EXIT_FAILED)
     console.print("wrote " + ", ".join(str(p) for p in written), highlight=False)
+    if gate is not None:
+        verdict = judge_gate(gate, rows, cells)
+        for line in verdict.lines:
+            console.print(line, highlight=False, markup=False)
+        return EXIT_OK if verdict.held else EXIT_FAILED
     return EXIT_OK if all(row["verdict"] == OK for row in rows) else EXIT_FAILED
 
 
@@ -166,8 +178,12 @@ def report_main(argv: Sequence[str]) -> int:
                               f"{', '.join(axes) or 'none'})")
     if args.heatmap is not None and len(args.heatmap) > 2:
         return fail(PROG, "report: --heatmap takes one or two axes")
+    try:
+        columns = check_columns(args.columns, where="report: --columns")
+    except UsageError as err:
+        return fail(PROG, str(err))
     return _summarize(rows, args.directory, _console(), args.heatmap or (),
-                      f"{path}: {len(rows)} missions")
+                      f"{path}: {len(rows)} missions", columns=columns)
 
 
 if __name__ == "__main__":

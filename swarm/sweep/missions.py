@@ -4,7 +4,8 @@
 with ``record_reference`` when the sweep keeps recordings), its report built as launch-swarm
 builds it. The other modes run the real ``launch-swarm`` in a subprocess, with its own run id,
 temporary log directory and recording (read back with ``read_recording``, the figures of
-``swarm-report``), and the MAVLink port block the launcher reserves itself (a lock file per
+``swarm-report``, and the vehicles' tracking and the survivors of a loss:
+``swarm.sweep.measures``), and the MAVLink port block the launcher reserves itself (a lock file per
 block: concurrent launchers on one host take different blocks).
 
 Dask workers are daemonic processes, which may not have multiprocessing children; a subprocess
@@ -36,11 +37,14 @@ from swarm.observe.report import build_report
 from swarm.observe.report_cli import report_from_recording
 from swarm.runs.reference import run_reference
 from swarm.scenario.config import config_from_dict, write_resolved_config
+from swarm.sweep.measures import recording_measures
 from swarm.sweep.rows import MissionTask, failed_row, report_row
 
 STOP_POLL_S = 0.5  # how often a mission asks whether the sweep was stopped [s]
 TERM_GRACE_S = 15.0  # SIGTERM → SIGKILL of a stopped launch-swarm [s]
 STOPPED = "stopped:"  # how the reason of a mission stopped by the sweep begins
+LOGS = "logs"  # a process mission's log directory (kept in its recording's, if kept)
+LAUNCHER_OUTPUT = "launch-swarm.log"  # its launch-swarm's stdout and stderr, if kept
 
 
 class MissionStopped(VigilError):
@@ -110,13 +114,13 @@ def _run_inprocess(task: MissionTask, check: Callable[[], str | None],
                       recording=task.record_dir)
 
 
-def launcher_argv(task: MissionTask, config_path: Path, work: Path, record_dir: Path
+def launcher_argv(task: MissionTask, config_path: Path, log_dir: Path, record_dir: Path
                   ) -> list[str]:
     """``launch-swarm`` for one point (the resolved config, its seed, mode and run id)."""
     mode = "realtime" if task.mode.startswith("sitl:") else task.mode
     argv = [sys.executable, "-m", "swarm.launch.cli", str(config_path), "--headless",
             "--mode", mode, "--seed", str(task.seed), "--run-id", f"sweep-{task.key[:16]}",
-            "--log-dir", str(work / "logs"), "--record", str(record_dir), "--overwrite"]
+            "--log-dir", str(log_dir), "--record", str(record_dir), "--overwrite"]
     if task.mode.startswith("sitl:"):
         argv += ["--sitl", task.mode.partition(":")[2]]
     for drone, time_s in task.kill_agents:
@@ -130,8 +134,10 @@ def _run_launcher(task: MissionTask, check: Callable[[], str | None],
         work = Path(name)
         config = config_from_dict(dict(task.config_data), source=task.source)
         config_path = write_resolved_config(config, work / "config.json")
+        # A kept recording keeps the mission's logs and launch-swarm's output beside it.
         record_dir = Path(task.record_dir) if task.record_dir else work / "recording"
-        argv = launcher_argv(task, config_path, work, record_dir)
+        log_dir = record_dir / LOGS if task.record_dir else work / LOGS
+        argv = launcher_argv(task, config_path, log_dir, record_dir)
         env = os.environ | code_path(os.environ) | {"OPENBLAS_NUM_THREADS": "1"}
         with (work / "stdout.txt").open("wb") as out, (work / "stderr.txt").open("wb") as err:
             process = subprocess.Popen(
@@ -139,6 +145,10 @@ def _run_launcher(task: MissionTask, check: Callable[[], str | None],
                 start_new_session=True, preexec_fn=die_with_parent)
             stopped = _wait(process, check)
         stderr = (work / "stderr.txt").read_text(errors="replace")
+        if task.record_dir:
+            record_dir.mkdir(parents=True, exist_ok=True)
+            (record_dir / LAUNCHER_OUTPUT).write_text(
+                (work / "stdout.txt").read_text(errors="replace") + stderr)
         wall_s = time.monotonic() - started
         if stopped is not None:
             return failed_row(task, stopped, exit_code=process.returncode, wall_s=wall_s,
@@ -148,10 +158,12 @@ def _run_launcher(task: MissionTask, check: Callable[[], str | None],
             return failed_row(task, reason or f"launch-swarm exited {process.returncode} "
                                               f"without a recording",
                               exit_code=process.returncode, wall_s=wall_s, worker=worker_name())
-        report = report_from_recording(read_recording(record_dir))
+        recording = read_recording(record_dir)
+        report = report_from_recording(recording)
+        measures = recording_measures(recording, [drone for drone, _t in task.kill_agents])
         return report_row(task, report, exit_code=process.returncode, wall_s=wall_s,
                           reason=reason if process.returncode else "", worker=worker_name(),
-                          recording=task.record_dir)
+                          recording=task.record_dir, measures=measures)
 
 
 def _wait(process: subprocess.Popen[bytes], check: Callable[[], str | None]) -> str | None:

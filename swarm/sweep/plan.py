@@ -23,7 +23,7 @@ from swarm.scenario.config import (
     realtime_only_reason,
 )
 from swarm.sweep.rows import MissionTask, mission_key
-from swarm.sweep.spec import SweepError, SweepSpec, expand, parse_spec
+from swarm.sweep.spec import KILL_AXIS, KILL_DRONE, SweepError, SweepSpec, expand, parse_spec
 
 RECORDINGS = "recordings"
 CODE_VERSION_VARIABLE = "VIGIL_CODE_VERSION"
@@ -87,10 +87,12 @@ def plan_sweep(path: Path, out: Path, *, stop_event: str | None = None,
     base = (path.parent / spec.base).resolve()
     if not base.is_file():
         raise SweepError(f"{path}: base: {base} is not a scenario file")
+    kills_agents = bool(spec.kill_agents) or any(
+        any(values) for key, values in spec.axes if key == KILL_AXIS)
     reason = realtime_only_reason(
         load_config(base).vehicles, mode="realtime" if spec.sitl else spec.mode,
         inprocess=spec.mode == "inprocess", external=spec.sitl is not None,
-        kills_agents=bool(spec.kill_agents))
+        kills_agents=kills_agents)
     if reason is not None:
         raise SweepError(f"{path}: mode = {spec.mode!r}: {reason}")
     if spec.sitl is not None and check_firmware and firmware_from_env(spec.sitl) is None:
@@ -107,27 +109,39 @@ def plan_sweep(path: Path, out: Path, *, stop_event: str | None = None,
             mode_problem = realtime_only_reason(
                 vehicles, mode="realtime" if spec.sitl else spec.mode,
                 inprocess=spec.mode == "inprocess", external=spec.sitl is not None,
-                kills_agents=bool(spec.kill_agents))
+                kills_agents=bool(spec.kill_agents) or point.kill_at_s is not None)
             if mode_problem is not None:
                 raise ConfigError(mode_problem)
             for drone, _time_s in spec.kill_agents:
                 if drone >= config.swarm.n_drones:
                     raise ConfigError(f"kill_agents: drone {drone} out of range "
                                       f"0..{config.swarm.n_drones - 1}")
+            if point.kill_at_s is not None and point.kill_at_s >= config.scenario.duration_s:
+                raise ConfigError(f"{KILL_AXIS} = {point.kill_at_s:g}: not before the "
+                                  f"mission's end ({config.scenario.duration_s:g} s)")
         except ConfigError as err:
             raise SweepError(f"{path}: point {point.describe()}: {err}") from None
         data = config_to_data(config)
-        key = mission_key(data, point.seed, spec.mode, spec.kill_agents, version)
-        if key in seen:
-            raise SweepError(f"{path}: point {point.describe()}: the same mission as an "
-                             f"earlier point (an axis value that changes nothing?)")
-        seen.add(key)
-        tasks.append(MissionTask(
-            key=key, params=point.params, axes=spec.axis_keys, seed=point.seed,
-            mode=spec.mode, config_data=data, source=str(base), code_version=version,
-            kill_agents=spec.kill_agents,
-            record_dir=str((out / RECORDINGS / key).resolve()) if spec.record else None,
-            timeout_s=spec.timeout_s, stop_event=stop_event, keep=spec.keep))
+        losses: list[tuple[tuple[int, float], ...] | None] = [None]
+        if point.kill_at_s is not None:
+            losses = [((drone, point.kill_at_s),) for drone in range(config.swarm.n_drones)]
+        elif any(key == KILL_AXIS for key in spec.axis_keys):
+            losses = [()]  # the cell without a loss
+        for loss in losses:
+            kills = spec.kill_agents if loss is None else loss
+            params = point.params if loss is None else point.params | {
+                KILL_DRONE: loss[0][0] if loss else None}
+            key = mission_key(data, point.seed, spec.mode, kills, version)
+            if key in seen:
+                raise SweepError(f"{path}: point {point.describe()}: the same mission as an "
+                                 f"earlier point (an axis value that changes nothing?)")
+            seen.add(key)
+            tasks.append(MissionTask(
+                key=key, params=params, axes=spec.axis_keys, seed=point.seed,
+                mode=spec.mode, config_data=data, source=str(base), code_version=version,
+                kill_agents=kills,
+                record_dir=str((out / RECORDINGS / key).resolve()) if spec.record else None,
+                timeout_s=spec.timeout_s, stop_event=stop_event, keep=spec.keep))
     return SweepPlan(spec=spec, path=path, base=base, tasks=tuple(tasks), code_version=version)
 
 

@@ -87,10 +87,11 @@ def failed_row(task: MissionTask, reason: str, *, exit_code: int | None = None,
 
 
 def report_row(task: MissionTask, report: RunReport, *, exit_code: int | None, wall_s: float,
-               reason: str = "", worker: str = "", recording: str | None = None
-               ) -> dict[str, Any]:
-    """The row of a mission that ran: its report's verdict and figures. A report cut short
-    (INCOMPLETE) is FAILED: nothing is known of the rest of the mission."""
+               reason: str = "", worker: str = "", recording: str | None = None,
+               measures: Mapping[str, Any] | None = None) -> dict[str, Any]:
+    """The row of a mission that ran: its report's verdict and figures, and ``measures``
+    (a process mission's ``swarm.sweep.measures``). A report cut short (INCOMPLETE) is
+    FAILED: nothing is known of the rest of the mission."""
     verdict = {"ok": OK, "violated": VIOLATED, "incomplete": FAILED}[report.verdict]
     if report.verdict == "incomplete" and not reason:
         reason = f"incomplete: {report.steps} of {report.coverage.planned_steps} steps"
@@ -130,5 +131,6 @@ def report_row(task: MissionTask, report: RunReport, *, exit_code: int | None, w
         "planned_steps": report.coverage.planned_steps,
         "recording": recording,
     }
+    extra.update(measures or {})
     row.update({key: value for key, value in extra.items() if key in task.keep})
     return row

@@ -9,6 +9,7 @@ beyond what the caller hands in (the parsed TOML document), no Dask.
     timeout_s = 600                 # a mission still running then is stopped: FAILED
     heatmap = ["targets.0.velocity_m_s", "gramian.epsilon"]   # the figure's two axes
     keep = ["margins", "qp_fallbacks"]   # the optional row keys to keep (default: all)
+    columns = ["tracking.velocity_error_rms_m_s"]   # row keys shown per cell, as ranges
 
     [set]                           # the same for every point (launch-swarm --set)
     "scenario.duration_s" = 20.0
@@ -16,6 +17,8 @@ beyond what the caller hands in (the parsed TOML document), no Dask.
     [axes]                          # the grid: every combination of these values
     "gramian.epsilon" = [0.04, 0.05, 0.06]
     "targets.0.velocity_m_s" = [[0.2, 0.0, 0.0], [0.4, 0.0, 0.0]]
+    # "kill.at_s" = [0.0, 12.0]     # realtime: each drone lost in turn at that time, one
+    #                               # mission per drone ("kill.drone"), 0 = none lost
 
     [samples]                       # optional: random points, crossed with the grid
     count = 10
@@ -23,9 +26,15 @@ beyond what the caller hands in (the parsed TOML document), no Dask.
     [samples.ranges]                # uniform in [low, high]; integers if both are integers
     "camera.image_noise_std" = [0.0, 0.01]
 
-A point is one grid cell × one sample × one seed; every point is one mission. Keys are
-``swarm.scenario.overrides`` keys: that module applies them, and the scenario config
-validates every point as it validates a file.
+    [gate]                          # optional: what the exit code holds the sweep to
+    hard = ["collision", "envelope"]   # invariants no mission may break (no exception)
+    min_pass_rate = 0.75            # each cell's OK / (OK + VIOLATED) at least this
+
+A point is one grid cell × one sample × one seed; every point is one mission, except that a
+cell with ``kill.at_s`` > 0 is one mission per drone lost (``swarm.sweep.plan``: the number
+of drones is the point's config's). Keys are ``swarm.scenario.overrides`` keys: that module
+applies them, and the scenario config validates every point as it validates a file;
+``kill.at_s`` is the sweep's own.
 """
 
 from __future__ import annotations
@@ -45,10 +54,21 @@ MODES = ("inprocess", "lockstep", "realtime", "sitl:ardupilot", "sitl:px4")
 OPTIONAL_KEYS = ("margins", "violations", "min_true_lambda_margin", "final_error_m",
                  "rms_error_m", "max_abs_velocity_m_s", "qp_fallbacks", "late_steps",
                  "rejected_messages", "safety_conflicts", "steps", "planned_steps",
-                 "recording")
+                 "recording", "tracking", "rate_limit_releases", "reference_resets", "loss")
 TOP_KEYS = ("base", "mode", "seeds", "record", "kill_agents", "timeout_s", "heatmap", "keep",
-            "set", "axes", "samples")
+            "columns", "set", "axes", "samples", "gate")
+# Row keys every row has that a summary column may show (swarm.sweep.rows.REQUIRED_KEYS).
+NUMBER_KEYS = ("min_lambda_margin", "min_distance_m", "wall_s", "exit_code")
 SAMPLE_KEYS = ("count", "seed", "ranges")
+GATE_KEYS = ("hard", "min_pass_rate")
+# The invariants a report names (swarm.runs.checks.check_invariants); those needing no
+# estimate are hard rows of every QP from the first step (SPEC §9), the gate's default.
+INVARIANTS = ("finite", "lambda_bar", "collision", "envelope", "velocity_bound")
+SAFETY_INVARIANTS = ("collision", "envelope", "velocity_bound", "finite")
+# The grid axis of drone losses: each drone's agent killed in turn at that mission time (one
+# mission per drone, its id in the row's params as KILL_DRONE); 0: none lost.
+KILL_AXIS = "kill.at_s"
+KILL_DRONE = "kill.drone"
 MAX_POINTS = 1_000_000
 
 Value = object
@@ -66,6 +86,16 @@ class SampleSpec:
 
 
 @dataclass(frozen=True)
+class GateSpec:
+    """The sweep's pass/fail (its exit code): no mission FAILED, none broke a ``hard``
+    invariant, and every cell's pass rate OK / (OK + VIOLATED) is at least
+    ``min_pass_rate`` (0: no floor)."""
+
+    hard: tuple[str, ...] = SAFETY_INVARIANTS
+    min_pass_rate: float = 0.0
+
+
+@dataclass(frozen=True)
 class SweepSpec:
     base: str  # the scenario file, as written (relative to the sweep file)
     mode: str
@@ -78,6 +108,8 @@ class SweepSpec:
     timeout_s: float | None = None
     heatmap: tuple[str, ...] = ()
     keep: tuple[str, ...] = OPTIONAL_KEYS
+    gate: GateSpec | None = None
+    columns: tuple[str, ...] = ()  # row keys (dotted into a row's tables) shown per cell
 
     @property
     def axis_keys(self) -> tuple[str, ...]:
@@ -102,6 +134,13 @@ class Point:
     sampled: tuple[tuple[str, Value], ...] = ()
     seed: int = 0
     overrides: tuple[tuple[str, Value], ...] = field(default=(), compare=False)
+
+    @property
+    def kill_at_s(self) -> float | None:
+        """The ``kill.at_s`` of the point's cell: each drone lost in turn then (None: no
+        such axis, or 0: none lost)."""
+        value = dict(self.cell).get(KILL_AXIS)
+        return float(value) if value else None
 
     @property
     def params(self) -> dict[str, Value]:
@@ -151,18 +190,28 @@ def _parse(data: Mapping[str, object]) -> SweepSpec:
     if timeout is not None and (not _number(timeout) or not math.isfinite(timeout)
                                 or timeout <= 0):
         raise SweepError(f"timeout_s: must be a finite number of seconds > 0 (got {timeout!r})")
+    if kills and any(k == KILL_AXIS for k, _v in axes):
+        raise SweepError(f"kill_agents: and axes.{KILL_AXIS!r}: give one of the two")
     keys = [k for k, _v in axes] + ([k for k, _lo, _hi in samples.ranges] if samples else [])
     for key, _value in fixed:
+        if key == KILL_AXIS:
+            raise SweepError(f"set.{key!r}: {KILL_AXIS} is a grid axis ([axes]) or "
+                             f"kill_agents")
         if key in keys:
             raise SweepError(f"set.{key!r}: also an axis or a sampled key: give it once")
     if len(set(keys)) != len(keys):
         raise SweepError("samples.ranges: a key is both an axis and sampled: give it once")
     heatmap = _heatmap(data.get("heatmap"), [k for k, _v in axes])
     keep = _keep(data.get("keep"))
+    gate = _gate(data["gate"]) if "gate" in data else None
+    columns = check_columns(data.get("columns", []), keep, "columns")
+    if gate is not None and gate.hard and "violations" not in keep:
+        raise SweepError("keep: the gate's hard invariants are read from each row's "
+                         "violations: keep \"violations\"")
     spec = SweepSpec(base=base, mode=mode, seeds=seeds, axes=axes, fixed=fixed,
                      samples=samples, record=record, kill_agents=kills,
                      timeout_s=float(timeout) if timeout is not None else None,
-                     heatmap=heatmap, keep=keep)
+                     heatmap=heatmap, keep=keep, gate=gate, columns=columns)
     if spec.n_points > MAX_POINTS:
         raise SweepError(f"{spec.n_points} points: more than {MAX_POINTS} missions in one "
                          f"sweep; split it")
@@ -229,6 +278,9 @@ def _axes(table: Mapping[str, object]) -> tuple[tuple[str, tuple[Value, ...]], .
             _finite(where, value)
         if len({repr(v) for v in values}) != len(values):
             raise SweepError(f"{where}: a value is given twice")
+        if key == KILL_AXIS and not all(_number(v) and v >= 0 for v in values):
+            raise SweepError(f"{where}: mission times in seconds >= 0 (0: no drone lost), "
+                             f"got {values!r}")
         out.append((key, tuple(values)))
     return tuple(out)
 
@@ -252,6 +304,8 @@ def _samples(value: object) -> SampleSpec:
     for key, bounds in ranges.items():
         where = f"samples.ranges.{key!r}"
         check_key(key)
+        if key == KILL_AXIS:
+            raise SweepError(f"{where}: {KILL_AXIS} is a grid axis ([axes]), not sampled")
         if (not isinstance(bounds, list) or len(bounds) != 2
                 or not all(_number(b) for b in bounds)):
             raise SweepError(f"{where}: must be [low, high], two numbers (got {bounds!r})")
@@ -279,6 +333,40 @@ def _kills(value: object) -> tuple[tuple[int, float], ...]:
                              f"in seconds > 0 (e.g. \"1@12.5\"), got {item!r}")
         out.append((int(drone), time_s))
     return tuple(out)
+
+
+def check_columns(value: object, keep: Sequence[str] = OPTIONAL_KEYS,
+                  where: str = "columns") -> tuple[str, ...]:
+    """Summary columns: row keys, dotted into a row's tables (``loss.final_error_m``)."""
+    if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+        raise SweepError(f"{where}: must be an array of row keys (got {value!r})")
+    for path in value:
+        head = path.split(".")[0]
+        if head not in (*NUMBER_KEYS, *OPTIONAL_KEYS):
+            raise SweepError(f"{where}: {path!r} is not a row key (they are: "
+                             f"{', '.join((*NUMBER_KEYS, *OPTIONAL_KEYS))})")
+        if head in OPTIONAL_KEYS and head not in keep:
+            raise SweepError(f"{where}: {path!r}: keep {head!r} too")
+    return tuple(value)
+
+
+def _gate(value: object) -> GateSpec:
+    if not isinstance(value, Mapping):
+        raise SweepError(f"gate: must be a table ([gate]) (got {value!r})")
+    for key in value:
+        if key not in GATE_KEYS:
+            raise SweepError(f"gate.{key}: unknown key (known keys: {', '.join(GATE_KEYS)})")
+    hard = value.get("hard", list(SAFETY_INVARIANTS))
+    if not isinstance(hard, list) or not all(isinstance(v, str) for v in hard):
+        raise SweepError(f"gate.hard: must be an array of invariant names (got {hard!r})")
+    for name in hard:
+        if name not in INVARIANTS:
+            raise SweepError(f"gate.hard: {name!r} is not an invariant (they are: "
+                             f"{', '.join(INVARIANTS)})")
+    floor = value.get("min_pass_rate", 0.0)
+    if not _number(floor) or not 0.0 <= floor <= 1.0:
+        raise SweepError(f"gate.min_pass_rate: must be a number in [0, 1] (got {floor!r})")
+    return GateSpec(hard=tuple(dict.fromkeys(hard)), min_pass_rate=float(floor))
 
 
 def _heatmap(value: object, axes: Sequence[str]) -> tuple[str, ...]:
@@ -323,5 +411,5 @@ def expand(spec: SweepSpec) -> list[Point]:
                     drawn.append((key, float(rng.uniform(low, high))))
             samples.append(tuple(drawn))
     return [Point(cell=tuple(cell), sampled=sample, seed=seed,
-                  overrides=spec.fixed + tuple(cell) + sample)
+                  overrides=spec.fixed + tuple(c for c in cell if c[0] != KILL_AXIS) + sample)
             for cell in cells for sample in samples for seed in spec.seeds]

@@ -51,6 +51,7 @@ class CellStats:
     worst_margin: float | None
     worst_distance_m: float | None  # the smallest min_distance_m
     margins: tuple[float, ...]  # every mission's min_lambda_margin (the distribution)
+    columns: tuple[tuple[str, str], ...] = ()  # (row key, its range over the cell, shown)
 
     @property
     def judged(self) -> int:
@@ -69,8 +70,43 @@ def _hashable(value: Any) -> Any:
     return value
 
 
-def cell_stats(rows: Sequence[Row], confidence: float = 0.95) -> list[CellStats]:
-    """One ``CellStats`` per grid cell, in the order the cells first appear."""
+def row_value(row: Row, path: str) -> Any:
+    """The value at ``path`` in a row (``margins.collision_m``: a key of a key), or None."""
+    value: Any = row
+    for part in path.split("."):
+        if not isinstance(value, Mapping) or part not in value:
+            return None
+        value = value[part]
+    return value
+
+
+def column_range(rows: Sequence[Row], path: str) -> str:
+    """A row key's values over a cell, for the table: numbers as their smallest … largest,
+    arrays of numbers (one per target) element by element joined by "; ", true/false as how
+    many are true of those that say ("2 of 3"); "—" where no row has one."""
+    values = [v for v in (row_value(r, path) for r in rows) if v is not None]
+    if not values:
+        return "—"
+    if all(isinstance(v, bool) for v in values):
+        return f"{sum(values)} of {len(values)}"
+    if all(isinstance(v, list) for v in values):
+        width = max(len(v) for v in values)
+        return "; ".join(_span([v[i] for v in values if i < len(v)]) for i in range(width))
+    return _span(values)
+
+
+def _span(values: Sequence[Any]) -> str:
+    numbers = [float(v) for v in values if _finite(v)]
+    if not numbers:
+        return "—"
+    low, high = min(numbers), max(numbers)
+    return format_value(low) if low == high else f"{format_value(low)} … {format_value(high)}"
+
+
+def cell_stats(rows: Sequence[Row], confidence: float = 0.95,
+               columns: Sequence[str] = ()) -> list[CellStats]:
+    """One ``CellStats`` per grid cell, in the order the cells first appear; ``columns``: row
+    keys (dotted into a row's tables) whose range per cell the table shows too."""
     groups: dict[tuple[tuple[str, Any], ...], list[Row]] = {}
     for row in rows:
         groups.setdefault(cell_of(row), []).append(row)
@@ -91,7 +127,8 @@ def cell_stats(rows: Sequence[Row], confidence: float = 0.95) -> list[CellStats]
             median_margin=statistics.median(margins) if margins else None,
             worst_margin=min(margins) if margins else None,
             worst_distance_m=min(distances) if distances else None,
-            margins=margins))
+            margins=margins,
+            columns=tuple((path, column_range(members, path)) for path in columns)))
     return out
 
 

@@ -38,15 +38,16 @@ def _fmt(value: float | None, spec: str) -> str:
 
 def summary_table(cells: Sequence[CellStats], title: str = "sweep") -> Table:
     table = Table(title=title, title_justify="left")
+    extra = [path for path, _shown in cells[0].columns] if cells else []
     for name in ("cell", "missions", "OK", "VIOLATED", "FAILED", "pass rate", "95 % Wilson",
-                 "median λ̄−ε", "worst λ̄−ε", "min dist [m]"):
+                 "median λ̄−ε", "worst λ̄−ε", "min dist [m]", *extra):
         table.add_column(name, justify="left" if name == "cell" else "right", no_wrap=True)
     for c in cells:
         table.add_row(describe_cell(c.cell), str(c.missions), str(c.ok), str(c.violated),
                       str(c.failed), _fmt(c.pass_rate, ".3f"),
                       f"[{c.interval[0]:.3f}, {c.interval[1]:.3f}]",
                       _fmt(c.median_margin, "+.4f"), _fmt(c.worst_margin, "+.4f"),
-                      _fmt(c.worst_distance_m, ".3f"))
+                      _fmt(c.worst_distance_m, ".3f"), *(shown for _path, shown in c.columns))
     return table
 
 
@@ -65,7 +66,8 @@ def summary_data(cells: Sequence[CellStats]) -> list[dict[str, Any]]:
     return [{"cell": {k: v for k, v in c.cell}, "missions": c.missions, "ok": c.ok,
              "violated": c.violated, "failed": c.failed, "pass_rate": c.pass_rate,
              "wilson_95": list(c.interval), "median_lambda_margin": c.median_margin,
-             "worst_lambda_margin": c.worst_margin, "worst_distance_m": c.worst_distance_m}
+             "worst_lambda_margin": c.worst_margin, "worst_distance_m": c.worst_distance_m,
+             **({"columns": dict(c.columns)} if c.columns else {})}
             for c in cells]
 
 
