@@ -38,21 +38,39 @@ def _fmt(value: float | None, spec: str) -> str:
 
 def summary_table(cells: Sequence[CellStats], title: str = "sweep") -> Table:
     table = Table(title=title, title_justify="left")
-    extra = [path for path, _shown in cells[0].columns] if cells else []
     for name in ("cell", "missions", "OK", "VIOLATED", "FAILED", "pass rate", "95 % Wilson",
-                 "median λ̄−ε", "worst λ̄−ε", "min dist [m]", *extra):
+                 "median λ̄−ε", "worst λ̄−ε", "min dist [m]"):
         table.add_column(name, justify="left" if name == "cell" else "right", no_wrap=True)
     for c in cells:
         table.add_row(describe_cell(c.cell), str(c.missions), str(c.ok), str(c.violated),
                       str(c.failed), _fmt(c.pass_rate, ".3f"),
                       f"[{c.interval[0]:.3f}, {c.interval[1]:.3f}]",
                       _fmt(c.median_margin, "+.4f"), _fmt(c.worst_margin, "+.4f"),
-                      _fmt(c.worst_distance_m, ".3f"), *(shown for _path, shown in c.columns))
+                      _fmt(c.worst_distance_m, ".3f"))
+    return table
+
+
+def columns_table(cells: Sequence[CellStats]) -> Table | None:
+    """The sweep's ``columns`` per cell (their ranges), a table of its own beside the
+    summary's, so that neither is too wide for a terminal; None without columns."""
+    paths = [path for path, _shown in cells[0].columns] if cells else []
+    if not paths:
+        return None
+    table = Table(title="per cell (smallest … largest; per target; k of n)",
+                  title_justify="left")
+    table.add_column("cell", no_wrap=True)
+    for path in paths:
+        table.add_column(path, justify="right")
+    for c in cells:
+        table.add_row(describe_cell(c.cell), *(shown for _path, shown in c.columns))
     return table
 
 
 def render_summary(cells: Sequence[CellStats], console: Console, title: str) -> None:
     console.print(summary_table(cells, title))
+    extra = columns_table(cells)
+    if extra is not None:
+        console.print(extra)
     total = sum(c.missions for c in cells)
     ok = sum(c.ok for c in cells)
     violated = sum(c.violated for c in cells)

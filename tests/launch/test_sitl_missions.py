@@ -8,23 +8,23 @@ take off and fly the mission against virtual targets; it records what the agents
 what every autopilot said about itself (``autopilot/<i>/state``), reports, and stops
 everything.
 
-- Case 1 on ArduCopter with three drones, flown through ``benchmarks/sitl_soak.py`` (one
-  mission of its default configuration): every SPEC invariant within tolerance after the
-  start, a final estimation error within 0.1 m (the emulated realtime runs reach
-  0.01-0.06 m; the world's truth here is what the autopilots estimate, so the filters see
-  the same geometry they fly), every camera frame measured from the pose it was taken at,
-  every vehicle armed in GUIDED during the mission and in BRAKE (the end action "hold") at
-  its end. Three, not six: two cores do not carry six SITLs beside six agents (measured
-  2026-11-27: 18-68 % late steps, the estimate lagging the target by up to 0.2-0.6 m late in
-  the mission; three drones: no late step, ≤ 0.04 m) — issue 16's cost problem.
+- Case 1 on ArduCopter with three drones, two missions of the soak sweep
+  (``sweeps/sitl_soak/ardupilot.toml`` through ``swarm-sweep``): every SPEC invariant within
+  tolerance after the start, a final estimation error within 0.1 m (the emulated realtime
+  runs reach 0.01-0.06 m; the world's truth here is what the autopilots estimate, so the
+  filters see the same geometry they fly), every camera frame measured from the pose it was
+  taken at, every vehicle armed in GUIDED during the mission and in BRAKE (the end action
+  "hold") at its end. Three, not six: two cores do not carry six SITLs beside six agents
+  (measured 2026-11-27: 18-68 % late steps, the estimate lagging the target by up to 0.2-0.6
+  m late in the mission; three drones: no late step, ≤ 0.04 m) — issue 16's cost problem.
 - ``kill -9`` of one agent mid-mission (ArduCopter, three drones): its vehicle flies on at
   the last commanded velocity for GUID_TIMEOUT (3 s) and then stops and holds, still armed
   in GUIDED (observed on the autopilot's own link); the other two go on to the end with a
   swarm of two; the run ends with exit code 1 naming the loss.
 - PX4 (SIH, three drones) from the ground: climb, OFFBOARD, the mission on tracked setpoints,
   a battery failsafe forced mid-mission and watched by every agent (policy "continue"), the
-  end action (Hold). The pass rate of the invariants on each SITL is
-  ``benchmarks/sitl_soak.py``'s (the six-drone Case 1 above runs through it).
+  end action (Hold). The pass rate of the invariants on each SITL is the soak sweeps'
+  (``sweeps/sitl_soak/``; the three-drone Case 1 above runs through one).
 - ArduCopter's battery failsafe with the policy "end": the mission ends at once.
 
 Nothing may be left running afterwards. Skipped, saying why, without a SITL build.
@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from swarm.mavlink.sitl import ENV_VARIABLE
 from swarm.messages.wire import TelemetryWire
 from swarm.observe.recording import AutopilotState, iter_messages, read_recording
 from swarm.runs.checks import check_invariants
@@ -90,40 +91,56 @@ def telemetry(recording: Path) -> dict[int, list[TelemetryWire]]:
     return out
 
 
-def test_case1_flies_on_arducopter_sitl_through_the_soak_script(tmp_path: Path) -> None:
-    """Case 1 (three drones), one mission of ``benchmarks/sitl_soak.py`` (issue 14, point 6:
-    the script that gives the pass rates, run as a user runs it): its table and JSON row, and
-    on the kept recording and logs every invariant, the final error, the modes."""
-    firmware_or_skip("ardupilot")
-    rows = tmp_path / "rows.json"
+def test_case1_flies_on_arducopter_sitl_through_the_soak_sweep(tmp_path: Path) -> None:
+    """Case 1 (three drones), two missions of the soak sweep ``sweeps/sitl_soak/ardupilot.toml``
+    (issue 14, point 6; issue 42, point 7: a SITL sweep in CI), run by ``swarm-sweep`` as a
+    user runs it, recordings kept: a row per seed and its cell's table, and on each kept
+    recording and its logs every invariant, the final error, the modes."""
+    firmware = firmware_or_skip("ardupilot")
+    shipped = ROOT / "sweeps" / "sitl_soak" / "ardupilot.toml"
+    text = shipped.read_text()
+    assert 'seeds = [0, 9]' in text and 'base = "../../tests/configs/case1_three.toml"' in text
+    sweep = tmp_path / "soak.toml"
+    sweep.write_text(text.replace("seeds = [0, 9]", "seeds = [0, 1]\nrecord = true")
+                     .replace("../../tests/configs/", f"{ROOT}/tests/configs/"))
+    out = tmp_path / "out"
     done = subprocess.run(
-        [sys.executable, "benchmarks/sitl_soak.py", "--autopilot", "ardupilot", "--runs", "1",
-         "--json", str(rows), "--keep", str(tmp_path / "runs")],
-        capture_output=True, text=True, cwd=ROOT, timeout=400)
-    soak_out = done.stdout + done.stderr
-    assert done.returncode == 0, soak_out
-    assert "ardupilot, tracked setpoints: 1 of 1 missions held every invariant" in soak_out
-    (row,) = json.loads(rows.read_text())
-    assert row["ok"] and row["exit_code"] == 0 and row["autopilot"] == "ardupilot"
-    assert row["tracking_error_bound_m_s"] > 0 and row["command_accel_limit_m_s2"] > 0
-    # The agents measured their vehicles against the command reference every step.
-    assert 0.0 < row["velocity_error_rms_m_s"] < 0.5 and 0.0 < row["position_error_rms_m"] < 0.5
-    run = tmp_path / "runs" / "ardupilot_case1_three_tracked_0"
+        [sys.executable, "-m", "swarm.sweep.cli", str(sweep), "--out", str(out)],
+        capture_output=True, text=True, cwd=ROOT, timeout=900,
+        env=os.environ | {ENV_VARIABLE["ardupilot"]: str(firmware.path)})
+    sweep_out = done.stdout + done.stderr
+    assert done.returncode == 0, sweep_out
+    assert "vehicles.setpoints=tracked" in sweep_out and "2 missions: 2 OK" in sweep_out
+    rows = [json.loads(line) for line in (out / "results.jsonl").read_text().splitlines()]
+    assert sorted(r["seed"] for r in rows) == [0, 1]
+    for row in rows:
+        assert row["verdict"] == "OK" and row["exit_code"] == 0, row
+        assert row["mode"] == "sitl:ardupilot" and row["params"]["vehicles.setpoints"] == "tracked"
+        # The agents measured their vehicles against the command reference every step.
+        tracking = row["tracking"]
+        assert 0.0 < tracking["velocity_error_rms_m_s"] < 0.5
+        assert 0.0 < tracking["position_error_rms_m"] < 0.5
+        check_kept_mission(Path(row["recording"]), row, tmp_path)
+    assert sitl_processes(containing=str(tmp_path)) == []
+
+
+def check_kept_mission(run: Path, row: dict, tmp_path: Path) -> None:
     out = (run / "launch-swarm.log").read_text()
     assert "verdict: OK" in out, out
     assert "every drone armed and streaming" in out, out
-
-    recording = read_recording(run / "rec", fill_gaps=True)
+    recording = read_recording(run, fill_gaps=True)
     record = recording.record
     config = recording.config
     assert config.vehicles.flavour == "ardupilot" and len(config.vehicles.origin_offsets_m) == 3
+    assert config.control.tracking_error_bound_m_s > 0
+    assert config.control.command_accel_limit_m_s2 > 0
     assert record.n_steps == config.n_steps
     assert check_invariants(record) == []
     final_error = record.position_errors()[-1].max()
-    late = f"{row['late_steps']} late of {row['steps']} agent steps"
+    late = f"{row['late_steps']} late of {row['steps']} steps"
     assert final_error < FINAL_ERROR_BOUND_M, (final_error, late)
 
-    states = autopilot_states(run / "rec")
+    states = autopilot_states(run)
     assert sorted(states) == list(range(3))
     for drone, samples in states.items():
         during = [s for s in samples if 1.0 <= s.time_s <= config.scenario.duration_s - 1.0]
@@ -136,7 +153,6 @@ def test_case1_flies_on_arducopter_sitl_through_the_soak_script(tmp_path: Path) 
         assert "TAKEOFF to" in agent_log and "climb done" in agent_log, agent_log
         assert "end action hold (BRAKE) accepted" in agent_log, agent_log
     assert "launch-swarm: drones 0, 1, 2: end action hold (BRAKE) accepted" in out, out
-    assert sitl_processes(containing=str(tmp_path)) == []
 
 
 def _kill_when_moving(process: subprocess.Popen, tmp_path: Path,
