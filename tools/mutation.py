@@ -1,8 +1,8 @@
 """Mutation testing of the code that decides safety (issue 46, points 2-3): does a test fail
 when that code is changed a little?
 
-    python tools/mutation.py                          # every group (~1 h on 2 cores)
-    python tools/mutation.py --groups checks --check  # the judge alone, as CI runs it
+    python tools/mutation.py                          # every group (~1.5 h on 2 busy cores)
+    python tools/mutation.py --groups checks --check  # the judge alone (~4.5 min)
     python tools/mutation.py --groups c --markdown table.md
 
 Groups (each against its fast tests, never the slow scenario runs):
