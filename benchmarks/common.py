@@ -54,6 +54,9 @@ class Profile:
     import_repeats: int
     host_round_trips: int  # datagrams bounced between two processes (bench_host)
     host_timer_ticks: int  # wake-ups of a 50 Hz sleeper (bench_host)
+    sweep_missions: int  # in-process Case 1 missions per timed sweep (bench_sweep)
+    sweep_duration_s: float  # their simulated length
+    cvxpy_mission_duration_s: float  # Case 2 in-process, ours against CVXPY (bench_sweep)
 
 
 PROFILES: dict[str, Profile] = {
@@ -63,21 +66,24 @@ PROFILES: dict[str, Profile] = {
                     lockstep_sizes=(6, 12, 24, 48),
                     lockstep_duration_s=10.0, lockstep_repeats=3, realtime_duration_s=10.0,
                     realtime_repeats=3, startup_repeats=5, startup_duration_s=1.5,
-                    import_repeats=5, host_round_trips=3000, host_timer_ticks=100),
+                    import_repeats=5, host_round_trips=3000, host_timer_ticks=100,
+                    sweep_missions=40, sweep_duration_s=30.0, cvxpy_mission_duration_s=50.0),
     "quick": Profile("quick", step_duration_s=15.0, step_repeats=2, step_targets=(1, 2, 3),
                      cvxpy_step_start_s=12.0, cvxpy_step_duration_s=1.0, qp_count=60,
                      qp_passes=2, qp_capture_duration_s=20.0, swarm_sizes=(6, 12, 24),
                      lockstep_sizes=(6, 12, 24, 48),
                      lockstep_duration_s=4.0, lockstep_repeats=2, realtime_duration_s=6.0,
                      realtime_repeats=2, startup_repeats=3, startup_duration_s=1.5,
-                     import_repeats=3, host_round_trips=2000, host_timer_ticks=50),
+                     import_repeats=3, host_round_trips=2000, host_timer_ticks=50,
+                     sweep_missions=16, sweep_duration_s=30.0, cvxpy_mission_duration_s=10.0),
     "smoke": Profile("smoke", step_duration_s=1.2, step_repeats=1, step_targets=(2,),
                      cvxpy_step_start_s=1.0, cvxpy_step_duration_s=0.1, qp_count=4,
                      qp_passes=1, qp_capture_duration_s=1.2, swarm_sizes=(6,),
                      lockstep_sizes=(6,),
                      lockstep_duration_s=1.2, lockstep_repeats=1, realtime_duration_s=2.0,
                      realtime_repeats=1, startup_repeats=1, startup_duration_s=1.2,
-                     import_repeats=1, host_round_trips=300, host_timer_ticks=10),
+                     import_repeats=1, host_round_trips=300, host_timer_ticks=10,
+                     sweep_missions=4, sweep_duration_s=1.2, cvxpy_mission_duration_s=1.2),
 }
 
 

@@ -1,6 +1,6 @@
 """Every benchmark of issues 5 and 16 in one command: tables on stdout, JSON in results/.
 
-    python benchmarks/run_all.py                   # full run (~20 min on 2 cores)
+    python benchmarks/run_all.py                   # full run (~25 min on 2 cores)
     python benchmarks/run_all.py --quick           # a few minutes, to benchmarks/results/quick/
     python benchmarks/run_all.py --only step,qp    # some sections
 
@@ -21,6 +21,9 @@ Sections (each also runs alone: ``python benchmarks/<module>.py``):
 - ``realtime`` (realtime_swarm.py) 50 Hz process swarm for N = 6, 12, 24: late steps, step
                                    latency, neighbour-data age, CPU per agent;
 - ``startup``  (bench_startup.py)  launch → every drone streaming, agent memory, imports.
+- ``sweep``    (bench_sweep.py)    swarm-sweep's overhead per in-process mission, two local
+                                   workers against one, and in-process Case 2 with our QP
+                                   against the CVXPY QP rebuilt each step (issue 42).
 
 Writes ``<out>/<section>.json`` and ``<out>/summary.json`` (machine, versions, load average
 before and after each section, the issue's targets against the newest figures of every
@@ -45,6 +48,7 @@ import bench_lockstep
 import bench_qp
 import bench_startup
 import bench_step
+import bench_sweep
 import realtime_swarm
 from common import (
     PROFILES,
@@ -60,7 +64,7 @@ from common import (
 from plot_scaling import WORLD_TARGET_MS_PER_DRONE, write_scaling_plot
 from rich.table import Table
 
-SECTIONS = ("host", "step", "qp", "lockstep", "realtime", "startup")
+SECTIONS = ("host", "step", "qp", "lockstep", "realtime", "startup", "sweep")
 MIB_PER_MB = 1e6 / 2**20
 
 
@@ -79,13 +83,15 @@ def run_section(name: str, profile: Any, done: dict[str, dict[str, Any]],
         return bench_lockstep.run(profile)
     if name == "realtime":
         return realtime_swarm.run(profile)
+    if name == "sweep":
+        return bench_sweep.run(profile)
     return bench_startup.run(profile)
 
 
 TABLES: dict[str, Callable[[dict[str, Any]], list[Table]]] = {
     "host": bench_host.tables, "step": bench_step.tables, "qp": bench_qp.tables,
     "lockstep": bench_lockstep.tables, "realtime": realtime_swarm.tables,
-    "startup": bench_startup.tables,
+    "startup": bench_startup.tables, "sweep": bench_sweep.tables,
 }
 
 
@@ -112,8 +118,9 @@ def _world_ms_per_drone(lockstep: dict[str, Any] | None) -> tuple[float, int] | 
 
 
 def targets(done: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
-    """Each target of issue 16 with the figure measured for it (None: section not run)."""
-    step, startup = done.get("step"), done.get("startup")
+    """Each target of issues 16 and 42 with the figure measured for it (None: section not
+    run)."""
+    step, startup, sweep = done.get("step"), done.get("startup"), done.get("sweep")
     step_m2 = cvxpy_ratio = cpu_ratio = None
     if step is not None:
         ours = next((r for r in step["results"] if r["m_targets"] == 2 and r["qp"] == "ours"),
@@ -154,6 +161,14 @@ def targets(done: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
          lambda v: f"{v:.1f} MiB = {v / MIB_PER_MB:.1f} MB"),
         ("launch of N = 6 → every drone streaming setpoints", "≤ 2 s", launch,
          lambda v: v <= 2.0, lambda v: f"{v:.2f} s"),
+        ("sweep overhead per in-process Case 1 mission (issue 42)",
+         f"≤ {100 * bench_sweep.OVERHEAD_TARGET:g} %",
+         None if sweep is None else sweep["sweep"]["overhead_fraction"],
+         lambda v: v <= bench_sweep.OVERHEAD_TARGET, lambda v: f"{100 * v:.1f} %"),
+        ("sweep: 2 local workers against 1, in-process missions (issue 42)",
+         f"≥ {bench_sweep.SCALING_TARGET:g}×",
+         None if sweep is None else sweep["sweep"]["speedup_2_workers"],
+         lambda v: v >= bench_sweep.SCALING_TARGET, lambda v: f"{v:.2f}×"),
     ]
     out = []
     for label, goal, value, ok, shown in rows:
@@ -167,7 +182,7 @@ def targets(done: dict[str, dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 def targets_table(rows: list[dict[str, Any]]) -> Table:
-    table = new_table("Issue 16 targets", ["target", "goal", "measured", "status"],
+    table = new_table("Issue 16 and 42 targets", ["target", "goal", "measured", "status"],
                       caption="medians over the repeats (see each section)")
     for row in rows:
         table.add_row(row["target"], row["goal"], row["shown"], row["status"])

@@ -52,7 +52,7 @@ def test_every_section_runs_and_writes_its_fields(tmp_path: Path) -> None:
     summary = load("summary")
     assert summary["machine"]["cpus"] >= 1 and "numpy" in summary["machine"]["versions"]
     assert set(summary["sections"]) == set(run_all.SECTIONS)
-    assert len(summary["targets"]) == 8
+    assert len(summary["targets"]) == 10
     assert (tmp_path / "scaling.png").stat().st_size > 0
     for section in run_all.SECTIONS:
         assert "load_before" in summary["sections"][section]
@@ -94,6 +94,18 @@ def test_every_section_runs_and_writes_its_fields(tmp_path: Path) -> None:
     assert startup["summary"]["launch_to_streaming_s"]["median"] > 0
     assert startup["summary"]["agent_hwm_mib_max"]["median"] > 0
     assert startup["imports"]["by_package_self_ms"]
+
+    sweep = load("sweep")
+    for workers in (1, 2):
+        run = sweep["sweep"][f"workers_{workers}"]
+        assert run["missions"] == 4 and 1 <= run["workers"] <= workers
+        assert 0 < run["mission_wall_s_sum"] < run["wall_s"] * workers
+    assert sweep["sweep"]["speedup_2_workers"] > 0
+    cvxpy = sweep["cvxpy"]
+    assert cvxpy["ours"]["wall_s"] > 0 and cvxpy["ratio"] > 0
+    assert cvxpy["max_final_position_difference_m"] < 1e-3  # the same mission, either QP
+    issue42 = [t for t in summary["targets"] if "issue 42" in t["target"]]
+    assert [t["status"] != "not measured" for t in issue42] == [True, True]
 
     # The host, at both ends of the run.
     for figures in (load("host")["figures"], summary["host_after"]):
