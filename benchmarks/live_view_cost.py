@@ -29,11 +29,12 @@ sys.path.insert(0, str(ROOT))
 from swarm.launch.launcher import LaunchOptions, SwarmLauncher  # noqa: E402
 from swarm.scenario.config import load_config  # noqa: E402
 
-# The viewer: connect (retrying until the server is up), subscribe to everything, read until
-# the server closes, print {topic: count} as JSON.
+# The viewer: say "ready" once its imports are done, connect (retrying until the server is
+# up), subscribe to everything, read until the server closes, print {topic: count} as JSON.
 _CLIENT = """
 import json, sys
 from tests.helpers.foxglove_client import FoxgloveClient
+print("ready", flush=True)
 client = FoxgloveClient(sys.argv[1])
 client.start(connect_timeout_s=60.0)
 client.wait_closed(timeout_s=float(sys.argv[2]))
@@ -49,6 +50,10 @@ def one_run(config, config_path: str, port: int | None, duration_s: float
         viewer = subprocess.Popen(
             [sys.executable, "-c", _CLIENT, f"ws://127.0.0.1:{port}", str(4 * duration_s + 60)],
             cwd=ROOT, stdout=subprocess.PIPE, text=True)
+        # Start the swarm only once the viewer is ready to connect: on a loaded machine its
+        # start-up alone outlasted a short mission, and it joined a server about to close.
+        if viewer.stdout is None or viewer.stdout.readline() != "ready\n":
+            raise SystemExit("live_view_cost: the viewer did not start")
     launcher = SwarmLauncher(LaunchOptions(
         config=config, config_path=config_path, seed=0, mode="realtime",
         foxglove=None if port is None else ("127.0.0.1", port)),
@@ -62,6 +67,8 @@ def one_run(config, config_path: str, port: int | None, duration_s: float
         if viewer.returncode != 0:
             raise SystemExit(f"live_view_cost: the viewer failed (exit {viewer.returncode})")
         counts = json.loads(out)
+        if not counts:
+            raise SystemExit("live_view_cost: the viewer got no message from the live view")
     return cpu / wall, wall, counts
 
 
