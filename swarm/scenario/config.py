@@ -764,6 +764,24 @@ def write_resolved_config(config: ScenarioConfig, path: str | Path) -> Path:
     return path
 
 
+def read_toml_file(path: Path, error: type[Exception], expected: str) -> dict[str, Any]:
+    """The TOML document at ``path``; ``error`` with one line naming the path when it cannot
+    be read (missing, a directory instead of ``expected``, unreadable, not TOML, not UTF-8)."""
+    try:
+        with path.open("rb") as handle:
+            return tomllib.load(handle)
+    except FileNotFoundError:
+        raise error(f"{path}: no such file") from None
+    except IsADirectoryError:
+        raise error(f"{path}: is a directory, expected {expected}") from None
+    except PermissionError:
+        raise error(f"{path}: permission denied") from None
+    except tomllib.TOMLDecodeError as err:
+        raise error(f"{path}: not valid TOML: {err}") from None
+    except UnicodeDecodeError:
+        raise error(f"{path}: not a UTF-8 text file") from None
+
+
 def load_config(path: str | Path, *, autopilot: str | None = None,
                 overrides: Sequence[Override] = ()) -> ScenarioConfig:
     """Read and validate a scenario TOML file, or a resolved config written by
@@ -773,19 +791,7 @@ def load_config(path: str | Path, *, autopilot: str | None = None,
     path = Path(path)
     if path.suffix == ".json":
         return _load_resolved(path, autopilot, overrides)
-    try:
-        with path.open("rb") as handle:
-            data = tomllib.load(handle)
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: no such file") from None
-    except IsADirectoryError:
-        raise ConfigError(f"{path}: is a directory, expected a .toml file") from None
-    except PermissionError:
-        raise ConfigError(f"{path}: permission denied") from None
-    except tomllib.TOMLDecodeError as err:
-        raise ConfigError(f"{path}: not valid TOML: {err}") from None
-    except UnicodeDecodeError:
-        raise ConfigError(f"{path}: not a UTF-8 text file") from None
+    data = read_toml_file(path, ConfigError, "a .toml file")
     data = _overridden(data, overrides, path)
     _resolve_signing_key_file(data, path.parent)
     _resolve_path(data, "security", "tls_dir", path.parent)

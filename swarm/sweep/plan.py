@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import os
 import subprocess
-import tomllib
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
@@ -20,6 +19,7 @@ from swarm.scenario.config import (
     ConfigError,
     config_to_data,
     load_config,
+    read_toml_file,
     realtime_only_reason,
 )
 from swarm.sweep.rows import MissionTask, mission_key
@@ -62,20 +62,7 @@ def code_version() -> str:
 
 
 def read_spec(path: Path) -> SweepSpec:
-    try:
-        with path.open("rb") as handle:
-            data = tomllib.load(handle)
-    except FileNotFoundError:
-        raise SweepError(f"{path}: no such file") from None
-    except IsADirectoryError:
-        raise SweepError(f"{path}: is a directory, expected a sweep .toml file") from None
-    except PermissionError:
-        raise SweepError(f"{path}: permission denied") from None
-    except tomllib.TOMLDecodeError as err:
-        raise SweepError(f"{path}: not valid TOML: {err}") from None
-    except UnicodeDecodeError:
-        raise SweepError(f"{path}: not a UTF-8 text file") from None
-    return parse_spec(data, str(path))
+    return parse_spec(read_toml_file(path, SweepError, "a sweep .toml file"), str(path))
 
 
 def plan_sweep(path: Path, out: Path, *, stop_event: str | None = None,
