@@ -66,7 +66,6 @@ from swarm.mavlink.parse import POSITION_ONLY_TYPE_MASK, VELOCITY_ONLY_TYPE_MASK
 from swarm.mavlink.sitl import (
     KINDS,
     Firmware,
-    GeoPoint,
     Kind,
     SitlError,
     SitlInstance,
@@ -77,6 +76,7 @@ from swarm.mavlink.sitl import (
     free_instances,
     free_udp_port,
 )
+from swarm.models.frames import GeoPoint
 from swarm.models.kinematics import VelocityResponse
 
 Array = NDArray[np.float64]

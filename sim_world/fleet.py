@@ -41,7 +41,7 @@ from numpy.typing import NDArray
 from sim_world.gcs_link import GcsLink
 from sim_world.mavlink_endpoint import VehicleEndpoint
 from sim_world.vehicle import EmulatedVehicle, Flavour, Start
-from swarm.mavlink.sitl import GeoPoint
+from swarm.models.frames import GeoPoint
 from swarm.models.kinematics import VelocityResponse
 from swarm.scenario.config import DEFAULT_GEO_ORIGIN
 

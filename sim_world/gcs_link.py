@@ -49,8 +49,8 @@ from sim_world.vehicle import (
     PacketCollector,
 )
 from swarm.mavlink.parse import parse_bytes
-from swarm.mavlink.sitl import GeoPoint
 from swarm.models import frames
+from swarm.models.frames import GeoPoint
 
 __all__ = ["GCS_STREAM_PERIODS_S", "GcsLink"]
 

@@ -14,7 +14,7 @@ from collections.abc import Sequence
 
 from sim_world.fleet import VehicleFleet, serve_forever
 from swarm.children import follow_parent
-from swarm.mavlink.sitl import GeoPoint
+from swarm.models.frames import GeoPoint
 from swarm.scenario.cli_common import (
     DEFAULT_MAVLINK_BASE,
     EXIT_OK,

@@ -38,7 +38,6 @@ from numpy.typing import NDArray
 
 from sim_world.fleet import VehicleFleet
 from swarm.errors import EXIT_FAILED, EXIT_OK, VigilError
-from swarm.mavlink.sitl import GeoPoint
 from swarm.messages.wire import (
     BeaconRelayWire,
     BeaconWire,
@@ -47,6 +46,7 @@ from swarm.messages.wire import (
     F64Array,
     TruthWire,
 )
+from swarm.models.frames import GeoPoint
 from swarm.net.rate import RateLimiter, freeze_heap
 from swarm.net.security import WORLD_ROLE, router_access_control
 from swarm.net.transport import (

@@ -39,13 +39,13 @@ from swarm.mavlink.link import EndReport, autopilot_mode_name, end_mode_name
 from swarm.mavlink.sitl import (
     DEFAULT_BOOT_SPEEDUP,
     Firmware,
-    GeoPoint,
     SitlError,
     SitlFleet,
     VehicleView,
     try_exclusive_lock,
 )
 from swarm.models import frames
+from swarm.models.frames import GeoPoint
 from swarm.net.transport import TransportError, local_endpoint
 from swarm.observe.collector import TelemetryCollector
 from swarm.observe.live_view import LiveViewError

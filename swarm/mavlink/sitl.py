@@ -63,6 +63,7 @@ from numpy.typing import NDArray
 
 from swarm.children import die_with_parent
 from swarm.errors import UsageError, VigilError
+from swarm.models.frames import GeoPoint
 
 Kind = Literal["ardupilot", "px4"]
 KINDS: tuple[Kind, ...] = ("ardupilot", "px4")
@@ -74,7 +75,6 @@ ARDUPILOT_RC_IN_BASE_PORT = 5501  # UDP, + 10·instance: the only port ArduPilot
 PX4_AIRFRAME = "10040"  # sihsim_quadx
 STOP_GRACE_S = 3.0
 DEFAULT_BOOT_SPEEDUP = 10.0
-MEAN_EARTH_RADIUS_M = 6_371_008.8  # IUGG mean radius; offsets of metres, errors of micrometres
 
 Array = NDArray[np.float64]
 
@@ -162,26 +162,6 @@ def firmware_from_env(kind: Kind) -> Firmware | None:
     if firmware.kind != kind:
         raise FirmwareError(f"{ENV_VARIABLE[kind]}={value} is a {firmware.name}, not {kind}")
     return firmware
-
-
-# -- where the vehicles are on Earth -------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class GeoPoint:
-    """A WGS84 position: latitude and longitude [deg], altitude above mean sea level [m]."""
-
-    lat_deg: float
-    lon_deg: float
-    alt_m: float
-
-    def moved(self, east_m: float, north_m: float, up_m: float = 0.0) -> GeoPoint:
-        """The point ``east_m``, ``north_m``, ``up_m`` away (local tangent plane; for the few
-        metres between drones the error is micrometres)."""
-        lat = self.lat_deg + math.degrees(north_m / MEAN_EARTH_RADIUS_M)
-        lon = self.lon_deg + math.degrees(
-            east_m / (MEAN_EARTH_RADIUS_M * math.cos(math.radians(self.lat_deg))))
-        return GeoPoint(lat, lon, self.alt_m + up_m)
 
 
 # -- one instance --------------------------------------------------------------------------------

@@ -23,12 +23,17 @@ MAVLink paths call, once or more per vehicle and step, where a numpy call costs 
 arithmetic); the array functions take array-likes of shape (3,), check them and return new
 float64 arrays of shape (3,) from those. All are pure and deterministic (no global state, no
 in-place updates of their inputs), and both forms give the same floats bit for bit.
+
+``GeoPoint`` places W on the Earth: a WGS84 point, and ``moved`` the point a few metres east,
+north and up of it on the local tangent plane (the homes of SITL vehicles, the geodetic
+positions a ground station is told).
 """
 
 from __future__ import annotations
 
 import math
 import struct
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -37,6 +42,8 @@ Array = NDArray[np.float64]
 Xyz = tuple[float, float, float]
 
 __all__ = [
+    "MEAN_EARTH_RADIUS_M",
+    "GeoPoint",
     "Xyz",
     "as_xyz",
     "enu_to_ned",
@@ -53,6 +60,7 @@ __all__ = [
     "world_from_local_ned_xyz",
 ]
 
+MEAN_EARTH_RADIUS_M = 6_371_008.8  # IUGG mean radius; offsets of metres, errors of micrometres
 _FLOAT32 = struct.Struct("<f")
 _FLOAT32_XYZ = struct.Struct("<3f")
 
@@ -156,3 +164,20 @@ def velocity_over_link(velocity_w: ArrayLike) -> Array:
     vx, vy, vz of LOCAL_POSITION_NED.
     """
     return np.array(ned_to_enu_xyz(*link_float_xyz(*enu_to_ned_xyz(*as_xyz(velocity_w)))))
+
+
+@dataclass(frozen=True)
+class GeoPoint:
+    """A WGS84 position: latitude and longitude [deg], altitude above mean sea level [m]."""
+
+    lat_deg: float
+    lon_deg: float
+    alt_m: float
+
+    def moved(self, east_m: float, north_m: float, up_m: float = 0.0) -> GeoPoint:
+        """The point ``east_m``, ``north_m``, ``up_m`` away (local tangent plane; for the few
+        metres between drones the error is micrometres)."""
+        lat = self.lat_deg + math.degrees(north_m / MEAN_EARTH_RADIUS_M)
+        lon = self.lon_deg + math.degrees(
+            east_m / (MEAN_EARTH_RADIUS_M * math.cos(math.radians(self.lat_deg))))
+        return GeoPoint(lat, lon, self.alt_m + up_m)

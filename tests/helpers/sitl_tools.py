@@ -23,7 +23,6 @@ import pytest
 from swarm.mavlink.sitl import (
     ENV_VARIABLE,
     Firmware,
-    GeoPoint,
     Kind,
     SitlError,
     SitlInstance,
@@ -34,6 +33,7 @@ from swarm.mavlink.sitl import (
     free_instances,
     free_udp_port,
 )
+from swarm.models.frames import GeoPoint
 
 ROOT = Path(__file__).resolve().parents[2]
 SHARED_AUTOPILOTS = ROOT.parent / "shared" / "autopilots"

@@ -15,15 +15,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import given
-from hypothesis import strategies as st
 
 from swarm.mavlink.sitl import (
     ARDUPILOT_RC_IN_BASE_PORT,
     ENV_ARDUCOPTER,
     ENV_PX4,
     Firmware,
-    GeoPoint,
     SitlError,
     SitlInstance,
     SitlSpec,
@@ -32,6 +29,7 @@ from swarm.mavlink.sitl import (
     free_instances,
     free_udp_port,
 )
+from swarm.models.frames import GeoPoint
 
 pytestmark = pytest.mark.wallclock
 
@@ -105,21 +103,6 @@ def test_copter_defaults_beside_the_binary_or_in_its_waf_source_tree(tmp_path: P
     with pytest.raises(SitlError, match=r"no copter\.parm"):
         instance.start()
     assert instance.poll() is None and list(tmp_path.glob("vigil-sitl-*")) == []
-
-
-@given(st.floats(-50, 50), st.floats(-50, 50), st.floats(-60, 60))
-def test_homes_are_the_offsets_away_on_the_earth(east: float, north: float, lat: float
-                                                 ) -> None:
-    origin = GeoPoint(lat, 149.0, 584.0)
-    moved = origin.moved(east, north, 2.0)
-    # back to metres on the sphere (equirectangular at the mid latitude)
-    radius = 6_371_008.8
-    north_back = math.radians(moved.lat_deg - origin.lat_deg) * radius
-    east_back = (math.radians(moved.lon_deg - origin.lon_deg) * radius
-                 * math.cos(math.radians(origin.lat_deg)))
-    assert north_back == pytest.approx(north, abs=1e-6)
-    assert east_back == pytest.approx(east, abs=1e-6)
-    assert moved.alt_m == origin.alt_m + 2.0
 
 
 def test_parameters_each_autopilot_needs() -> None:

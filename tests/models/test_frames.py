@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import struct
 
 import numpy as np
@@ -219,3 +220,18 @@ def test_velocity_setpoint_through_pymavlink_matches_velocity_over_link(u: np.nd
         0, 1, 1, mavlink2.MAV_FRAME_LOCAL_NED, 0x0DC7, 0, 0, 0, vn, ve, vd, 0, 0, 0, 0, 0))
     decoded = frames.ned_to_enu([msg.vx, msg.vy, msg.vz])  # type: ignore[attr-defined]
     np.testing.assert_array_equal(bits(decoded), bits(frames.velocity_over_link(u)))
+
+
+@given(st.floats(-50, 50), st.floats(-50, 50), st.floats(-60, 60))
+def test_homes_are_the_offsets_away_on_the_earth(east: float, north: float, lat: float
+                                                 ) -> None:
+    origin = frames.GeoPoint(lat, 149.0, 584.0)
+    moved = origin.moved(east, north, 2.0)
+    # back to metres on the sphere (equirectangular at the mid latitude)
+    radius = 6_371_008.8
+    north_back = math.radians(moved.lat_deg - origin.lat_deg) * radius
+    east_back = (math.radians(moved.lon_deg - origin.lon_deg) * radius
+                 * math.cos(math.radians(origin.lat_deg)))
+    assert north_back == pytest.approx(north, abs=1e-6)
+    assert east_back == pytest.approx(east, abs=1e-6)
+    assert moved.alt_m == origin.alt_m + 2.0

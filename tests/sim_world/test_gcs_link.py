@@ -22,7 +22,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mav
 from sim_world.fleet import VehicleFleet, serve_forever
 from sim_world.gcs_link import GCS_STREAM_PERIODS_S, GcsLink
 from sim_world.vehicle import EmulatedVehicle, Flavour
-from swarm.mavlink.sitl import GeoPoint
+from swarm.models.frames import GeoPoint
 from tests.helpers.geo_tools import haversine_m
 
 ORIGIN = GeoPoint(-35.363261, 149.165230, 584.0)
