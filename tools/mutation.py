@@ -83,8 +83,9 @@ class CMutant:
 
 PYTHON_GROUPS = (
     PythonGroup("checks", ("swarm/runs/checks.py",), ("tests/runs/test_checks.py",)),
-    PythonGroup("watch", ("swarm/watch/command_reference.py", "swarm/watch/localization_watch.py",
-                          "swarm/watch/vehicle_watch.py"), ("tests/watch", *FAST)),
+    PythonGroup("watch", ("swarm/models/command_reference.py",
+                          "swarm/watch/localization_watch.py", "swarm/watch/vehicle_watch.py"),
+                ("tests/watch", "tests/models/test_command_reference.py", *FAST)),
     PythonGroup("core", tuple(f"swarm/core/{m}.py" for m in
                               ("barrier", "safety", "qp", "smooth_min", "perception")),
                 ("tests/core", *FAST)),

@@ -43,6 +43,7 @@ from swarm.messages.wire import (
     ClockWire,
     WireError,
 )
+from swarm.models.command_reference import CommandReference
 from swarm.net.rate import freeze_heap
 from swarm.net.security import agent_role
 from swarm.net.transport import (
@@ -61,7 +62,6 @@ from swarm.net.transport import (
 )
 from swarm.scenario.config import ScenarioConfig, realtime_only_reason
 from swarm.scenario.setup import build_agent, initial_drone_positions
-from swarm.watch.command_reference import CommandReference
 from swarm.watch.localization_watch import LocalizationWatch
 from swarm.watch.vehicle_watch import VehicleWatch
 

@@ -526,7 +526,7 @@ class AutopilotLink:
 
     def send_tracked(self, position_w: ArrayLike, velocity_w: ArrayLike,
                      acceleration_w: ArrayLike, time_boot_ms: int) -> None:
-        """One setpoint along the command reference (``swarm.watch.command_reference``): position,
+        """One setpoint along the command reference (``swarm.models.command_reference``): position,
         velocity and acceleration feed-forward in W, type mask ``TRACKED_TYPE_MASK`` of the
         flavour (ArduPilot: the acceleration is sent but marked ignored); like
         ``send_velocity`` otherwise (``keepalive`` then sends zero velocity)."""

@@ -271,7 +271,7 @@ class VehiclesSection:
     geo_origin: Vector3 = DEFAULT_GEO_ORIGIN  # W's origin on Earth [deg, deg, m]; SITL homes
     # What each agent sends its autopilot every step: "velocity" (u only) or "tracked" (the
     # command reference: position, velocity and acceleration along ṙ = u, so the autopilot's
-    # position loop removes its drift; swarm.watch.command_reference).
+    # position loop removes its drift; swarm.models.command_reference).
     setpoints: SetpointKind = "tracked"
     # "tracked": the reference is put back on the vehicle when they are this far apart [m].
     reference_reset_m: float = 1.0

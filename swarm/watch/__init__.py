@@ -1,1 +1,1 @@
-"""Pure watchers: vehicle events, localization breaches and the commands a vehicle was given."""
+"""Pure watchers: vehicle events and localization breaches."""

@@ -821,7 +821,7 @@ def test_tracked_setpoints_pull_a_displaced_vehicle_onto_the_reference(
     """The command reference at work on an emulated autopilot flying itself: a vehicle pushed
     0.4 m off the reference while it tracks u = 0.5 m/s east comes back onto it (its position
     loop; a velocity setpoint has nothing that would take the offset out)."""
-    from swarm.watch.command_reference import CommandReference
+    from swarm.models.command_reference import CommandReference
 
     link, server = served(flavour, logs)
     link.handshake(timeout_s=10.0, start_position_w=START)

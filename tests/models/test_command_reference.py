@@ -1,4 +1,4 @@
-"""The command reference (swarm.watch.command_reference): the single integrator along the
+"""The command reference (swarm.models.command_reference): the single integrator along the
 commands."""
 
 from __future__ import annotations
@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given
 from hypothesis import strategies as st
 
-from swarm.watch.command_reference import CommandReference
+from swarm.models.command_reference import CommandReference
 
 finite = st.floats(-3.0, 3.0, allow_nan=False)
 vec3 = st.tuples(finite, finite, finite)
