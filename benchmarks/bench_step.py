@@ -63,7 +63,7 @@ from rich.table import Table
 from rich.text import Text
 
 import swarm.runs.reference as reference
-from swarm.core.agent import ConsensusMessage, Detection, DroneAgent, StepResult
+from swarm.core.drone_step import ConsensusMessage, Detection, DroneAgent, StepResult
 from swarm.messages.wire import CameraFrameWire, WireCodec
 from swarm.scenario.config import ScenarioConfig, TargetSection, load_config
 

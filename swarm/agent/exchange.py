@@ -39,7 +39,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from swarm.core import kernels
-from swarm.core.agent import ConsensusMessage, DroneAgent
+from swarm.core.drone_step import ConsensusMessage, DroneAgent
 from swarm.errors import UsageError
 from swarm.mavlink.link import AutopilotLink, LinkError, PositionSample
 from swarm.messages.wire import RELAY_HELD, RELAY_WIDTH, BeaconRelayWire, CameraFrameWire

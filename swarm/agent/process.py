@@ -32,7 +32,7 @@ import numpy as np
 
 from swarm.agent.exchange import Mode, Peers, exchange_for
 from swarm.agent.qp_failures import QpFailureLog
-from swarm.core.agent import ConsensusMessage, DroneAgent, StepDiagnostics
+from swarm.core.drone_step import ConsensusMessage, DroneAgent, StepDiagnostics
 from swarm.errors import EXIT_END_MISSION, EXIT_FAILED, EXIT_OK, VigilError
 from swarm.mavlink.link import AutopilotLink, LinkError, PositionSample
 from swarm.mavlink.udpin import BoundSocket

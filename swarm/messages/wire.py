@@ -45,7 +45,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from swarm.core import kernels
-from swarm.core.agent import Detection, StepDiagnostics
+from swarm.core.drone_step import Detection, StepDiagnostics
 from swarm.core.consensus_message import (
     STATE_NAMES,
     ConsensusMessage,

@@ -8,7 +8,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from swarm.core.agent import Detection
+from swarm.core.drone_step import Detection
 from swarm.core.params import require, require_finite_positive
 
 Array = NDArray[np.float64]

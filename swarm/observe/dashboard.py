@@ -37,7 +37,7 @@ from rich.console import Console, Group, RenderableType
 from rich.live import Live
 from rich.text import Text
 
-from swarm.core.agent import StepDiagnostics
+from swarm.core.drone_step import StepDiagnostics
 from swarm.messages.wire import TelemetryCounters, TelemetryWire, telemetry_from_diagnostics
 from swarm.observe.events import URGENT_LABELS, WARNED_COUNTERS, increased_counters
 from swarm.scenario.config import ScenarioConfig

@@ -19,7 +19,7 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from swarm.core.agent import Detection, DroneAgent, StepDiagnostics
+from swarm.core.drone_step import Detection, DroneAgent, StepDiagnostics
 from swarm.messages.wire import (
     BeaconWire,
     CameraFrameWire,

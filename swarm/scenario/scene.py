@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from swarm.core.agent import Detection
+from swarm.core.drone_step import Detection
 from swarm.models.camera import detect
 from swarm.scenario.config import ScenarioConfig
 from swarm.scenario.setup import STREAM_CAMERA, stream

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from swarm.core.agent import AgentSetup, DroneAgent
+from swarm.core.drone_step import AgentSetup, DroneAgent
 from swarm.core.formation import circle_bearings
 from swarm.models.kinematics import sample_initial_positions
 from swarm.scenario.config import ScenarioConfig

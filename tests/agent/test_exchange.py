@@ -29,7 +29,7 @@ from swarm.agent.exchange import (
     loop_phase_s,
 )
 from swarm.core import kernels
-from swarm.core.agent import ConsensusMessage
+from swarm.core.drone_step import ConsensusMessage
 from swarm.mavlink.link import AutopilotLink, LinkError
 from swarm.messages.wire import BeaconRelayWire, BeaconWire, CameraFrameWire, WireCodec
 from swarm.net.transport import (

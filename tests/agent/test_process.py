@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from swarm.agent.process import AgentOptions, AgentProcess
-from swarm.core.agent import ConsensusMessage
+from swarm.core.drone_step import ConsensusMessage
 from swarm.messages.wire import BeaconRelayWire, BeaconWire, CameraFrameWire
 from swarm.net.transport import Keys, LatestValues, open_session, zenoh_config
 from swarm.scenario.config import load_config

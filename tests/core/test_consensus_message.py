@@ -24,7 +24,7 @@ from swarm.core.consensus_message import (
 )
 from swarm.core.params import ControlParams
 
-from .test_agent import lone_agent
+from .test_drone_step import lone_agent
 
 
 @settings(max_examples=100, deadline=None)

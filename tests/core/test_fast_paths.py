@@ -18,8 +18,8 @@ import numpy as np
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
-from swarm.core.agent import AgentSetup, DroneAgent, _consensus_operator, consensus_step
 from swarm.core.consensus_layout import ConsensusLayout
+from swarm.core.drone_step import AgentSetup, DroneAgent, _consensus_operator, consensus_step
 from swarm.core.dynamic_consensus import pi_consensus_step
 from swarm.core.formation import (
     bearing_error,

@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from swarm.core import icf
-from swarm.core.agent import AgentSetup, Detection, DroneAgent
+from swarm.core.drone_step import AgentSetup, Detection, DroneAgent
 from swarm.core.graph import CommunicationGraph
 from swarm.core.params import (
     ControlParams,

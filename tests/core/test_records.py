@@ -9,7 +9,7 @@ from pathlib import Path
 
 import numpy as np
 
-from swarm.core.agent import ConsensusMessage, Detection, StepDiagnostics, StepResult
+from swarm.core.drone_step import ConsensusMessage, Detection, StepDiagnostics, StepResult
 from swarm.core.qp import LocalQpWorkspace, QpSolution
 from swarm.messages.wire import CameraFrameWire
 from swarm.scenario.config import load_config

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from hypothesis import strategies as st
 
-from swarm.core.agent import AgentSetup, ConsensusMessage, Detection, DroneAgent
+from swarm.core.drone_step import AgentSetup, ConsensusMessage, Detection, DroneAgent
 from swarm.core.params import ControlParams, EstimationParams, GramianParams, PerceptionParams
 from swarm.messages.wire import (
     BeaconRelayWire,

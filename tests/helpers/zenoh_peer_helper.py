@@ -22,7 +22,7 @@ import threading
 
 import numpy as np
 
-from swarm.core.agent import ConsensusMessage
+from swarm.core.drone_step import ConsensusMessage
 from swarm.messages.wire import BeaconWire, WireCodec
 from swarm.net.transport import Keys, RejectionCounter, open_session, subscribe, zenoh_config
 

@@ -52,7 +52,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from sim_world.mavlink_endpoint import VehicleEndpoint
 from sim_world.vehicle import EmulatedVehicle
-from swarm.core.agent import ConsensusMessage, Detection
+from swarm.core.drone_step import ConsensusMessage, Detection
 from swarm.core.qp import LocalQpWorkspace
 from swarm.launch.launcher import LaunchOptions, SwarmLauncher
 from swarm.mavlink.link import AutopilotLink, LinkError

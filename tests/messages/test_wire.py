@@ -13,7 +13,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from swarm.core.agent import ConsensusMessage
+from swarm.core.drone_step import ConsensusMessage
 from swarm.messages.wire import (
     MAX_TELEMETRY_BATCH,
     TELEMETRY_ARRAYS,

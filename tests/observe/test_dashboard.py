@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 from rich.console import Console
 
-from swarm.core.agent import StepDiagnostics
+from swarm.core.drone_step import StepDiagnostics
 from swarm.launch.launcher import LaunchOptions, SwarmLauncher, free_tcp_port
 from swarm.messages.wire import ClockWire, TelemetryWire, telemetry_from_diagnostics
 from swarm.net.transport import Keys, open_session, zenoh_config

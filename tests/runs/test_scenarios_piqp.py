@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from swarm.core.agent import StepDiagnostics
+from swarm.core.drone_step import StepDiagnostics
 from swarm.runs.checks import check_invariants
 from swarm.runs.reference import run_reference
 from swarm.scenario.config import load_config

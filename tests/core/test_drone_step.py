@@ -8,8 +8,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from swarm.core.agent import AgentSetup, AgentStateError, ConsensusMessage, Detection, DroneAgent
 from swarm.core.barrier import collision_row
+from swarm.core.drone_step import (
+    AgentSetup,
+    AgentStateError,
+    ConsensusMessage,
+    Detection,
+    DroneAgent,
+)
 from swarm.core.params import ControlParams, EstimationParams, GramianParams, PerceptionParams
 from swarm.core.qp import QpSolver, build_local_qp
 from swarm.core.safety import SafetyParams
