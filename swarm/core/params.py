@@ -83,10 +83,14 @@ ConsensusWeighting = Literal["metropolis", "laplacian"]
 class EstimationParams:
     """Information Consensus Filter (SPEC §5, thesis Algorithm 1 and 2.17-2.22)."""
 
+    # the targets' motion model: "double_integrator" (position and velocity estimated) or
+    # "single_integrator" (position only, 2.17-2.22)
     model: TargetModel = "double_integrator"
     consensus_rounds: int = 1  # K, consensus iterations per step
     process_noise: float = 0.01  # Q = q·I [m² or (m/s)² per step]
     info_gain: float = 1.0  # b [dimensionless]
+    # a_ij of the ICF consensus: "metropolis" (Metropolis-Hastings, local and doubly
+    # stochastic) or "laplacian" (the thesis' ε-Laplacian form, a_ij = laplacian_step)
     consensus_weights: ConsensusWeighting = "metropolis"
     laplacian_step: float = 0.2  # ε of the Laplacian form, used only with "laplacian" [1]
     initial_offset_m: float = 0.5  # initial guess = truth + U(-x, x) per axis [m]
@@ -113,7 +117,9 @@ class GramianParams:
     epsilon: float = 0.05  # ε, information threshold on λ_min [s]
     smooth_min_exponent: float = -10.0  # p of λ̄ = (Σ λ_k^p)^(1/p) [1]
     consensus_gain: float = 1.0  # gain of Σ_j (G_j − G_i) [1/s]
+    # PI consensus on the weighted projectors wΠ̂ (3.30, Table 4.2)
     projector_consensus: ConsensusGains = ConsensusGains(zeta=4.0, kp=5.0, ki=3.0)
+    # PI consensus on the perception weights w (3.30, Table 4.2)
     weight_consensus: ConsensusGains = ConsensusGains(zeta=8.0, kp=12.0, ki=6.0)
 
     def __post_init__(self) -> None:
@@ -150,7 +156,7 @@ class ControlParams:
     collision_distance_m: float = 0.5  # Δ, minimum inter-drone distance [m]
     collision_radius_m: float = 3.0  # R_ca, drones closer than this get a collision row [m]
     collision_gain: float = 1.0  # α_ca of the collision CBF [1/s]
-    task: NominalTask = "zero"
+    task: NominalTask = "zero"  # the nominal input u_d: "zero" (hover) or "bearing_formation"
     formation_gain: float = 1.0  # k_f of the bearing-only formation law [m/s]
     # ē, a bound on the vehicle's tracking error ‖ṗ_i − u_i‖: every barrier row a·u ≥ b is
     # tightened to a·u ≥ b + ē‖a‖ (barrier.robust_lower_bound); 0 = the thesis (ṗ = u) [m/s]

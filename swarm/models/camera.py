@@ -16,8 +16,8 @@ Array = NDArray[np.float64]
 
 @dataclass(frozen=True)
 class CameraParams:
-    range_min_m: float = 0.5  # D_m [m]
-    range_max_m: float = 8.0  # D_M [m]
+    range_min_m: float = 0.5  # D_m, targets nearer than this are not detected [m]
+    range_max_m: float = 8.0  # D_M, targets farther than this are not detected [m]
     half_fov_deg: float = 50.0  # α_M, half-angle of the square field of view [deg]
     image_noise_std: float = 0.005  # σ_img on the normalized image plane [1]; 0 = exact
 

@@ -64,6 +64,8 @@ class ConfigError(UsageError, ValueError):
 
 @dataclass(frozen=True)
 class ScenarioSection:
+    """The mission: its name, length, time step and default seed."""
+
     name: str  # shown in summaries and recordings
     duration_s: float  # simulated time [s]
     dt_s: float = 0.02  # ΔT of every discretization [s]
@@ -81,8 +83,11 @@ class ScenarioSection:
 
 @dataclass(frozen=True)
 class SwarmSection:
-    n_drones: int  # N
-    edges: tuple[tuple[int, int], ...]  # undirected communication edges, drone ids 0..N−1
+    """The drones, their communication graph and the box they start in."""
+
+    n_drones: int  # N, the number of drones
+    # undirected communication edges [i, j], drone ids 0..N−1; the graph must be connected
+    edges: tuple[tuple[int, int], ...]
     initial_box_center_m: Vector3 = (0.0, 0.0, 3.5)  # centre of the start box [m]
     initial_box_size_m: Vector3 = (4.0, 4.0, 2.0)  # side lengths of the start box [m]
     initial_min_separation_m: float = 1.0  # start positions are resampled until this apart [m]
@@ -113,6 +118,10 @@ TrajectoryKind = Literal["linear", "sinusoid", "out_and_back"]
 
 @dataclass(frozen=True)
 class TargetSection:
+    """One ground target and how it moves (``swarm.models.targets``); 1 to 16 of them."""
+
+    # "linear" (cruise at velocity_m_s), "sinusoid" (drift plus a sine per axis) or
+    # "out_and_back" (out at velocity_m_s, turn at turn_s, back at rest at start_m at back_s)
     trajectory: TrajectoryKind
     start_m: Vector3  # position at t = 0 [m]
     velocity_m_s: Vector3 = (0.0, 0.0, 0.0)  # cruise, or drift of a sinusoid [m/s]
@@ -171,7 +180,7 @@ class KeepOutSection:
     """One keep-out cylinder of [safety]: a static obstacle no drone's centre may enter."""
 
     center_m: tuple[float, float]  # [x, y] in the world frame [m]
-    radius_m: float
+    radius_m: float  # no drone's centre comes nearer to the axis than this [m]
 
 
 @dataclass(frozen=True)
@@ -183,9 +192,10 @@ class SafetySection:
 
     floor_m: float | None = None  # lowest z allowed, world frame (z up) [m]
     ceiling_m: float | None = None  # highest z allowed [m]
-    keep_in: tuple[tuple[float, float], ...] = ()
+    keep_in: tuple[tuple[float, float], ...] = ()  # convex keep-in polygon, vertices [x, y] [m]
+    # the keep-in area as a box [x_min, y_min, x_max, y_max] instead of keep_in [m]
     keep_in_box_m: tuple[float, float, float, float] | None = None
-    keep_out: tuple[KeepOutSection, ...] = ()
+    keep_out: tuple[KeepOutSection, ...] = ()  # static obstacles, as vertical cylinders
     altitude_gain: float = 1.0  # α of the floor and ceiling rows [1/s]
     fence_gain: float = 1.0  # α of the keep-in rows [1/s]
     obstacle_gain: float = 1.0  # α of the keep-out rows [1/s]
@@ -260,11 +270,10 @@ class VehiclesSection:
     # Emulated vehicles (and the in-process reference) only: how their velocity follows the
     # command (swarm.models.kinematics.VelocityResponse): "ideal" (the thesis' single
     # integrator, v = u), "arducopter" (the lag and acceleration limit fitted to ArduCopter
-    # SITL) or "custom" (the two values below: a first-order lag [s] and an acceleration
-    # limit [m/s²], 0 = none).
+    # SITL), "px4" (the same, fitted to PX4 SITL) or "custom" (the two values below).
     response: ResponseKind = "ideal"
-    response_time_constant_s: float = 0.0
-    response_accel_limit_m_s2: float = 0.0
+    response_time_constant_s: float = 0.0  # "custom": the first-order lag τ [s]
+    response_accel_limit_m_s2: float = 0.0  # "custom": the acceleration limit, 0 = none [m/s²]
     # One pymavlink connection string per drone for autopilots started elsewhere (launch-swarm
     # then serves no vehicles and supervises agents flying these); () = emulated vehicles.
     mavlink_urls: tuple[str, ...] = ()
@@ -403,6 +412,7 @@ class ScenarioConfig:
     scenario: ScenarioSection
     swarm: SwarmSection
     targets: tuple[TargetSection, ...]
+    # the downward camera: range and square field of view (SPEC §2, Fig. 3.1), image noise
     camera: CameraParams = field(default_factory=CameraParams)
     perception: PerceptionParams = field(default_factory=PerceptionParams)
     estimation: EstimationParams = field(default_factory=EstimationParams)
