@@ -27,6 +27,7 @@ from numpy.typing import NDArray
 from swarm.core import icf, kernels
 from swarm.core.consensus_layout import ConsensusLayout
 from swarm.core.consensus_message import ConsensusMessage, message_size
+from swarm.core.fast_dataclass import record
 from swarm.core.formation import bearing_formation_scalars
 from swarm.core.gramian import initial_gramian
 from swarm.core.kernels import ROW
@@ -39,7 +40,6 @@ from swarm.core.qp import (
     estimate_free_rows,
     rate_limited_box,
 )
-from swarm.core.records import record
 from swarm.core.safety import SafetyParams, safety_conflict, safety_rows
 from swarm.errors import VigilError
 

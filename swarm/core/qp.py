@@ -25,9 +25,9 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
+from swarm.core.fast_dataclass import record
 from swarm.core.kernels import qp_load as _qp_load
 from swarm.core.kernels import qp_max_violation as _qp_max_violation
-from swarm.core.records import record
 
 Array = NDArray[np.float64]
 

@@ -53,7 +53,7 @@ from swarm.core.consensus_message import (
     message_size,
 )
 from swarm.core.kernels import join_native, native_finite
-from swarm.core.records import record
+from swarm.core.fast_dataclass import record
 from swarm.messages.rules import (
     Check,
     Finite,

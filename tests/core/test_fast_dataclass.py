@@ -1,6 +1,6 @@
-"""The hot path's records (swarm.core.records): each one the agent, the QP and the wire make
-without ``__init__`` has exactly its class's fields, and none of those classes validates in a
-``__post_init__`` that this would skip."""
+"""The hot path's records (swarm.core.fast_dataclass): each one the agent, the QP and the wire
+make without ``__init__`` has exactly its class's fields, and none of those classes validates
+in a ``__post_init__`` that this would skip."""
 
 from __future__ import annotations
 

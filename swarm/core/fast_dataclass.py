@@ -1,12 +1,13 @@
-"""The one way the hot path makes its frozen records without their generated ``__init__``.
+"""Frozen dataclass instances made fast: the one way the hot path builds its frozen records
+without their generated ``__init__``.
 
 ``record(cls, fields)`` is ``cls(**fields)`` for a frozen dataclass that has no
 ``__post_init__`` and is given every field: the same instance, without the per-field
-``object.__setattr__`` of a frozen ``__init__`` (measured: 8.1 µs against 4.4 µs for
+``object.__setattr__`` of a frozen ``__init__`` (8.1 µs against 4.4 µs for
 ``StepDiagnostics``' 24 fields, 3.8 against 2.5 µs for a ``ConsensusMessage``, made several
-times a step and once per received message). ``tests/core/test_records.py`` checks on the
-paths that use it that every record has exactly its class's fields and that no such class
-validates in ``__post_init__``.
+times a step and once per received message). ``tests/core/test_fast_dataclass.py`` checks, on
+the paths that use it, that every record has exactly its class's fields and that no such
+class validates in ``__post_init__``.
 """
 
 from __future__ import annotations
