@@ -62,8 +62,8 @@ from swarm.net.transport import (
 )
 from swarm.scenario.cli_common import DEFAULT_MAVLINK_BASE
 from swarm.scenario.config import ScenarioConfig, realtime_only_reason
-from swarm.scenario.scene import Scene
 from swarm.scenario.setup import initial_drone_positions
+from swarm.scenario.world_step import Scene
 
 Mode = Literal["lockstep", "realtime"]
 VehicleSource = Literal["sim", "external"]

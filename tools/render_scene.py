@@ -28,8 +28,8 @@ from mcap_protobuf.decoder import DecoderFactory
 from mpl_toolkits.mplot3d.art3d import Line3DCollection
 from scipy.spatial.transform import Rotation
 
+from swarm.observe.foxglove_scene import SCENE_TOPIC
 from swarm.observe.recording import locate
-from swarm.observe.scene import SCENE_TOPIC
 
 RING_POINTS = 48
 

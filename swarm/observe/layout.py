@@ -39,7 +39,7 @@ from foxglove.layouts import (
     ThreeDeePanel,
 )
 
-from swarm.observe.scene import FRAME, LOG_TOPIC, SCENE_TOPIC, plot_topic
+from swarm.observe.foxglove_scene import FRAME, LOG_TOPIC, SCENE_TOPIC, plot_topic
 from swarm.scenario.config import ConfigError, ScenarioConfig, load_config
 
 

@@ -3,7 +3,7 @@
 ``LiveView(config, host, port)`` serves, on Foxglove's WebSocket protocol (open
 ``ws://HOST:PORT`` in Foxglove or Lichtblick):
 
-* ``scene``: the 3D scene (``swarm.observe.scene``: ``foxglove.SceneUpdate``, 10 Hz of sim
+* ``scene``: the 3D scene (``swarm.observe.foxglove_scene``: ``foxglove.SceneUpdate``, 10 Hz of sim
   time), the same one every recording holds;
 * ``log``: ``foxglove.Log`` lines when a drone's warned counters rise (``LogBook``);
 * ``drone/<i>/plot`` (JSON): per drone, at the scene's rate, what a Plot panel shows —
@@ -45,7 +45,7 @@ from foxglove.channels import LogChannel, SceneUpdateChannel
 
 from swarm.errors import UsageError, VigilError
 from swarm.messages.wire import TelemetryWire, TruthWire
-from swarm.observe.scene import (
+from swarm.observe.foxglove_scene import (
     LOG_TOPIC,
     SCENE_TOPIC,
     LogBook,

@@ -65,7 +65,7 @@ from swarm.messages.wire import (
     WireError,
 )
 from swarm.observe.collector import TelemetryCollector
-from swarm.observe.scene import (
+from swarm.observe.foxglove_scene import (
     LOG_TOPIC,
     SCENE_TOPIC,
     LogBook,

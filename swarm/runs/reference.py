@@ -1,6 +1,6 @@
 """In-process reference runner: N ``DroneAgent``s, exact synchronous exchange, seeded.
 
-The world (the scene of ``swarm.scenario.scene``, the very one the world process renders,
+The world (the scene of ``swarm.scenario.world_step``, the very one the world process renders,
 and the vehicles' kinematics) and the agents live in one process and step in lockstep; every
 neighbour message of round κ is delivered before round κ + 1. Same config and seed →
 bit-identical output, and the same output as a lockstep run of the process swarm: the
@@ -33,8 +33,8 @@ from swarm.models.kinematics import step_vehicle
 from swarm.runs.ground_truth import ReferenceGramians
 from swarm.runs.record import RunRecord
 from swarm.scenario.config import ScenarioConfig
-from swarm.scenario.scene import Scene
 from swarm.scenario.setup import build_agent, initial_drone_positions
+from swarm.scenario.world_step import Scene
 
 Array = NDArray[np.float64]
 

@@ -22,8 +22,8 @@ from swarm.core.safety import SafetyParams
 from swarm.models.kinematics import step_drone
 from swarm.runs.reference import run_reference
 from swarm.scenario.config import load_config
-from swarm.scenario.scene import Scene
 from swarm.scenario.setup import build_agent, initial_drone_positions
+from swarm.scenario.world_step import Scene
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 

@@ -13,8 +13,8 @@ from swarm.core.drone_step import ConsensusMessage, Detection, StepDiagnostics, 
 from swarm.core.qp import LocalQpWorkspace, QpSolution
 from swarm.messages.wire import CameraFrameWire
 from swarm.scenario.config import load_config
-from swarm.scenario.scene import Scene
 from swarm.scenario.setup import build_agent, initial_drone_positions
+from swarm.scenario.world_step import Scene
 
 CASE2 = Path(__file__).resolve().parents[2] / "configs" / "case2.toml"
 RECORDS = (Detection, ConsensusMessage, StepDiagnostics, StepResult, QpSolution)

@@ -32,8 +32,8 @@ from websockets.sync.client import connect
 
 from swarm.launch.launcher import LaunchOptions, SwarmLauncher
 from swarm.observe import dashboard
+from swarm.observe.foxglove_scene import LOG_TOPIC, SCENE_TOPIC
 from swarm.observe.live_view import SUBPROTOCOL, LiveView, LiveViewError, plot_topic
-from swarm.observe.scene import LOG_TOPIC, SCENE_TOPIC
 from swarm.scenario.config import load_config
 from tests.helpers.cli_tools import ROOT as CLI_ROOT
 from tests.helpers.cli_tools import cli_env, launch_swarm_in_process

@@ -1,4 +1,4 @@
-"""The scene of a step (swarm.scenario.scene): the truth of the trajectories, each drone's
+"""The scene of a step (swarm.scenario.world_step): the truth of the trajectories, each drone's
 frames from its own stream, the same in every process that renders it."""
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ import numpy as np
 
 from swarm.models.camera import detect
 from swarm.scenario.config import load_config
-from swarm.scenario.scene import Scene
 from swarm.scenario.setup import STREAM_CAMERA, initial_drone_positions, stream
+from swarm.scenario.world_step import Scene
 
 CASE2 = Path(__file__).resolve().parents[2] / "configs" / "case2.toml"
 

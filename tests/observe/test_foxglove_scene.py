@@ -1,5 +1,4 @@
-"""swarm.observe.scene: the swarm as Foxglove SceneUpdates, in every recording (issue 17,
-point 2).
+"""swarm.observe.foxglove_scene: the swarm as Foxglove SceneUpdates, in every recording.
 
 A recording of Case 2 is read back with the MCAP reader and the protobuf decoder of the MCAP
 project, and every scene is checked against the run's truth and telemetry: the drones and the
@@ -22,8 +21,7 @@ from scipy.stats import chi2
 
 from swarm.messages.wire import TelemetryCounters, TelemetryWire, TruthWire
 from swarm.models.camera import fov_segments
-from swarm.observe.recording import iter_messages, record_reference
-from swarm.observe.scene import (
+from swarm.observe.foxglove_scene import (
     ELLIPSOID_PROBABILITY,
     ELLIPSOID_SIGMAS,
     ENTITIES,
@@ -35,6 +33,7 @@ from swarm.observe.scene import (
     plot_topic,
     scene_update,
 )
+from swarm.observe.recording import iter_messages, record_reference
 from swarm.runs.checks import SENSING_WEIGHT
 from swarm.runs.record import RunRecord
 from swarm.scenario.config import load_config
