@@ -98,7 +98,7 @@ def tables(result: dict[str, Any]) -> list[Table]:
          "other threads", "agent step µs (compute)"],
         caption=("median (min–max) over the runs of the median agent; main thread: the step, "
                  "MAVLink, encoding and publishing, waiting for the GIL is not CPU;\nreceive: "
-                 "Zenoh's receive path (its app thread, transport.ZENOH_RUNTIME_DEFAULT, or "
+                 "Zenoh's receive path (its app thread, session.ZENOH_RUNTIME_DEFAULT, or "
                  "rx threads) and our subscription callbacks (decode, validate, mailbox); "
                  "other: Zenoh's transmit thread, and the rest"))
     for res in result["results"]:

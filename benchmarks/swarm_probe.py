@@ -104,7 +104,7 @@ THREAD_GROUPS = ("python", "zenoh_rx", "zenoh_other")
 def read_thread_cpu(pid: int) -> tuple[float, float, float] | None:
     """CPU seconds of a live process by thread group: the Python main thread (tid = pid),
     Zenoh's receive threads (which also run our direct subscription callbacks: decoding and
-    validation): "app-*", where ``transport.ZENOH_RUNTIME_DEFAULT`` hands receiving over, or
+    validation): "app-*", where ``session.ZENOH_RUNTIME_DEFAULT`` hands receiving over, or
     "rx-*" with zenoh's own defaults; and every other thread (Zenoh's transmit thread, Python
     callback threads; pymavlink has none). None once it is gone. Threads that ended earlier
     are not counted."""

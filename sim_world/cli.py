@@ -8,7 +8,7 @@ from collections.abc import Sequence
 from sim_world.fleet import mavlink_hosts
 from sim_world.world import World, WorldOptions
 from swarm.children import follow_parent
-from swarm.net.transport import check_tls_endpoints, local_endpoint
+from swarm.net.session import check_tls_endpoints, local_endpoint
 from swarm.scenario.cli_common import (
     DEFAULT_MAVLINK_BASE,
     ConfigError,

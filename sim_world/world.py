@@ -47,19 +47,12 @@ from swarm.messages.wire import (
     TruthWire,
 )
 from swarm.models.frames import GeoPoint
+from swarm.net.keys import Keys
 from swarm.net.rate import RateLimiter, freeze_heap
 from swarm.net.security import WORLD_ROLE, router_access_control
-from swarm.net.transport import (
-    DrainedSubscriber,
-    Keys,
-    LatestValues,
-    RejectionCounter,
-    declare_publisher,
-    open_session,
-    put_stamped,
-    subscribe,
-    zenoh_config,
-)
+from swarm.net.session import declare_publisher, open_session, put_stamped, zenoh_config
+from swarm.net.stores import LatestValues
+from swarm.net.subscriptions import DrainedSubscriber, RejectionCounter, subscribe
 from swarm.scenario.cli_common import DEFAULT_MAVLINK_BASE
 from swarm.scenario.config import ScenarioConfig, realtime_only_reason
 from swarm.scenario.setup import initial_drone_positions

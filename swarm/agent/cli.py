@@ -79,7 +79,8 @@ def _main(argv: list[str], early: BoundSocket | None) -> int:
     # Imported now, with the MAVLink socket already bound (module docstring).
     from swarm.agent.process import AgentOptions, AgentProcess
     from swarm.mavlink.link import LinkError
-    from swarm.net.transport import LinkFaults, check_tls_endpoints, local_endpoint
+    from swarm.net.faults import LinkFaults
+    from swarm.net.session import check_tls_endpoints, local_endpoint
     from swarm.scenario.cli_common import (
         ConfigError,
         exit_code,

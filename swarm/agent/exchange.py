@@ -44,7 +44,8 @@ from swarm.errors import UsageError
 from swarm.mavlink.link import AutopilotLink, LinkError, PositionSample
 from swarm.messages.wire import RELAY_HELD, RELAY_WIDTH, BeaconRelayWire, CameraFrameWire
 from swarm.net.rate import RateLimiter
-from swarm.net.transport import BlockingReceives, DrainedSubscriber, LatestValues, StepMailbox
+from swarm.net.stores import LatestValues, StepMailbox
+from swarm.net.subscriptions import BlockingReceives, DrainedSubscriber
 from swarm.scenario.config import ScenarioConfig
 
 Mode = Literal["lockstep", "realtime"]

@@ -44,22 +44,19 @@ from swarm.messages.wire import (
     WireError,
 )
 from swarm.models.command_reference import CommandReference
+from swarm.net.faults import FaultyPublisher, LinkFaults
+from swarm.net.keys import Keys
 from swarm.net.rate import freeze_heap
 from swarm.net.security import agent_role
-from swarm.net.transport import (
-    DrainedSubscriber,
-    FaultyPublisher,
-    Keys,
-    LatestValues,
-    LinkFaults,
-    RejectionCounter,
+from swarm.net.session import (
     TransportError,
     declare_publisher,
     open_session,
     put_stamped,
-    subscribe,
     zenoh_config,
 )
+from swarm.net.stores import LatestValues
+from swarm.net.subscriptions import DrainedSubscriber, RejectionCounter, subscribe
 from swarm.scenario.config import ScenarioConfig, realtime_only_reason
 from swarm.scenario.setup import build_agent, initial_drone_positions
 from swarm.watch.localization_watch import LocalizationWatch

@@ -46,7 +46,7 @@ from swarm.mavlink.sitl import (
 )
 from swarm.models import frames
 from swarm.models.frames import GeoPoint
-from swarm.net.transport import TransportError, local_endpoint
+from swarm.net.session import TransportError, local_endpoint
 from swarm.observe.collector import TelemetryCollector
 from swarm.observe.live_view import LiveViewError
 from swarm.observe.recording import AutopilotState, RecordingError, RecordingMetadata

@@ -26,16 +26,10 @@ from swarm.messages.wire import (
     TruthWire,
     WireCodec,
 )
+from swarm.net.keys import Keys
 from swarm.net.security import TlsIdentity
-from swarm.net.transport import (
-    DrainedSubscriber,
-    Keys,
-    RejectionCounter,
-    TransportError,
-    open_session,
-    subscribe,
-    zenoh_config,
-)
+from swarm.net.session import TransportError, open_session, zenoh_config
+from swarm.net.subscriptions import DrainedSubscriber, RejectionCounter, subscribe
 
 OnMessage = Callable[[str, Any], None]
 

@@ -209,7 +209,7 @@ class Dashboard:
             self._telemetry_cpu_s += time.thread_time() - started
 
     def on_telemetry_sample(self, _key: str, tel: TelemetryWire) -> None:
-        """``on_telemetry`` with the ``(key, value)`` signature of ``transport.subscribe``."""
+        """``on_telemetry`` with the ``(key, value)`` signature of ``subscriptions.subscribe``."""
         self.on_telemetry(tel)
 
     def advance(self, step: int) -> None:

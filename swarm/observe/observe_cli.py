@@ -31,7 +31,8 @@ from rich.console import Console
 
 from swarm.errors import EXIT_FAILED, EXIT_INTERRUPTED, UsageError, VigilError
 from swarm.messages.wire import ClockWire
-from swarm.net.transport import TransportError, check_tls_endpoints, subscribe
+from swarm.net.session import TransportError, check_tls_endpoints
+from swarm.net.subscriptions import subscribe
 from swarm.observe.dashboard import Dashboard, DashboardSettings
 from swarm.observe.live_view import LiveViewError, check_address
 from swarm.observe.recording import RecordingError, RecordingMetadata, record_directory

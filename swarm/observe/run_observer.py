@@ -28,9 +28,11 @@ from swarm.messages.wire import (
     TelemetryWire,
     TruthWire,
 )
+from swarm.net.keys import Keys
 from swarm.net.observer import FEED_BACKLOG, ObserverFeed, join_router, subscribe_observer
 from swarm.net.security import OBSERVER_ROLE
-from swarm.net.transport import Keys, LatestValues, RejectionCounter
+from swarm.net.stores import LatestValues
+from swarm.net.subscriptions import RejectionCounter
 from swarm.observe.collector import TelemetryCollector
 from swarm.observe.live_view import LiveView
 from swarm.observe.recording import Recorder, RecordingMetadata

@@ -32,14 +32,10 @@ from swarm.core import kernels
 from swarm.core.drone_step import ConsensusMessage
 from swarm.mavlink.link import AutopilotLink, LinkError
 from swarm.messages.wire import BeaconRelayWire, BeaconWire, CameraFrameWire, WireCodec
-from swarm.net.transport import (
-    Keys,
-    LatestValues,
-    RejectionCounter,
-    open_session,
-    subscribe,
-    zenoh_config,
-)
+from swarm.net.keys import Keys
+from swarm.net.session import open_session, zenoh_config
+from swarm.net.stores import LatestValues
+from swarm.net.subscriptions import RejectionCounter, subscribe
 from swarm.scenario.config import load_config
 from swarm.scenario.setup import build_agent
 

@@ -20,7 +20,9 @@ import pytest
 from swarm.agent.process import AgentOptions, AgentProcess
 from swarm.core.drone_step import ConsensusMessage
 from swarm.messages.wire import BeaconRelayWire, BeaconWire, CameraFrameWire
-from swarm.net.transport import Keys, LatestValues, open_session, zenoh_config
+from swarm.net.keys import Keys
+from swarm.net.session import open_session, zenoh_config
+from swarm.net.stores import LatestValues
 from swarm.scenario.config import load_config
 from tests.helpers.process_tools import free_tcp_port
 

@@ -1,4 +1,5 @@
-"""Child process for tests/net/test_transport.py: one real Zenoh session in its own OS process.
+"""One real Zenoh session in its own OS process, for the tests of swarm.net
+(``tests.helpers.zenoh_tools.Child`` starts and drives it).
 
 Driven by JSON lines on stdin, reports JSON lines on stdout:
 
@@ -8,8 +9,9 @@ Driven by JSON lines on stdin, reports JSON lines on stdout:
   arbitrary hex bytes on a key), ``stats``, ``quit``. End of stdin also quits, so a child
   never outlives a parent that died.
 
-It subscribes to its run's beacons and consensus messages through ``swarm.net.transport.subscribe``
-and, separately, to ``vigil/**`` to record every run id whose traffic reaches it at all.
+It subscribes to its run's beacons and consensus messages through
+``swarm.net.subscriptions.subscribe`` and, separately, to ``vigil/**`` to record every run id
+whose traffic reaches it at all.
 """
 
 from __future__ import annotations
@@ -24,7 +26,9 @@ import numpy as np
 
 from swarm.core.drone_step import ConsensusMessage
 from swarm.messages.wire import BeaconWire, WireCodec
-from swarm.net.transport import Keys, RejectionCounter, open_session, subscribe, zenoh_config
+from swarm.net.keys import Keys
+from swarm.net.session import open_session, zenoh_config
+from swarm.net.subscriptions import RejectionCounter, subscribe
 
 N_DRONES, N_TARGETS, N_STATE = 6, 2, 6
 

@@ -65,14 +65,9 @@ from swarm.messages.wire import (
     TelemetryWire,
     WireCodec,
 )
-from swarm.net.transport import (
-    Keys,
-    RejectionCounter,
-    declare_publisher,
-    open_session,
-    subscribe,
-    zenoh_config,
-)
+from swarm.net.keys import Keys
+from swarm.net.session import declare_publisher, open_session, zenoh_config
+from swarm.net.subscriptions import RejectionCounter, subscribe
 from swarm.runs.checks import check_invariants
 from swarm.scenario.config import load_config
 from swarm.scenario.setup import build_agent, initial_drone_positions

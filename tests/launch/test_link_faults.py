@@ -1,5 +1,5 @@
 """Lossy and slow links in a realtime mission (issue 6, point 2): real processes, Zenoh,
-MAVLink, with the transport's fault injection on every agent's consensus messages.
+MAVLink, with the fault injection of swarm.net.faults on every agent's consensus messages.
 
 Case 1 with 10 % of the consensus messages lost, and separately with every one of them sent
 2 steps late: every λ̄ copy stays ≥ ε − 0.01 once the barrier QP is on, and the final

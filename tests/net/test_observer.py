@@ -10,6 +10,7 @@ import time
 import pytest
 from msgspec import structs
 
+from swarm.net.keys import Keys
 from swarm.net.observer import (
     FEED_BACKLOG,
     ObserverFeed,
@@ -17,16 +18,9 @@ from swarm.net.observer import (
     join_router,
     subscribe_observer,
 )
-from swarm.net.transport import (
-    Keys,
-    LatestValues,
-    RejectionCounter,
-    TransportError,
-    declare_publisher,
-    open_session,
-    subscribe,
-    zenoh_config,
-)
+from swarm.net.session import TransportError, declare_publisher, open_session, zenoh_config
+from swarm.net.stores import LatestValues
+from swarm.net.subscriptions import RejectionCounter, subscribe
 from tests.helpers.process_tools import free_tcp_port
 from tests.helpers.wire_samples import CODEC, MESSAGES, PAYLOADS
 

@@ -24,6 +24,7 @@ import pytest
 import zenoh
 
 from swarm.launch.launcher import LaunchOptions, SwarmLauncher
+from swarm.net.keys import Keys
 from swarm.net.security import (
     OBSERVER_ROLE,
     WORLD_ROLE,
@@ -32,8 +33,7 @@ from swarm.net.security import (
     common_name,
     router_access_control,
 )
-from swarm.net.transport import (
-    Keys,
+from swarm.net.session import (
     TransportError,
     declare_publisher,
     local_endpoint,

@@ -24,7 +24,8 @@ from rich.console import Console
 from swarm.core.drone_step import StepDiagnostics
 from swarm.launch.launcher import LaunchOptions, SwarmLauncher, free_tcp_port
 from swarm.messages.wire import ClockWire, TelemetryWire, telemetry_from_diagnostics
-from swarm.net.transport import Keys, open_session, zenoh_config
+from swarm.net.keys import Keys
+from swarm.net.session import open_session, zenoh_config
 from swarm.observe.dashboard import (
     Dashboard,
     DashboardSettings,

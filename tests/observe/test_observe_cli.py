@@ -25,7 +25,8 @@ from rich.console import Console
 from swarm.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_USAGE
 from swarm.launch.launcher import free_tcp_port, reserve_mavlink_base
 from swarm.messages.wire import ClockWire
-from swarm.net.transport import Keys, open_session, zenoh_config
+from swarm.net.keys import Keys
+from swarm.net.session import open_session, zenoh_config
 from swarm.observe import observe_cli
 from swarm.observe.observe_cli import ObserveError, observe_run, summarize
 from swarm.observe.recording import read_recording

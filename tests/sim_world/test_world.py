@@ -18,7 +18,7 @@ import sim_world.world as world_module
 from sim_world.world import CLOCK_PERIOD_S, World, WorldOptions
 from swarm.launch.launcher import free_tcp_port, reserve_mavlink_base
 from swarm.messages.wire import RELAY_HELD, RELAY_POSITION, BeaconWire
-from swarm.net.transport import open_session, zenoh_config
+from swarm.net.session import open_session, zenoh_config
 from swarm.scenario.config import load_config
 
 CASE1 = Path(__file__).resolve().parents[2] / "configs" / "case1.toml"
