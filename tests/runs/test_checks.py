@@ -26,6 +26,7 @@ from hypothesis.extra.numpy import arrays
 from rich.console import Console
 
 from swarm.errors import EXIT_FAILED, EXIT_INCOMPLETE, EXIT_OK
+from swarm.launch.cli import print_summary
 from swarm.observe.report import build_report, report_to_json, verdict_line
 from swarm.runs import checks
 from swarm.runs.checks import (
@@ -380,8 +381,6 @@ def broken_everywhere() -> RunRecord:
 
 
 def test_report_json_and_launcher_summary_agree_with_the_check() -> None:
-    from swarm.launch.cli import print_summary
-
     record = broken_everywhere()
     expected = check_invariants(record)
     assert {v.invariant for v in expected} == {"collision", "lambda_bar", "velocity_bound"}
