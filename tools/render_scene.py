@@ -29,7 +29,7 @@ from mpl_toolkits.mplot3d.art3d import Line3DCollection
 from scipy.spatial.transform import Rotation
 
 from swarm.observe.foxglove_scene import SCENE_TOPIC
-from swarm.observe.recording import locate
+from swarm.observe.recording.reader import locate
 
 RING_POINTS = 48
 

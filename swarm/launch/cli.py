@@ -34,12 +34,8 @@ from swarm.mavlink.sitl import (
 from swarm.models.kinematics import InitialPlacementError
 from swarm.observe.dashboard import Dashboard, DashboardSettings, InProcessFeed
 from swarm.observe.live_view import LiveViewAddressError, check_address
-from swarm.observe.recording import (
-    RECORDING_FILE,
-    RecordingError,
-    record_directory,
-    record_reference,
-)
+from swarm.observe.recording.schema import RECORDING_FILE, RecordingError
+from swarm.observe.recording.writer import record_directory, record_reference
 from swarm.observe.run_observer import print_process_counters, print_summary
 from swarm.runs.reference import run_reference
 from swarm.scenario.cli_common import (

@@ -49,7 +49,7 @@ from swarm.models.frames import GeoPoint
 from swarm.net.session import TransportError, local_endpoint
 from swarm.observe.collector import TelemetryCollector
 from swarm.observe.live_view import LiveViewError
-from swarm.observe.recording import AutopilotState, RecordingError, RecordingMetadata
+from swarm.observe.recording.schema import AutopilotState, RecordingError, RecordingMetadata
 from swarm.observe.run_observer import RunObserver, TelemetryListener
 from swarm.runs.record import RunRecord
 from swarm.scenario.cli_common import DEFAULT_MAVLINK_BASE

@@ -35,7 +35,8 @@ from swarm.net.session import TransportError, check_tls_endpoints
 from swarm.net.subscriptions import subscribe
 from swarm.observe.dashboard import Dashboard, DashboardSettings
 from swarm.observe.live_view import LiveViewError, check_address
-from swarm.observe.recording import RecordingError, RecordingMetadata, record_directory
+from swarm.observe.recording.schema import RecordingError, RecordingMetadata
+from swarm.observe.recording.writer import record_directory
 from swarm.observe.run_observer import RunObserver, print_process_counters, print_summary
 from swarm.runs.record import RunRecord
 from swarm.scenario.cli_common import (

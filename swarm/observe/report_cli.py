@@ -20,7 +20,8 @@ from pathlib import Path
 
 from rich.console import Console
 
-from swarm.observe.recording import Recording, RecordingError, read_recording
+from swarm.observe.recording.reader import Recording, read_recording
+from swarm.observe.recording.schema import RecordingError
 from swarm.observe.report import Provenance, RunReport, build_report, render_report, report_to_json
 from swarm.scenario.cli_common import (
     OneLineParser,

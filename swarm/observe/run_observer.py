@@ -35,7 +35,8 @@ from swarm.net.stores import LatestValues
 from swarm.net.subscriptions import RejectionCounter
 from swarm.observe.collector import TelemetryCollector
 from swarm.observe.live_view import LiveView
-from swarm.observe.recording import Recorder, RecordingMetadata
+from swarm.observe.recording.schema import RecordingMetadata
+from swarm.observe.recording.writer import Recorder
 from swarm.observe.report import build_report, render_report
 from swarm.runs.record import RunRecord
 from swarm.scenario.config import ScenarioConfig

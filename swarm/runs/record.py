@@ -1,6 +1,6 @@
 """A run's time series, whoever made it: the in-process reference (``swarm.runs.reference``),
 the launcher's collector from a process swarm's telemetry and truth
-(``swarm.observe.collector``), or a recording read back (``swarm.observe.recording``)."""
+(``swarm.observe.collector``), or a recording read back (``swarm.observe.recording.reader``)."""
 
 from __future__ import annotations
 

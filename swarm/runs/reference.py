@@ -43,7 +43,7 @@ StepCallback = Callable[[int, list[StepDiagnostics]], None]
 
 class MessageSink(Protocol):
     """Where a run's messages go as the process swarm's recorder would hear them (a
-    ``swarm.observe.recording.Recorder``)."""
+    ``swarm.observe.recording.writer.Recorder``)."""
 
     def put(self, message: BeaconWire | CameraFrameWire | TelemetryWire | TruthWire) -> None:
         ...
@@ -55,7 +55,7 @@ def run_reference(config: ScenarioConfig, seed: int | None = None,
     """Run the scenario in one process and return every time series.
 
     ``sink``: also hand it, every step, the messages a process swarm's recording holds
-    (telemetry, beacons, camera frames, truth; ``swarm.observe.recording.record_reference``).
+    (telemetry, beacons, camera frames, truth; ``swarm.observe.recording.writer.record_reference``).
     """
     seed = config.scenario.seed if seed is None else seed
     return _run(config, seed, on_step, sink)

@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from swarm.observe.recording import Recording, iter_messages
+from swarm.observe.recording.reader import Recording, iter_messages
 from swarm.runs.checks import start_index
 
 

@@ -32,7 +32,9 @@ from typing import Any
 
 from swarm.children import code_path, die_with_parent
 from swarm.errors import VigilError
-from swarm.observe.recording import RECORDING_FILE, read_recording, record_reference
+from swarm.observe.recording.reader import read_recording
+from swarm.observe.recording.schema import RECORDING_FILE
+from swarm.observe.recording.writer import record_reference
 from swarm.observe.report import build_report
 from swarm.observe.report_cli import report_from_recording
 from swarm.runs.reference import run_reference

@@ -14,7 +14,7 @@ from functools import cache
 from pathlib import Path
 
 from swarm.mavlink.sitl import ENV_VARIABLE, firmware_from_env
-from swarm.observe.recording import git_commit, package_version
+from swarm.observe.recording.schema import git_commit, package_version
 from swarm.scenario.config import (
     ConfigError,
     config_to_data,

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import pytest
 
-from swarm.observe.recording import read_recording
+from swarm.observe.recording.reader import read_recording
 from tests.helpers.cli_tools import launch_swarm_in_process, run_cli
 
 CASE1 = "configs/case1.toml"

@@ -26,7 +26,7 @@ from pathlib import Path
 import pytest
 
 from sim_world.fleet import bind_address_for, mavlink_hosts
-from swarm.observe.recording import read_recording
+from swarm.observe.recording.reader import read_recording
 from swarm.runs.checks import check_invariants
 from swarm.scenario.config import load_config
 from tests.helpers.netns_tools import OBSERVER_READY, NetnsLan, NetnsUnavailable, Proc, spawn, stop

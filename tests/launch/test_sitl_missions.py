@@ -45,7 +45,8 @@ import pytest
 
 from swarm.mavlink.sitl import ENV_VARIABLE
 from swarm.messages.wire import TelemetryWire
-from swarm.observe.recording import AutopilotState, iter_messages, read_recording
+from swarm.observe.recording.reader import iter_messages, read_recording
+from swarm.observe.recording.schema import AutopilotState
 from swarm.runs.checks import check_invariants
 from tests.helpers.sitl_tools import firmware_or_skip, sitl_processes
 

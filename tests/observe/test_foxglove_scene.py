@@ -33,7 +33,8 @@ from swarm.observe.foxglove_scene import (
     plot_topic,
     scene_update,
 )
-from swarm.observe.recording import iter_messages, record_reference
+from swarm.observe.recording.reader import iter_messages
+from swarm.observe.recording.writer import record_reference
 from swarm.runs.checks import SENSING_WEIGHT
 from swarm.runs.record import RunRecord
 from swarm.scenario.config import load_config

@@ -11,7 +11,7 @@ from mcap.reader import make_reader
 
 from swarm.observe.foxglove_scene import LOG_TOPIC, SCENE_TOPIC
 from swarm.observe.layout import layout_json, lichtblick_layout, main
-from swarm.observe.recording import record_reference
+from swarm.observe.recording.writer import record_reference
 from swarm.scenario.config import load_config
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -29,7 +29,7 @@ from swarm.net.keys import Keys
 from swarm.net.session import open_session, zenoh_config
 from swarm.observe import observe_cli
 from swarm.observe.observe_cli import ObserveError, observe_run, summarize
-from swarm.observe.recording import read_recording
+from swarm.observe.recording.reader import read_recording
 from swarm.observe.run_observer import print_summary
 from swarm.scenario.config import load_config
 from tests.helpers.cli_tools import cli_env

@@ -475,7 +475,7 @@ def test_cli_exit_1_when_the_recording_violates_an_invariant(
         recorded_run: Path, monkeypatch: pytest.MonkeyPatch,
         capsys: pytest.CaptureFixture[str]) -> None:
     from swarm.observe import report_cli
-    from swarm.observe.recording import read_recording
+    from swarm.observe.recording.reader import read_recording
 
     recording = read_recording(recorded_run)
     record = recording.record

@@ -11,7 +11,7 @@ from pathlib import Path
 import psutil
 import pytest
 
-from swarm.observe.recording import RECORDING_FILE
+from swarm.observe.recording.schema import RECORDING_FILE
 from swarm.scenario.config import config_to_data, load_config
 from swarm.sweep.missions import run_mission
 from swarm.sweep.plan import CODE_VERSION_VARIABLE, code_version, plan_sweep

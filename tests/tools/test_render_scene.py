@@ -7,7 +7,7 @@ from pathlib import Path
 from matplotlib.collections import PathCollection
 from mpl_toolkits.mplot3d.art3d import Line3DCollection
 
-from swarm.observe.recording import record_reference
+from swarm.observe.recording.writer import record_reference
 from swarm.scenario.config import load_config
 from tools.render_scene import draw_scene, main, read_scenes
 

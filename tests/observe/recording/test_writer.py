@@ -1,12 +1,11 @@
-"""Recordings (issue 4, point 1): ``--record DIR`` writes ``DIR/run.mcap`` as the run goes.
+"""Writing recordings (swarm.observe.recording.writer): ``--record DIR`` writes ``DIR/run.mcap``
+as the run goes.
 
 - what is read back equals what the run returned, bit for bit (in-process and a real lockstep
   process swarm), and the metadata gives back the resolved config;
-- every message kind converts to JSON that matches its channel's JSON Schema and back
-  exactly;
 - a launcher killed with ``kill -9`` mid-run leaves a readable file holding everything up to
   at most 1 s before the kill, and no process behind;
-- a file cut anywhere reads up to the cut; bad inputs give one-line RecordingErrors.
+- a disk too small or filling up is one clear error, never a silent gap.
 """
 
 from __future__ import annotations
@@ -15,7 +14,6 @@ import contextlib
 import dataclasses
 import json
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -26,51 +24,30 @@ from typing import Any
 
 import numpy as np
 import pytest
-from mcap.writer import Writer
 
 from swarm.launch.launcher import LaunchOptions, SwarmLauncher
-from swarm.messages.wire import (
-    TELEMETRY_ARRAYS,
-    BeaconWire,
-    CameraFrameWire,
-    DetectionWire,
-    F64Array,
-    TelemetryCounters,
-    TelemetryWire,
-    TruthWire,
-)
-from swarm.observe.recording import (
+from swarm.messages.wire import BeaconWire
+from swarm.observe.recording.reader import iter_messages, read_recording
+from swarm.observe.recording.schema import (
     RECORDING_FILE,
-    Recorder,
     RecordingError,
     RecordingMetadata,
-    beacon_from_json,
-    beacon_to_json,
-    camera_from_json,
-    camera_to_json,
     git_commit,
-    iter_messages,
     package_version,
-    read_recording,
-    record_reference,
-    schemas,
-    telemetry_from_json,
-    telemetry_to_json,
-    truth_from_json,
-    truth_to_json,
 )
+from swarm.observe.recording.writer import Recorder, record_reference
 from swarm.runs.record import RunRecord
 from swarm.runs.reference import run_reference
-from swarm.scenario.config import config_from_dict, config_to_data, load_config
+from swarm.scenario.config import load_config
 from tests.helpers.scene_tools import read_scenes
 
-ROOT = Path(__file__).resolve().parents[2]
+ROOT = Path(__file__).resolve().parents[3]
 CONFIGS = ROOT / "configs"
 CASE1 = CONFIGS / "case1.toml"
 KILL_AFTER_SIM_S = 2.0
 DT_S = 0.02  # Case 1's step
 CASE1_DURATION_S = 30.0  # Case 1's mission
-DURABILITY_S = 1.0  # what the issue allows to be lost before a kill -9
+DURABILITY_S = 1.0  # at most this much before a kill -9 may be lost
 
 
 def assert_same_record(ours: RunRecord, theirs: RunRecord, skip: tuple[str, ...] = ()) -> None:
@@ -86,147 +63,7 @@ def assert_same_record(ours: RunRecord, theirs: RunRecord, skip: tuple[str, ...]
             assert np.array_equal(a, b, equal_nan=True), field.name
 
 
-# -- config and metadata --------------------------------------------------------------------
-
-
-@pytest.mark.parametrize("path", sorted(CONFIGS.glob("*.toml"))
-                         + sorted((ROOT / "tests" / "configs").glob("*.toml")),
-                         ids=lambda p: p.stem)
-def test_config_round_trips_through_plain_json_data(path: Path) -> None:
-    config = load_config(path).with_duration(7.5)
-    data = json.loads(json.dumps(config_to_data(config)))
-    assert config_from_dict(data) == config
-
-
-def test_metadata_round_trips_through_mcap_strings() -> None:
-    config = load_config(CASE1).with_duration(4.0)
-    metadata = RecordingMetadata.for_run(config, 7, "realtime", "abc", str(CASE1))
-    strings = metadata.to_mcap()
-    assert all(isinstance(v, str) for v in strings.values())
-    assert RecordingMetadata.from_mcap(strings, "x") == metadata
-    assert metadata.version == package_version() != "unknown"
-
-
-def test_git_commit_is_this_checkouts_head_or_unknown(tmp_path: Path,
-                                                      monkeypatch: pytest.MonkeyPatch) -> None:
-    # The tests import the package from this checkout: its HEAD, wherever git can say it
-    # (a recording once said "unknown" from a checkout: the package dir was taken one level
-    # too deep after recording.py moved into swarm/observe/).
-    head = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--show-toplevel", "HEAD"],
-                          capture_output=True, text=True, check=False) \
-        if shutil.which("git") else None
-    lines = head.stdout.split() if head is not None and head.returncode == 0 else []
-    at_top = len(lines) == 2 and Path(lines[0]).resolve() == ROOT.resolve()
-    assert git_commit() == (lines[1] if at_top else "unknown")
-    assert git_commit(tmp_path / "pkg") == "unknown"  # not a checkout
-    monkeypatch.setenv("PATH", str(tmp_path))  # no git at all
-    assert git_commit() == "unknown"
-
-
-# -- message conversions --------------------------------------------------------------------
-
-AWKWARD = [-0.0, 5e-324, 0.1 + 0.2, 1.7976931348623157e308, -1e-300]  # must survive exactly
-
-
-def sample_messages() -> list[Any]:
-    counters = TelemetryCounters(qp_fallbacks=1, late_steps=2, steps=3, neighbour_age_ms=0.25,
-                                 mavlink_state="armed OFFBOARD")
-    m, n = 2, 6
-    arr = F64Array.from_array
-    telemetry = TelemetryWire.build(
-        drone=1, step=42, time_s=0.84, position_m=(AWKWARD[0], 1.0, 3.5),
-        velocity=arr(AWKWARD[:3]), nominal_velocity=arr([0.0, 0.0, 0.0]),
-        estimates=arr(np.arange(m * n, dtype=float).reshape(m, n) / 3.0),
-        estimate_covariance=arr(np.array([np.eye(3) * AWKWARD[2], np.diag(AWKWARD[1:4])])),
-        lambda_bar=arr([0.06, AWKWARD[2]]), psi0=arr([1.0, 2.0]), psi1=arr([3.0, 4.0]),
-        weights=arr([0.5, AWKWARD[1]]), weight_sum_estimate=arr([1.0, 1.5]),
-        slacks=arr([0.0, 0.0]), weight_slacks=arr([0.0, -0.0]), detected=(True, False),
-        control_active=True, qp_status="solved", qp_iterations=7, qp_fallback=False,
-        qp_solve_us=12.5, step_us=450.0, bearing_error=None, missing_neighbour_messages=1,
-        rejected_inputs=0, counters=counters)
-    return [
-        telemetry,
-        with_fields(telemetry, bearing_error=0.125,
-                                 counters=TelemetryCounters()),
-        BeaconWire.build(3, 9, 0.18, [1.0, AWKWARD[4], 2.0], velocity_m_s=[0.1, 0.2, 0.3],
-                         sample_age_s=0.004),
-        CameraFrameWire(drone=0, step=5, time_s=0.1, vehicle_time_ms=1234,
-                        detections=(DetectionWire(1, 0.25, AWKWARD[0]),)),
-        CameraFrameWire(drone=2, step=5, time_s=0.1, vehicle_time_ms=1234,
-                        target_velocities=arr([[0.1, 0.2, 0.0], [0.0, 0.0, AWKWARD[3]]])),
-        TruthWire.build(5, 0.1, np.ones((6, 3)) * 0.3, [[0.0, 0.0, 0.0], [1.0, 2.0, 0.0]],
-                        [[AWKWARD[1], 0.0, 0.0], [0.0, 0.0, 0.0]]),
-    ]
-
-
-def with_fields(message: TelemetryWire, **changes: Any) -> TelemetryWire:
-    """A copy with some fields or arrays changed (the arrays packed again)."""
-    fields = {name: getattr(message, name) for name in message.__struct_fields__
-              if name not in ("version", "n_targets", "n_state", "data")}
-    arrays = {name: getattr(message, name) for name in TELEMETRY_ARRAYS}
-    return TelemetryWire.build(**{**fields, **arrays, **changes})
-
-
-CONVERTERS = {
-    TelemetryWire: ("telemetry", telemetry_to_json, telemetry_from_json),
-    BeaconWire: ("beacon", beacon_to_json, beacon_from_json),
-    CameraFrameWire: ("camera", camera_to_json, camera_from_json),
-    TruthWire: ("truth", truth_to_json, truth_from_json),
-}
-
-
-def conforms(value: Any, schema: dict[str, Any], where: str = "$") -> None:
-    """The subset of JSON Schema the recording's schemas use (no jsonschema dependency)."""
-    if "anyOf" in schema:
-        errors = []
-        for option in schema["anyOf"]:
-            try:
-                conforms(value, option, where)
-                return
-            except AssertionError as err:
-                errors.append(str(err))
-        raise AssertionError(f"{where}: matches no anyOf option: {errors}")
-    types = schema["type"] if isinstance(schema["type"], list) else [schema["type"]]
-    checks = {"object": lambda v: isinstance(v, dict), "array": lambda v: isinstance(v, list),
-              "number": lambda v: type(v) in (int, float), "integer": lambda v: type(v) is int,
-              "boolean": lambda v: type(v) is bool, "string": lambda v: type(v) is str,
-              "null": lambda v: v is None}
-    assert any(checks[t](value) for t in types), f"{where}: {value!r:.60} is not {types}"
-    if isinstance(value, dict):
-        assert set(value) == set(schema["required"]) == set(schema["properties"]), where
-        for key, item in value.items():
-            conforms(item, schema["properties"][key], f"{where}.{key}")
-    elif isinstance(value, list):
-        assert schema.get("minItems", 0) <= len(value) <= schema.get("maxItems", 1 << 30), where
-        for k, item in enumerate(value):
-            conforms(item, schema["items"], f"{where}[{k}]")
-    elif "minimum" in schema:
-        assert value >= schema["minimum"], where
-
-
-@pytest.mark.parametrize("message", sample_messages(), ids=lambda m: type(m).__name__)
-def test_each_kind_converts_to_schema_json_and_back_exactly(message: Any) -> None:
-    kind, to_json, from_json = CONVERTERS[type(message)]
-    text = json.dumps(to_json(message), allow_nan=False)
-    conforms(json.loads(text), schemas(n_targets=2, n_state=6)[kind])
-    back = from_json(json.loads(text))
-    assert back == message  # msgspec compares every field; F64Array compares the bytes
-
-
-def test_telemetry_recorded_before_the_covariance_was_sent_reads_back_as_unknown() -> None:
-    """Recordings of wire version 3 have no ``estimate_covariance``: it reads back as NaN of
-    the right shape (unknown, not zero: no viewer draws an ellipsoid of it); the rest as it
-    was."""
-    telemetry = sample_messages()[0]
-    older = telemetry_to_json(telemetry)
-    del older["estimate_covariance"]
-    back = telemetry_from_json(json.loads(json.dumps(older)))
-    covariance = back.estimate_covariance.to_array()
-    assert covariance.shape == (2, 3, 3) and np.isnan(covariance).all()
-    assert back == with_fields(telemetry, estimate_covariance=back.estimate_covariance)
-
-
-# -- the recorder on its own ----------------------------------------------------------------
+# -- the recorder on its own ---------------------------------------------------------------------
 
 
 def small_metadata() -> RecordingMetadata:
@@ -285,14 +122,7 @@ def test_puts_from_many_threads_are_all_written(tmp_path: Path) -> None:
     assert [counts[f"agent/{i}/beacon"] for i in range(6)] == [300] * 6
 
 
-# -- whole runs ----------------------------------------------------------------------------
-
-
-@pytest.fixture(scope="module")
-def inprocess_recording(tmp_path_factory: pytest.TempPathFactory) -> tuple[RunRecord, Path]:
-    config = load_config(CASE1).with_duration(3.0)
-    directory = tmp_path_factory.mktemp("inprocess")
-    return record_reference(config, 3, directory), directory
+# -- whole runs ----------------------------------------------------------------------------------
 
 
 def test_inprocess_recording_reads_back_as_the_reference_record(
@@ -362,7 +192,7 @@ def test_the_cli_records_the_resolved_config_and_refuses_a_file_as_dir(tmp_path:
     assert len(bad.stderr.strip().splitlines()) == 1 and "not a directory" in bad.stderr
 
 
-# -- crashes --------------------------------------------------------------------------------
+# -- crashes -------------------------------------------------------------------------------------
 
 
 def processes_of(run_id: str) -> list[int]:
@@ -445,7 +275,7 @@ def test_a_stopped_launcher_leaves_a_readable_recording(tmp_path: Path, signum: 
             assert recording.truncated
         else:
             assert (code, recording.truncated) == (130, False)
-        # Cut short either way: swarm-report never says OK of it (issue 41, point 2).
+        # Cut short either way: swarm-report never says OK of it.
         result = subprocess.run([sys.executable, "-m", "swarm.observe.report_cli",
                                  str(directory), "--json"], cwd=ROOT, capture_output=True,
                                 text=True, timeout=120, check=False)
@@ -482,59 +312,7 @@ def test_a_killed_world_ends_the_mission_with_a_complete_recording(tmp_path: Pat
              on_timeout=lambda: describe(processes_of(run_id)))
 
 
-def test_a_file_cut_anywhere_reads_up_to_the_cut(
-        inprocess_recording: tuple[RunRecord, Path], tmp_path: Path) -> None:
-    _, directory = inprocess_recording
-    data = (directory / RECORDING_FILE).read_bytes()
-    full = read_recording(directory)
-    # Cut inside the data section: a cut in the summary after it loses no message (and is
-    # not reported as truncated). The footer (29 bytes before the 8-byte closing magic)
-    # holds summary_start; the 13-byte DataEnd record sits just before it.
-    summary_start = int.from_bytes(data[-8 - 29 + 9:-8 - 29 + 17], "little")
-    data_end = summary_start - 13
-    assert data[data_end] == 0x0F  # DataEnd opcode
-    totals = []
-    for fraction in (0.3, 0.55, 0.8, 0.97):
-        cut = tmp_path / f"cut{fraction}.mcap"
-        cut.write_bytes(data[:int(data_end * fraction)])
-        part = read_recording(cut)
-        assert part.truncated
-        totals.append(sum(part.message_counts.values()))
-        steps = part.record.n_steps
-        for name in ("drone_positions_m", "target_positions_m", "true_lambda_min"):
-            assert np.array_equal(getattr(part.record, name), getattr(full.record, name)[:steps])
-    assert totals == sorted(totals) and totals[0] < totals[-1] <= sum(full.message_counts.values())
-    # Cut in the summary: every message is there, and the data section ended cleanly.
-    summary_cut = tmp_path / "summary_cut.mcap"
-    summary_cut.write_bytes(data[:summary_start + (len(data) - summary_start) // 2])
-    whole = read_recording(summary_cut)
-    assert not whole.truncated and whole.message_counts == full.message_counts
-
-
-def test_bad_inputs_give_one_line_recording_errors(tmp_path: Path) -> None:
-    (tmp_path / "empty_dir").mkdir()
-    (tmp_path / "garbage.mcap").write_bytes(b"this is not an mcap file at all" * 10)
-    (tmp_path / "empty.mcap").write_bytes(b"")
-    with (tmp_path / "foreign.mcap").open("wb") as handle:  # valid MCAP, not ours
-        writer = Writer(handle)
-        writer.start()
-        writer.add_metadata("other", {"a": "b"})
-        writer.finish()
-    cases = {
-        tmp_path / "missing": "no such file or directory",
-        tmp_path / "empty_dir": "no run.mcap in this directory",
-        tmp_path / "garbage.mcap": "not an MCAP file",
-        tmp_path / "empty.mcap": "empty",
-        tmp_path / "foreign.mcap": "no Vigil metadata",
-    }
-    for path, message in cases.items():
-        with pytest.raises(RecordingError) as caught:
-            read_recording(path)
-        text = str(caught.value)
-        assert message in text and str(path) in text and "\n" not in text
-
-
-# -- a full disk ------------------------------------------------------------------------------
+# -- a full disk ---------------------------------------------------------------------------------
 
 
 @contextlib.contextmanager
