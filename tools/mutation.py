@@ -123,7 +123,8 @@ C_TESTS = ("tests/core", *FAST, "-x")
 GROUPS = ("checks", "watch", "core", "c")
 
 # The extensions of pyproject.toml's [[tool.setuptools.ext-modules]]: (source, numpy headers).
-EXTENSIONS = (("swarm/core/_kernels.c", True), ("swarm/mavlink/_frame.c", False))
+EXTENSIONS = (("swarm/core/_kernels.c", True), ("swarm/messages/_wire.c", False),
+              ("swarm/agent/_exchange.c", False), ("swarm/mavlink/_frame.c", False))
 C_FLAGS = ("-O2", "-std=c11", "-shared", "-fPIC")
 
 KILLED = {"killed", "timeout", "segfault"}  # the tests failed, hung or crashed on the mutant

@@ -38,7 +38,7 @@ from typing import Any, Literal, Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from swarm.core import kernels
+from swarm.agent.nearby import carry, nearby
 from swarm.core.drone_step import ConsensusMessage, DroneAgent
 from swarm.errors import UsageError
 from swarm.mavlink.link import AutopilotLink, LinkError, PositionSample
@@ -105,7 +105,7 @@ class Vicinity:
     the own position, for the collision rows, and the graph neighbours wherever they are,
     for the formation bearings. Everything else the core would leave out anyway, so the
     step's Python work grows with the drones around, not with N: the selection is one
-    compiled pass over all N (``kernels.nearby``)."""
+    compiled pass over all N (``swarm.agent.nearby``)."""
 
     def __init__(self, peers: Peers) -> None:
         n = peers.config.swarm.n_drones
@@ -274,9 +274,9 @@ class LockstepExchange:
             raise LinkError(f"drone {self.peers.drone_id}: step {step}: the camera frame "
                             "carries no drone positions (a lockstep world sends them)")
         vicinity = self.vicinity
-        return kernels.nearby(positions.native(), 3, None, self.peers.drone_id, None,
-                              None if around is None else around.tolist(), vicinity.radius_m,
-                              vicinity.always)
+        return nearby(positions.native(), 3, None, self.peers.drone_id, None,
+                      None if around is None else around.tolist(), vicinity.radius_m,
+                      vicinity.always)
 
     def setpoint_interval_s(self) -> float:
         return self.peers.config.scenario.dt_s
@@ -459,12 +459,12 @@ class RealtimeExchange:
             return {}
         # One compiled pass over the relay: each row p + min(a_j + age_j, hold)·v − a_i·v_i
         # (age_j = the relay's age + how long the world held it), then the vicinity.
-        carry = [max(self._clock() - relay.arrived_s, 0.0), sample_age_s, *flying.tolist(),
-                 self.peers.config.vehicles.failsafe_timeout_s]
+        forward = carry(max(self._clock() - relay.arrived_s, 0.0), sample_age_s,
+                        flying.tolist(), self.peers.config.vehicles.failsafe_timeout_s)
         vicinity = self.vicinity
-        return kernels.nearby(relay.rows, RELAY_WIDTH, relay.id_list, self.peers.drone_id,
-                              carry, None if around is None else around.tolist(),
-                              vicinity.radius_m, vicinity.always)
+        return nearby(relay.rows, RELAY_WIDTH, relay.id_list, self.peers.drone_id, forward,
+                      None if around is None else around.tolist(), vicinity.radius_m,
+                      vicinity.always)
 
     def setpoint_interval_s(self) -> float:
         """Measured: the wall time since the last setpoint (ΔT before the first)."""

@@ -19,18 +19,18 @@
  *                     workspace's arrays, as qp.build_local_qp assembles it
  *   qp_max_violation  qp.LocalQp.max_violation of the local QP (3.36-3.37), SPEC §9
  *                     from its row inputs (LocalQpWorkspace's feasibility checks)
- *   native_finite     np.isfinite(...).all() of native float64 bytes (the wire rules' check
- *                     of every received float, swarm.messages.rules)
- *   join_native       b"".join(a.tobytes() ...) of native float64 arrays of given shapes (the
- *                     telemetry's packed arrays, swarm.messages.wire), None if one is not
  *   initial_information  icf.initial_information for M targets from the measured  SPEC §4-§5
  *                     image points (projector.bearing_from_image_point)          2.4-2.5, 2.15
  *   consensus_sums    icf.consensus_iteration of the packed ICF pair, and the    SPEC §5-§6
  *                     disagreement of the round-0 consensus states (DroneAgent)  2.6-2.7
- *   consensus_step    the packed PI consensus and Gramian step, agent._consensus_operator
+ *   consensus_step    the packed PI consensus and Gramian step, drone_step._consensus_operator
  *                     (pi_consensus_step, gramian_step)                          3.29-3.30
- *   nearby            the other drones a step can use, their relayed beacons carried
- *                     forward (swarm.agent.exchange: Vicinity, RealtimeExchange.beacons)
+ *
+ * The layouts of what they write and read and the order of the constants they take are
+ * stated once, here, and exported by the module (../compiled.h): ROW_FIELDS and
+ * SMOOTH_MIN_FIELDS (output rows), PERCEPTION_CONSTANTS, BARRIER_CONSTANTS, QP_ROW_CONSTANTS
+ * and LOCALIZATION_SHARES (constants), ICF_PAIR and CONSENSUS_STEP_Z (packed vectors).
+ * swarm.core.kernels reads them; Python writes no offset of its own.
  *
  * Why hand-written Cholesky and Jacobi: LAPACK from C would have to come from scipy (its
  * cython_lapack capsules), whose import costs each agent ~0.3 s of the 2 s launch budget, and
@@ -38,19 +38,22 @@
  * and a cyclic Jacobi eigensolver are a few lines each, and the tests hold them to LAPACK's
  * results (numpy) to round-off.
  */
-#define PY_SSIZE_T_CLEAN
-#include <Python.h>
+#include "../compiled.h"
 #include <math.h>
-#include <string.h>
 
 #define MAX_STATE 6
 
 /* -- perception (SPEC §3) ------------------------------------------------------------------ */
 
-/* Perception constants, in the order of perception.PerceptionConstants. */
+/* Perception constants, in this order; exported as PERCEPTION_CONSTANTS, named as
+ * params.PerceptionParams names them. */
 enum { K_DMIN, K_DMAX, K_SDMIN, K_SDMAX, K_COS, K_SBETA, N_PERCEPTION_CONSTANTS };
+static const char *const perception_constant_names[N_PERCEPTION_CONSTANTS] = {
+    [K_DMIN] = "d_min_th_m", [K_DMAX] = "d_max_th_m", [K_SDMIN] = "sigma_dmin_sq_m2",
+    [K_SDMAX] = "sigma_dmax_sq_m2", [K_COS] = "cos_alpha_th", [K_SBETA] = "sigma_beta_sq"};
 
-/* Output of one drone-target pair: w, ∂w/∂p_i (3), β̂ (3), d̂, Π̂ row-major (9). */
+/* Output of one drone-target pair: w, ∂w/∂p_i (3), β̂ (3), d̂, Π̂ row-major (9); exported
+ * with the barrier's as ROW_FIELDS (row_fields below). */
 enum { P_WEIGHT = 0, P_GRAD = 1, P_UNIT = 4, P_DISTANCE = 7, P_PROJECTOR = 8, N_PERCEPTION = 17 };
 
 static void
@@ -178,8 +181,12 @@ divided_difference(double lam_k, double lam_l, double g_k, double g_l, double p,
     return g_l / lam_l * ratio;
 }
 
-/* Output: λ̄, λ clipped (3), g (3), ∂²f/∂λ∂λ as h00 h11 h22 h01 h02 h12, θ01 θ02 θ12. */
+/* Output: λ̄, λ clipped (3), g (3), ∂²f/∂λ∂λ as h00 h11 h22 h01 h02 h12, θ01 θ02 θ12;
+ * exported as SMOOTH_MIN_FIELDS. */
 enum { S_VALUE = 0, S_LAMBDA = 1, S_GRAD = 4, S_HESS = 7, S_THETA = 13, N_SMOOTH = 16 };
+static const Field smooth_min_fields[] = {
+    {"value", S_VALUE}, {"eigenvalues", S_LAMBDA}, {"eigen_gradient", S_GRAD},
+    {"eigen_hessian", S_HESS}, {"divided_differences", S_THETA}};
 
 static void
 smooth_min(const double raw[3], double p, SmoothMinLimits lim, double out[16])
@@ -212,6 +219,15 @@ typedef struct {
 
 /* Output: λ̄, ψ0, ψ1, L_gi ψ1 (3), lower bound −(c + ψ1)/N − d_i. */
 enum { B_LAMBDA = 0, B_PSI0 = 1, B_PSI1 = 2, B_LIE = 3, B_LOWER = 6, N_BARRIER = 7 };
+
+/* A row of perception_barrier: the pair's perception terms, then the target's barrier terms;
+ * exported as ROW_FIELDS, named as kernels.PerceptionScalars and BarrierScalars name them. */
+static const Field row_fields[] = {
+    {"weight", P_WEIGHT}, {"weight_grad_drone", P_GRAD}, {"unit_bearing", P_UNIT},
+    {"distance_m", P_DISTANCE}, {"projector", P_PROJECTOR},
+    {"lambda_bar", N_PERCEPTION + B_LAMBDA}, {"psi0", N_PERCEPTION + B_PSI0},
+    {"psi1", N_PERCEPTION + B_PSI1}, {"lie_g", N_PERCEPTION + B_LIE},
+    {"lower_bound", N_PERCEPTION + B_LOWER}};
 
 /* barrier.localization_barrier evaluated in the eigenbasis of G, where Γ = V diag(g) Vᵀ is
  * never formed: H̃ = VᵀĠV = −ρ diag(λ) + bN VᵀsV, ⟨Γ, Ġ⟩ = Σ g_k H̃_kk, with c_k = v_k·β̂:
@@ -434,19 +450,25 @@ qp_max_violation(const double *z, Py_ssize_t n_z, const double *columns, const d
 
 /* -- the ICF's local step (SPEC §4-§5) -------------------------------------------------------- */
 
-/* V0 = W/N + b[[P, 0], [0, 0]] and v0 = W x / N + b[P p; 0] (2.4-2.5, 2.15) for M targets into
- * out = [V0 (M n n) | v0 (M n)], from the prior information W (M n n) and state x (M n). P is
- * the projector of the measured bearing [x_img, y_img, -1]/norm of target r's image point;
- * a target with detected[r] == 0 adds nothing (mu = 0). p: where the image was taken. */
+/* The packed ICF pair that initial_information writes (and consensus_sums takes as one vector
+ * of floats): its parts in this order, exported as ICF_PAIR. */
+enum { I_INFORMATION, I_VECTOR, N_PAIR_PARTS };
+static const char *const pair_part_names[N_PAIR_PARTS] = {
+    [I_INFORMATION] = "information", [I_VECTOR] = "information_vector"};
+
+/* V0 = W/N + b[[P, 0], [0, 0]] into information (M n n) and v0 = W x / N + b[P p; 0] into
+ * vectors (M n) (2.4-2.5, 2.15) for M targets, from the prior information W (M n n) and state
+ * x (M n). P is the projector of the measured bearing [x_img, y_img, -1]/norm of target r's
+ * image point; a target with detected[r] == 0 adds nothing (mu = 0). p: where the image was
+ * taken. */
 static void
 initial_information(const double *prior_information, const double *prior_state, int m, int n,
                     double n_agents, double gain, const double p[3], const double *image_points,
-                    const double *detected, double *out)
+                    const double *detected, double *information, double *vectors)
 {
-    double *vectors = out + (size_t)m * n * n;
     for (int r = 0; r < m; r++) {
         const double *w = prior_information + (size_t)r * n * n, *x = prior_state + (size_t)r * n;
-        double *info = out + (size_t)r * n * n, *v = vectors + (size_t)r * n;
+        double *info = information + (size_t)r * n * n, *v = vectors + (size_t)r * n;
         for (int i = 0; i < n * n; i++) info[i] = w[i] / n_agents;
         for (int i = 0; i < n; i++) {
             double sum = 0.0;
@@ -503,21 +525,24 @@ consensus_sums(const double *own_icf, Py_ssize_t n_icf, const double *own_cons,
     }
 }
 
+/* The vector z that consensus_step's index points into: its parts in this order (the state
+ * x (n), the disagreement d (n), the local input u, one 0), exported as CONSENSUS_STEP_Z. */
+enum { Z_STATE, Z_DISAGREEMENT, Z_INPUT, Z_ZERO, N_Z_PARTS };
+static const char *const z_part_names[N_Z_PARTS] = {
+    [Z_STATE] = "state", [Z_DISAGREEMENT] = "disagreement", [Z_INPUT] = "input",
+    [Z_ZERO] = "zero"};
+
 /* The packed consensus step: out[i] = sum_r coefficients[r][i] * z[index[r][i]] over the
- * `rows` terms in order (products rounded, then added from r = 0), with z = [x (n) | d (n) |
- * u (n_u) | 0]: what np.add.reduce(z[index] * coefficients, axis=0) computes. */
+ * `rows` terms in order (products rounded, then added from r = 0): what
+ * np.add.reduce(z[index] * coefficients, axis=0) computes. */
 static void
-consensus_step(const double *x, const double *d, const double *u, Py_ssize_t n, Py_ssize_t n_u,
-               const Py_ssize_t *index, const double *coefficients, Py_ssize_t rows,
-               double *out)
+consensus_step(const double *z, Py_ssize_t n, const Py_ssize_t *index,
+               const double *coefficients, Py_ssize_t rows, double *out)
 {
     for (Py_ssize_t i = 0; i < n; i++) {
         double sum = 0.0;
         for (Py_ssize_t r = 0; r < rows; r++) {
-            Py_ssize_t k = index[r * n + i];
-            double value = k < n ? x[k] : k < 2 * n ? d[k - n] : k < 2 * n + n_u
-                           ? u[k - 2 * n] : 0.0;
-            double term = coefficients[r * n + i] * value;
+            double term = coefficients[r * n + i] * z[index[r * n + i]];
             sum = r == 0 ? term : sum + term;
         }
         out[i] = sum;
@@ -525,13 +550,6 @@ consensus_step(const double *x, const double *d, const double *u, Py_ssize_t n, 
 }
 
 /* -- Python glue --------------------------------------------------------------------------- */
-
-static void
-length_error(const Py_buffer *view, Py_ssize_t length, const char *what)
-{
-    PyErr_Format(PyExc_ValueError, "%s: expected %zd float64 values, got %zd", what, length,
-                 view->len / 8);
-}
 
 static void
 release(Py_buffer *views, int count)
@@ -548,35 +566,6 @@ typedef struct {
     Py_ssize_t length;
     int writable;
 } BufferSpec;
-
-/* A C-contiguous float64 buffer of exactly `length` items (`length` < 0: any, returned in
- * *found), writable if asked. Sets a one-line ValueError/TypeError naming `what` otherwise. */
-static int
-float64_buffer(PyObject *obj, Py_buffer *view, int writable, Py_ssize_t length,
-               const char *what)
-{
-    int flags = PyBUF_FORMAT | PyBUF_C_CONTIGUOUS | (writable ? PyBUF_WRITABLE : 0);
-    if (PyObject_GetBuffer(obj, view, flags) != 0) {
-        PyErr_Clear();
-        PyErr_Format(PyExc_TypeError, "%s: expected a %sC-contiguous float64 array, got %s",
-                     what, writable ? "writable " : "", Py_TYPE(obj)->tp_name);
-        return -1;
-    }
-    const char *format = view->format ? view->format : "B";
-    if (view->itemsize != 8 || !(strcmp(format, "d") == 0 || strcmp(format, "<d") == 0
-                                 || strcmp(format, "=d") == 0)) {
-        PyErr_Format(PyExc_TypeError, "%s: expected float64 items, got format '%s'", what,
-                     format);
-        PyBuffer_Release(view);
-        return -1;
-    }
-    if (length >= 0 && view->len / 8 != length) {
-        length_error(view, length, what);
-        PyBuffer_Release(view);
-        return -1;
-    }
-    return 0;
-}
 
 /* Whether each of the `count` acquired views holds its expected number of float64 items;
  * if not, the error names the first that does not, and every view is released. */
@@ -605,21 +594,10 @@ acquire(PyObject *const *args, const BufferSpec *specs, int count, Py_buffer *vi
     return 0;
 }
 
-static int
-check_nargs(Py_ssize_t nargs, Py_ssize_t expected, const char *name)
-{
-    if (nargs != expected) {
-        PyErr_Format(PyExc_TypeError, "%s() takes %zd arguments (%zd given)", name, expected,
-                     nargs);
-        return -1;
-    }
-    return 0;
-}
-
 PyDoc_STRVAR(perception_doc,
 "perception(drone, target, constants, out)\n--\n\n"
 "w, dw/dp_i (3), unit bearing (3), distance, projector row-major (9) of one drone-target\n"
-"pair into out (17): perception.perception_terms. constants: PerceptionConstants (6).");
+"pair into out (17, ROW_FIELDS): perception.perception_terms. constants: PERCEPTION_CONSTANTS.");
 
 static PyObject *
 py_perception(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
@@ -678,12 +656,18 @@ PyDoc_STRVAR(perception_barrier_doc,
 "Per target r of M: the perception terms of the drone (3) and estimates[r, :3]\n"
 "(estimates: M x n), then the barrier of its Gramian copy gramians[r] (M x 9) and consensus\n"
 "mean s = projector_means[r] (M x 9) with the target velocity velocities[r] (M x 3), into\n"
-"out[r] (M x 24): perception (17: w, dw/dp_i, unit bearing, distance, projector), then\n"
-"lambda-bar, psi0, psi1, L_g psi1 (3), lower bound. constants (13): PerceptionConstants (6),\n"
+"out[r] (M x 24, ROW_FIELDS): perception (17: w, dw/dp_i, unit bearing, distance,\n"
+"projector), then lambda-bar, psi0, psi1, L_g psi1 (3), lower bound. constants (13,\n"
+"BARRIER_CONSTANTS): the perception constants (6),\n"
 "N, rho, epsilon, p, b, EIGENVALUE_FLOOR, NEAR_REPEATED_LOG_GAP. False if a Gramian copy\n"
 "has a non-finite entry (out is then incomplete).");
 
+/* perception_barrier's constants: the perception constants, then these; exported as
+ * BARRIER_CONSTANTS. */
 enum { C_N = N_PERCEPTION_CONSTANTS, C_RHO, C_EPS, C_P, C_B, C_FLOOR, C_GAP, N_CONSTANTS };
+static const char *const barrier_constant_names[N_CONSTANTS] = {  /* after the perception's */
+    [C_N] = "n_agents", [C_RHO] = "forgetting", [C_EPS] = "epsilon", [C_P] = "exponent",
+    [C_B] = "info_gain", [C_FLOOR] = "eigenvalue_floor", [C_GAP] = "near_repeated_log_gap"};
 #define N_ROW (N_PERCEPTION + N_BARRIER)
 
 static PyObject *
@@ -756,39 +740,6 @@ py_filter_stack(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
                               n_agents, v[3].buf, v[4].buf, v[5].buf, v[6].buf);
     release(v, 7);
     return PyBool_FromLong(status == 0);
-}
-
-/* The numbers of a list or tuple of `length` floats (or ints) into out; -1 with a one-line
- * error naming `what` otherwise. Reads the values only: no Python code runs, so the sequence
- * cannot change under it. */
-static int
-float_sequence(PyObject *seq, double *out, Py_ssize_t length, const char *what)
-{
-    if (!PyList_Check(seq) && !PyTuple_Check(seq)) {
-        PyErr_Format(PyExc_TypeError, "%s: expected a list or tuple of floats, got %s", what,
-                     Py_TYPE(seq)->tp_name);
-        return -1;
-    }
-    if (PySequence_Fast_GET_SIZE(seq) != length) {
-        PyErr_Format(PyExc_ValueError, "%s: expected %zd floats, got %zd", what, length,
-                     PySequence_Fast_GET_SIZE(seq));
-        return -1;
-    }
-    PyObject **items = PySequence_Fast_ITEMS(seq);
-    for (Py_ssize_t i = 0; i < length; i++) {
-        PyObject *item = items[i];
-        if (PyFloat_Check(item)) {
-            out[i] = PyFloat_AS_DOUBLE(item);
-        } else if (PyLong_Check(item) && !PyBool_Check(item)) {
-            out[i] = PyLong_AsDouble(item);
-            if (out[i] == -1.0 && PyErr_Occurred()) return -1;
-        } else {
-            PyErr_Format(PyExc_TypeError, "%s[%zd]: expected a float, got %s", what, i,
-                         Py_TYPE(item)->tp_name);
-            return -1;
-        }
-    }
-    return 0;
 }
 
 static Py_ssize_t
@@ -912,10 +863,18 @@ py_qp_max_violation(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     return result;
 }
 
-/* Row constants of qp_rows, in this order. R_SHARE: 0 = each drone's share of the
- * localization condition is 1/N (SPEC 8, 3.32), 1 = w_ir / max(S_wr, w_ir) (3.27-3.28,
- * barrier.localization_share). */
+/* Row constants of qp_rows, in this order; exported as QP_ROW_CONSTANTS. */
 enum { R_N, R_GAMMA, R_RADIUS, R_DELTA, R_GAIN, R_BOUND, R_SHARE, N_ROW_CONSTANTS };
+static const char *const row_constant_names[N_ROW_CONSTANTS] = {
+    [R_N] = "n_agents", [R_GAMMA] = "gamma", [R_RADIUS] = "collision_radius_m",
+    [R_DELTA] = "collision_distance_m", [R_GAIN] = "collision_gain",
+    [R_BOUND] = "tracking_error_bound_m_s", [R_SHARE] = "localization_share"};
+/* The values of R_SHARE, exported as LOCALIZATION_SHARES (control.localization_share):
+ * SHARE_EQUAL, each drone's share of the localization condition is 1/N (SPEC 8, 3.32);
+ * SHARE_WEIGHTED, w_ir / max(S_wr, w_ir) (3.27-3.28, barrier.localization_share). */
+enum { SHARE_EQUAL, SHARE_WEIGHTED, N_SHARES };
+static const char *const share_names[N_SHARES] = {
+    [SHARE_EQUAL] = "equal", [SHARE_WEIGHTED] = "weighted"};
 
 /* The float triples of a list or tuple of `count` triples, into out (3 count); -1 with a
  * one-line error naming `what` and the entry otherwise. */
@@ -934,23 +893,6 @@ triples(PyObject *seq, Py_ssize_t count, double *out, const char *what)
     return 0;
 }
 
-/* A new list of the n floats at values; NULL (error set) if Python runs out of memory. */
-static PyObject *
-float_list(const double *values, Py_ssize_t n)
-{
-    PyObject *list = PyList_New(n);
-    if (list == NULL) return NULL;
-    for (Py_ssize_t i = 0; i < n; i++) {
-        PyObject *item = PyFloat_FromDouble(values[i]);
-        if (item == NULL) {
-            Py_DECREF(list);
-            return NULL;
-        }
-        PyList_SET_ITEM(list, i, item);
-    }
-    return list;
-}
-
 PyDoc_STRVAR(qp_rows_doc,
 "qp_rows(terms, velocities, weight_sums, position, others, envelope_rows, envelope_lower,\n"
 " constants) -> (columns, lower)\n--\n\n"
@@ -962,9 +904,10 @@ PyDoc_STRVAR(qp_rows_doc,
 "(4.1-4.2: 2(p_i - p_j) and -alpha h/2) per entry of `others` (float triples, in their order)\n"
 "within the collision radius of `position`, then the `envelope_rows` (triples) with their\n"
 "`envelope_lower`. Every bound is then tightened to b + e||a|| when e > 0 (robust_lower_bound).\n"
-"`constants`: N, gamma, collision radius, collision distance, collision gain, e, share:\n"
-"0 keeps the localization bounds (each drone's share 1/N of 3.27), 1 gives drone i the share\n"
-"k = w_ir / max(S_w, w_ir) (0 if w_ir = 0): bound -k(c + psi1) - d_i.");
+"`constants` (QP_ROW_CONSTANTS): N, gamma, collision radius, collision distance, collision\n"
+"gain, e, share (LOCALIZATION_SHARES): equal (0) keeps the localization bounds (each\n"
+"drone's share 1/N of 3.27), weighted (1) gives drone i the share k = w_ir / max(S_w, w_ir)\n"
+"(0 if w_ir = 0): bound -k(c + psi1) - d_i.");
 
 static PyObject *
 py_qp_rows(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
@@ -1005,9 +948,10 @@ py_qp_rows(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
         goto done;
     const double *terms = v[0].buf, *velocity = v[1].buf;
     Py_ssize_t r = 0;
-    if (c[R_SHARE] != 0.0 && c[R_SHARE] != 1.0) {
+    if (c[R_SHARE] != SHARE_EQUAL && c[R_SHARE] != SHARE_WEIGHTED) {
         PyErr_Format(PyExc_ValueError, "qp_rows: constants[%d] (the localization share) must "
-                     "be 0 (1/N) or 1 (weighted), got %R", (int)R_SHARE,
+                     "be %d (1/N) or %d (weighted), got %R", (int)R_SHARE, (int)SHARE_EQUAL,
+                     (int)SHARE_WEIGHTED,
                      PySequence_Fast_ITEMS(args[7])[R_SHARE]);
         goto done;
     }
@@ -1016,7 +960,7 @@ py_qp_rows(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
                      *barrier = row + N_PERCEPTION;
         for (int k = 0; k < 3; k++) a[3 * r + k] = barrier[B_LIE + k];
         lower[r] = barrier[B_LOWER];
-        if (c[R_SHARE] == 1.0) {  /* (3.27) with k = w / max(S_w, w): -k(c + psi1) - d_i */
+        if (c[R_SHARE] == SHARE_WEIGHTED) {  /* (3.27), k = w / max(S_w, w): -k(c + psi1) - d_i */
             const double *vel = velocity + 3 * t;
             double w = row[P_WEIGHT], sum = weight_sums[t];
             double share = w > 0.0 ? w / (sum > w ? sum : w) : 0.0;
@@ -1071,111 +1015,11 @@ done:
     return result;
 }
 
-PyDoc_STRVAR(native_finite_doc,
-"native_finite(*parts) -> bool\n--\n\n"
-"Whether every float64 (native byte order) in the bytes-like parts is finite; each part's\n"
-"length must be a multiple of 8. The parts are read as they are, unaligned or not.");
-
-static PyObject *
-py_native_finite(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
-{
-    for (Py_ssize_t i = 0; i < nargs; i++) {
-        Py_buffer view;
-        if (PyObject_GetBuffer(args[i], &view, PyBUF_SIMPLE) != 0) {
-            PyErr_Clear();
-            PyErr_Format(PyExc_TypeError, "native_finite: part %zd is not bytes-like (%s)", i,
-                         Py_TYPE(args[i])->tp_name);
-            return NULL;
-        }
-        if (view.len % 8) {
-            PyErr_Format(PyExc_ValueError, "native_finite: part %zd holds %zd bytes, not a "
-                         "whole number of float64", i, view.len);
-            PyBuffer_Release(&view);
-            return NULL;
-        }
-        const char *bytes = view.buf;
-        int finite = 1;
-        for (Py_ssize_t k = 0; k < view.len && finite; k += 8) {
-            double value;
-            memcpy(&value, bytes + k, sizeof value);
-            finite = isfinite(value);
-        }
-        PyBuffer_Release(&view);
-        if (!finite) Py_RETURN_FALSE;
-    }
-    Py_RETURN_TRUE;
-}
-
-PyDoc_STRVAR(join_native_doc,
-"join_native(arrays, shapes) -> bytes or None\n--\n\n"
-"b''.join(a.tobytes() for a in arrays) when every array is a C-contiguous native float64\n"
-"buffer of its shape in ``shapes`` (tuples of ints, one per array); None otherwise (the\n"
-"caller converts, and names what does not fit). The wire's packing of a step's arrays.");
-
-static PyObject *
-py_join_native(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
-{
-    if (check_nargs(nargs, 2, "join_native")) return NULL;
-    PyObject *arrays = args[0], *shapes = args[1];
-    if (!PyTuple_Check(arrays) || !PyTuple_Check(shapes)
-            || PyTuple_GET_SIZE(arrays) != PyTuple_GET_SIZE(shapes)) {
-        PyErr_SetString(PyExc_TypeError, "join_native: arrays and shapes must be tuples of "
-                        "the same length");
-        return NULL;
-    }
-    enum { MAX_PARTS = 32 };
-    Py_ssize_t parts = PyTuple_GET_SIZE(arrays);
-    if (parts > MAX_PARTS) {
-        PyErr_Format(PyExc_ValueError, "join_native: at most %d arrays, got %zd", MAX_PARTS,
-                     parts);
-        return NULL;
-    }
-    Py_buffer views[MAX_PARTS];
-    Py_ssize_t held = 0, total = 0;
-    PyObject *result = NULL;
-    int native = 1;
-    for (Py_ssize_t i = 0; i < parts && native; i++) {
-        PyObject *shape = PyTuple_GET_ITEM(shapes, i);
-        if (!PyTuple_Check(shape)) {
-            PyErr_Format(PyExc_TypeError, "join_native: shape %zd is not a tuple", i);
-            goto done;
-        }
-        if (PyObject_GetBuffer(PyTuple_GET_ITEM(arrays, i), &views[held],
-                               PyBUF_C_CONTIGUOUS | PyBUF_FORMAT) != 0) {
-            PyErr_Clear(); /* not a buffer, or not contiguous: the caller converts */
-            native = 0;
-            break;
-        }
-        Py_buffer *view = &views[held++];
-        native = view->format != NULL && strcmp(view->format, "d") == 0
-                 && view->itemsize == 8 && view->ndim == PyTuple_GET_SIZE(shape);
-        for (int d = 0; native && d < view->ndim; d++) {
-            Py_ssize_t expected = PyLong_AsSsize_t(PyTuple_GET_ITEM(shape, d));
-            if (expected == -1 && PyErr_Occurred()) goto done;
-            native = view->shape[d] == expected;
-        }
-        total += view->len;
-    }
-    if (!native) {
-        result = Py_NewRef(Py_None);
-        goto done;
-    }
-    result = PyBytes_FromStringAndSize(NULL, total);
-    if (result == NULL) goto done;
-    char *out = PyBytes_AS_STRING(result);
-    for (Py_ssize_t i = 0; i < held; i++) {
-        memcpy(out, views[i].buf, (size_t)views[i].len);
-        out += views[i].len;
-    }
-done:
-    for (Py_ssize_t i = 0; i < held; i++) PyBuffer_Release(&views[i]);
-    return result;
-}
-
 PyDoc_STRVAR(initial_information_doc,
 "initial_information(prior_information, prior_state, n_agents, info_gain, seen_from,\n"
 " image_points, detected, out)\n--\n\n"
-"icf.initial_information of M targets into out = [V0 (M x n x n) | v0 (M x n)]: the prior\n"
+"icf.initial_information of M targets into out, the ICF pair in the order of ICF_PAIR:\n"
+"V0 (M x n x n) and v0 (M x n). From the prior\n"
 "information (M x n x n) and state (M x n) arrays, N, b, where the image was taken (3 floats),\n"
 "the measured image points (2M floats) and detected flags (M floats, 0: not seen), lists.");
 
@@ -1212,8 +1056,16 @@ py_initial_information(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
         release(v, 3);
         return NULL;
     }
+    const Py_ssize_t parts_sizes[N_PAIR_PARTS] = {[I_INFORMATION] = m * n * n,
+                                                 [I_VECTOR] = m * n};
+    double *parts[N_PAIR_PARTS], *at = v[2].buf;
+    for (int p = 0; p < N_PAIR_PARTS; p++) {
+        parts[p] = at;
+        at += parts_sizes[p];
+    }
     initial_information(v[0].buf, v[1].buf, (int)m, (int)n, n_agents, gain, seen_from,
-                        seen_from + 3, seen_from + 3 + 2 * m, v[2].buf);
+                        seen_from + 3, seen_from + 3 + 2 * m, parts[I_INFORMATION],
+                        parts[I_VECTOR]);
     PyMem_Free(seen_from);
     release(v, 3);
     Py_RETURN_NONE;
@@ -1298,8 +1150,9 @@ done:
 PyDoc_STRVAR(consensus_step_doc,
 "consensus_step(x, d, u, index, coefficients, out)\n--\n\n"
 "out[i] = sum_r coefficients[r, i] * z[index[r, i]] (products, then added from r = 0) with\n"
-"z = [x (n) | d (n) | u (a list of floats) | 0]: np.add.reduce(z[index] * coefficients,\n"
-"axis=0) of agent._consensus_operator's (index, coefficients), both (rows, n).");
+"z = x (n), d (n), u (a list of floats) and 0, in the order of CONSENSUS_STEP_Z:\n"
+"np.add.reduce(z[index] * coefficients, axis=0) of drone_step._consensus_operator's (index,\n"
+"coefficients), both (rows, n).");
 
 static PyObject *
 py_consensus_step(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
@@ -1324,128 +1177,43 @@ py_consensus_step(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
     const char *format = index.format ? index.format : "B";
     int integers = index.itemsize == (Py_ssize_t)sizeof(Py_ssize_t)
                    && strchr("lLqQn", format[strlen(format) - 1]) != NULL;
-    static const SequenceSpec inputs[1] = {{2, "u"}};
-    double *u = NULL;
+    /* z: its parts one after the other, in the order of the Z_ enum */
+    const Py_ssize_t sizes[N_Z_PARTS] = {[Z_STATE] = n, [Z_DISAGREEMENT] = n, [Z_INPUT] = n_u,
+                                         [Z_ZERO] = 1};
+    Py_ssize_t starts[N_Z_PARTS], n_z = 0;
+    for (int p = 0; p < N_Z_PARTS; p++) {
+        starts[p] = n_z;
+        n_z += sizes[p];
+    }
+    double *z = NULL;
     PyObject *result = NULL;
     if (!integers || n == 0 || terms % n != 0 || index.len / index.itemsize != terms) {
         PyErr_Format(PyExc_ValueError, "consensus_step: index (%zd items of format '%s') and "
                      "coefficients (%zd) must both be (rows, n = %zd), index of intp", index.len
                      / (index.itemsize ? index.itemsize : 1), format, terms, n);
-    } else if ((u = read_floats(args, inputs, &n_u, 1)) != NULL) {
+    } else if ((z = PyMem_Malloc(sizeof(double) * (size_t)n_z)) == NULL) {
+        PyErr_NoMemory();
+    } else if (float_sequence(args[2], z + starts[Z_INPUT], n_u, "u") == 0) {
+        memcpy(z + starts[Z_STATE], v[0].buf, sizeof(double) * (size_t)n);
+        memcpy(z + starts[Z_DISAGREEMENT], v[1].buf, sizeof(double) * (size_t)n);
+        z[starts[Z_ZERO]] = 0.0;
         const Py_ssize_t *at = index.buf;
         int in_range = 1;
         for (Py_ssize_t k = 0; k < terms; k++)
-            if (at[k] < 0 || at[k] > 2 * n + n_u) in_range = 0;
+            if (at[k] < 0 || at[k] >= n_z) in_range = 0;
         if (!in_range) {
             PyErr_Format(PyExc_ValueError, "consensus_step: an index lies outside z (%zd "
-                         "floats)", 2 * n + n_u + 1);
+                         "floats)", n_z);
         } else {
-            consensus_step(v[0].buf, v[1].buf, u, n, n_u, at, v[2].buf, terms / n, v[3].buf);
+            consensus_step(z, n, at, v[2].buf, terms / n, v[3].buf);
             result = Py_None;
             Py_INCREF(result);
         }
     }
-    PyMem_Free(u);
+    PyMem_Free(z);
     PyBuffer_Release(&index);
     release(v, 4);
     return result;
-}
-
-/* -- the other drones a step can use (swarm.agent.exchange.Vicinity) ----------------------- */
-
-enum { CARRY_RELAY_AGE, CARRY_SAMPLE_AGE, CARRY_FLYING, CARRY_HOLD = CARRY_FLYING + 3,
-       N_CARRY };
-/* BeaconRelayWire's columns: position (3), velocity (3), sample age, held. The wire takes
- * them from here (swarm.messages.wire.RELAY_*): one statement of the layout. */
-enum { RELAY_VELOCITY = 3, RELAY_SAMPLE_AGE = 6, RELAY_HELD = 7, RELAY_WIDTH = 8 };
-
-PyDoc_STRVAR(nearby_doc,
-"nearby(rows, width, ids, skip, carry, around, radius, always) -> dict\n--\n\n"
-"{id: [x, y, z]} of the other drones a step can use (exchange.Vicinity). Row k of rows\n"
-"(n x width float64) is drone ids[k]'s (ids None: drone k), its position in columns 0-2.\n"
-"carry None, or [relay age, own sample age a_i, flying (3), hold] with width 8 (the\n"
-"BeaconRelayWire columns): each position carried forward as p + min(a_j + (relay age +\n"
-"held_j), hold) v - a_i flying (RealtimeExchange.beacons). Drone skip is left out; with\n"
-"around = [x, y, z], so is each drone farther than radius from it that always (bytes,\n"
-"by id; past its end: unmarked) does not mark. A position that is not finite is kept (the\n"
-"core counts it).");
-
-static PyObject *
-py_nearby(PyObject *self, PyObject *const *args, Py_ssize_t nargs)
-{
-    if (check_nargs(nargs, 8, "nearby")) return NULL;
-    Py_ssize_t width = PyLong_AsSsize_t(args[1]), skip = PyLong_AsSsize_t(args[3]);
-    double radius = PyFloat_AsDouble(args[6]);
-    if (PyErr_Occurred()) return NULL;
-    double carry[N_CARRY], around[3];
-    int carried = args[4] != Py_None, centred = args[5] != Py_None;
-    if ((carried && float_sequence(args[4], carry, N_CARRY, "carry"))
-        || (centred && float_sequence(args[5], around, 3, "around")))
-        return NULL;
-    if (width < 3 || (carried && width != RELAY_WIDTH)) {
-        PyErr_Format(PyExc_ValueError, "nearby: width %zd: expected >= 3 (8 with carry)",
-                     width);
-        return NULL;
-    }
-    PyObject *ids = args[2], *always = args[7];
-    if (!PyBytes_Check(always)) {
-        PyErr_Format(PyExc_TypeError, "nearby: always: expected bytes, got %s",
-                     Py_TYPE(always)->tp_name);
-        return NULL;
-    }
-    Py_buffer rows;
-    if (float64_buffer(args[0], &rows, 0, -1, "rows")) return NULL;
-    Py_ssize_t n = rows.len / 8 / width;
-    PyObject *out = NULL;
-    if (n * width * 8 != rows.len) {
-        PyErr_Format(PyExc_ValueError, "nearby: rows: %zd floats are not rows of %zd",
-                     rows.len / 8, width);
-        goto done;
-    }
-    if (ids != Py_None && (!PyList_Check(ids) || PyList_GET_SIZE(ids) != n)) {
-        PyErr_Format(PyExc_ValueError, "nearby: ids: expected None or a list of %zd ints", n);
-        goto done;
-    }
-    const unsigned char *marked = (const unsigned char *)PyBytes_AS_STRING(always);
-    Py_ssize_t n_marked = PyBytes_GET_SIZE(always);
-    const double limit = radius * radius;
-    out = PyDict_New();
-    for (Py_ssize_t k = 0; out != NULL && k < n; k++) {
-        Py_ssize_t id = k;
-        if (ids != Py_None) {
-            id = PyLong_AsSsize_t(PyList_GET_ITEM(ids, k));
-            if (id == -1 && PyErr_Occurred()) goto fail;
-        }
-        if (id == skip) continue;
-        if (id < 0) {
-            PyErr_Format(PyExc_ValueError, "nearby: ids[%zd]: drone %zd is negative", k, id);
-            goto fail;
-        }
-        const double *row = (const double *)rows.buf + k * width;
-        double p[3] = {row[0], row[1], row[2]};
-        if (carried) {
-            double lead = row[RELAY_SAMPLE_AGE] + (carry[CARRY_RELAY_AGE] + row[RELAY_HELD]);
-            if (lead > carry[CARRY_HOLD]) lead = carry[CARRY_HOLD];  /* np.minimum: NaN stays */
-            for (int i = 0; i < 3; i++)
-                p[i] = p[i] + lead * row[RELAY_VELOCITY + i]
-                       - carry[CARRY_SAMPLE_AGE] * carry[CARRY_FLYING + i];
-        }
-        if (centred && !(id < n_marked && marked[id])) {
-            double dx = p[0] - around[0], dy = p[1] - around[1], dz = p[2] - around[2];
-            if (dx * dx + dy * dy + dz * dz > limit) continue;  /* NaN: kept */
-        }
-        PyObject *key = PyLong_FromSsize_t(id), *value = float_list(p, 3);
-        int failed = key == NULL || value == NULL || PyDict_SetItem(out, key, value) != 0;
-        Py_XDECREF(key);
-        Py_XDECREF(value);
-        if (failed) goto fail;
-    }
-    goto done;
-fail:
-    Py_CLEAR(out);
-done:
-    PyBuffer_Release(&rows);
-    return out;
 }
 
 static PyMethodDef methods[] = {
@@ -1461,17 +1229,12 @@ static PyMethodDef methods[] = {
     {"qp_max_violation", (PyCFunction)(void (*)(void))py_qp_max_violation, METH_FASTCALL,
      qp_max_violation_doc},
     {"qp_rows", (PyCFunction)(void (*)(void))py_qp_rows, METH_FASTCALL, qp_rows_doc},
-    {"native_finite", (PyCFunction)(void (*)(void))py_native_finite, METH_FASTCALL,
-     native_finite_doc},
-    {"join_native", (PyCFunction)(void (*)(void))py_join_native, METH_FASTCALL,
-     join_native_doc},
     {"initial_information", (PyCFunction)(void (*)(void))py_initial_information,
      METH_FASTCALL, initial_information_doc},
     {"consensus_sums", (PyCFunction)(void (*)(void))py_consensus_sums, METH_FASTCALL,
      consensus_sums_doc},
     {"consensus_step", (PyCFunction)(void (*)(void))py_consensus_step, METH_FASTCALL,
      consensus_step_doc},
-    {"nearby", (PyCFunction)(void (*)(void))py_nearby, METH_FASTCALL, nearby_doc},
     {NULL, NULL, 0, NULL},
 };
 
@@ -1488,14 +1251,27 @@ PyInit__kernels(void)
 {
     PyObject *mod = PyModule_Create(&module);
     if (mod == NULL) return NULL;
+    /* perception_barrier's constants: the perception constants, then its own */
+    const char *barrier_names[N_CONSTANTS];
+    for (int i = 0; i < N_CONSTANTS; i++)
+        barrier_names[i] = i < N_PERCEPTION_CONSTANTS ? perception_constant_names[i]
+                                                      : barrier_constant_names[i];
     if (PyModule_AddIntConstant(mod, "PERCEPTION_SIZE", N_PERCEPTION) < 0
             || PyModule_AddIntConstant(mod, "BARRIER_SIZE", N_BARRIER) < 0
             || PyModule_AddIntConstant(mod, "SMOOTH_MIN_SIZE", N_SMOOTH) < 0
             || PyModule_AddIntConstant(mod, "CONSTANTS_SIZE", N_CONSTANTS) < 0
             || PyModule_AddIntConstant(mod, "MAX_STATE", MAX_STATE) < 0
-            || PyModule_AddIntConstant(mod, "RELAY_SAMPLE_AGE", RELAY_SAMPLE_AGE) < 0
-            || PyModule_AddIntConstant(mod, "RELAY_HELD", RELAY_HELD) < 0
-            || PyModule_AddIntConstant(mod, "RELAY_WIDTH", RELAY_WIDTH) < 0) {
+            || add_fields(mod, "ROW_FIELDS", row_fields, COUNT(row_fields),
+                          N_PERCEPTION + N_BARRIER) < 0
+            || add_fields(mod, "SMOOTH_MIN_FIELDS", smooth_min_fields, COUNT(smooth_min_fields),
+                          N_SMOOTH) < 0
+            || add_names(mod, "PERCEPTION_CONSTANTS", perception_constant_names,
+                         N_PERCEPTION_CONSTANTS) < 0
+            || add_names(mod, "BARRIER_CONSTANTS", barrier_names, N_CONSTANTS) < 0
+            || add_names(mod, "QP_ROW_CONSTANTS", row_constant_names, N_ROW_CONSTANTS) < 0
+            || add_names(mod, "LOCALIZATION_SHARES", share_names, N_SHARES) < 0
+            || add_names(mod, "ICF_PAIR", pair_part_names, N_PAIR_PARTS) < 0
+            || add_names(mod, "CONSENSUS_STEP_Z", z_part_names, N_Z_PARTS) < 0) {
         Py_DECREF(mod);
         return NULL;
     }

@@ -7,18 +7,31 @@ forms of ``swarm.core`` (``perception_terms``, ``smooth_min_eigenvalue``,
 finite-difference tests check and ``tests/core/test_kernels.py`` binds these to (parity in
 every regime, derivatives by central differences on this very path).
 
+The layouts the kernels write and read and the order of the constants they take are the C
+module's (``ROW_FIELDS``, ``SMOOTH_MIN_FIELDS``, ``PERCEPTION_CONSTANTS``, ``BARRIER_CONSTANTS``,
+``QP_ROW_CONSTANTS``, ``LOCALIZATION_SHARES``, ``ICF_PAIR``, ``CONSENSUS_STEP_Z``), read here:
+Python writes no offset and no position of its own.
+
 The extension is built by ``pip install -e .`` (setuptools, the machine's C compiler).
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
-from typing import NamedTuple
+from typing import Final, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
-from swarm.compiled import check_built_from_current_source, not_built
+from swarm.compiled import (
+    Field,
+    check_built_from_current_source,
+    field_index,
+    field_slice,
+    in_order,
+    not_built,
+)
 from swarm.core.params import PerceptionParams
 from swarm.core.smooth_min import EIGENVALUE_FLOOR, NEAR_REPEATED_LOG_GAP
 
@@ -27,7 +40,8 @@ try:
 except ImportError as exc:  # pragma: no cover - a source tree that was never installed
     raise not_built("swarm.core._kernels", "swarm/core/_kernels.c") from exc
 
-check_built_from_current_source(Path(_kernels.__file__), Path(__file__).with_name("_kernels.c"))
+check_built_from_current_source(Path(_kernels.__file__), Path(__file__).with_name("_kernels.c"),
+                                Path(__file__).parent.parent / "compiled.h")
 
 Array = NDArray[np.float64]
 Vec3 = tuple[float, float, float]
@@ -36,21 +50,36 @@ PERCEPTION_SIZE: int = _kernels.PERCEPTION_SIZE  # floats of one pair's percepti
 BARRIER_SIZE: int = _kernels.BARRIER_SIZE  # floats of one target's barrier terms
 ROW_SIZE = PERCEPTION_SIZE + BARRIER_SIZE
 
+# The fields of a row of ``perception_barrier_rows`` (name, start, stop), named as the fields
+# of ``PerceptionScalars`` then ``BarrierScalars``; of ``smooth_min``'s output, named as
+# ``SmoothMinScalars``'.
+ROW_FIELDS: Final[tuple[Field, ...]] = _kernels.ROW_FIELDS
+SMOOTH_MIN_FIELDS: Final[tuple[Field, ...]] = _kernels.SMOOTH_MIN_FIELDS
+# The constants each kernel takes, by name in its order: ``perception`` (the names of
+# ``PerceptionParams``), ``perception_barrier`` and ``qp_rows``; the values of qp_rows'
+# ``localization_share`` (position = value).
+PERCEPTION_CONSTANTS: Final[tuple[str, ...]] = _kernels.PERCEPTION_CONSTANTS
+BARRIER_CONSTANTS: Final[tuple[str, ...]] = _kernels.BARRIER_CONSTANTS
+QP_ROW_CONSTANTS: Final[tuple[str, ...]] = _kernels.QP_ROW_CONSTANTS
+# The packed ICF pair that ``initial_information`` writes (its arrays in order), and the parts
+# of the vector z that ``consensus_step``'s index points into, in order (``z_starts``).
+ICF_PAIR: Final[tuple[str, ...]] = _kernels.ICF_PAIR
+CONSENSUS_STEP_Z: Final[tuple[str, ...]] = _kernels.CONSENSUS_STEP_Z
+
 
 class ROW:
-    """Where each quantity sits in a row of ``perception_barrier_rows`` (as the named tuples
-    below take them apart)."""
+    """Where each quantity sits in a row of ``perception_barrier_rows`` (``ROW_FIELDS``)."""
 
-    WEIGHT = 0  # w_ir
-    WEIGHT_GRAD = slice(1, 4)  # ∂w/∂p_i
-    UNIT_BEARING = slice(4, 7)  # β̂
-    DISTANCE = 7  # d̂
-    PROJECTOR = slice(8, 17)  # Π̂, row-major
-    LAMBDA_BAR = 17
-    PSI0 = 18
-    PSI1 = 19
-    LIE_G = slice(20, 23)
-    LOWER = 23
+    WEIGHT: Final = field_index(ROW_FIELDS, "weight")  # w_ir
+    WEIGHT_GRAD: Final = field_slice(ROW_FIELDS, "weight_grad_drone")  # ∂w/∂p_i
+    UNIT_BEARING: Final = field_slice(ROW_FIELDS, "unit_bearing")  # β̂
+    DISTANCE: Final = field_index(ROW_FIELDS, "distance_m")  # d̂
+    PROJECTOR: Final = field_slice(ROW_FIELDS, "projector")  # Π̂, row-major
+    LAMBDA_BAR: Final = field_index(ROW_FIELDS, "lambda_bar")
+    PSI0: Final = field_index(ROW_FIELDS, "psi0")
+    PSI1: Final = field_index(ROW_FIELDS, "psi1")
+    LIE_G: Final = field_slice(ROW_FIELDS, "lie_g")
+    LOWER: Final = field_index(ROW_FIELDS, "lower_bound")
 
 
 class PerceptionScalars(NamedTuple):
@@ -83,28 +112,44 @@ class SmoothMinScalars(NamedTuple):
     divided_differences: Vec3  # θ01, θ02, θ12
 
 
+def _perception_values(params: PerceptionParams) -> dict[str, float]:
+    return {name: getattr(params, name) for name in PERCEPTION_CONSTANTS}
+
+
 def perception_constants(params: PerceptionParams) -> list[float]:
-    """The perception parameters in the kernels' order."""
-    return [params.d_min_th_m, params.d_max_th_m, params.sigma_dmin_sq_m2,
-            params.sigma_dmax_sq_m2, params.cos_alpha_th, params.sigma_beta_sq]
+    """The perception parameters in the kernels' order (``PERCEPTION_CONSTANTS``)."""
+    return in_order(PERCEPTION_CONSTANTS, _perception_values(params))
 
 
 def barrier_constants(params: PerceptionParams, *, n_agents: int, forgetting: float,
                       epsilon: float, exponent: float, info_gain: float) -> Array:
-    """Everything ``perception_barrier`` takes besides the state (SPEC §3, §7, §8)."""
-    return np.array([*perception_constants(params), n_agents, forgetting, epsilon, exponent,
-                     info_gain, EIGENVALUE_FLOOR, NEAR_REPEATED_LOG_GAP])
+    """Everything ``perception_barrier`` takes besides the state (SPEC §3, §7, §8), in its
+    order (``BARRIER_CONSTANTS``)."""
+    return np.array(in_order(BARRIER_CONSTANTS, _perception_values(params) | {
+        "n_agents": n_agents, "forgetting": forgetting, "epsilon": epsilon,
+        "exponent": exponent, "info_gain": info_gain, "eigenvalue_floor": EIGENVALUE_FLOOR,
+        "near_repeated_log_gap": NEAR_REPEATED_LOG_GAP}))
+
+
+def qp_row_constants(values: Mapping[str, float]) -> list[float]:
+    """``qp_rows``' constants from their names (``QP_ROW_CONSTANTS``), in its order; the
+    localization share as ``LOCALIZATION_SHARES`` codes it."""
+    return in_order(QP_ROW_CONSTANTS, values)
+
+
+def _fields_of(row: list[float], fields: tuple[Field, ...], names: tuple[str, ...]
+               ) -> dict[str, float | tuple[float, ...]]:
+    """The fields ``names`` of ``row``: a float each, a tuple for those of several."""
+    return {name: row[start] if stop - start == 1 else tuple(row[start:stop])
+            for name, start, stop in fields if name in names}
 
 
 def _perception_of(row: list[float]) -> PerceptionScalars:
-    return PerceptionScalars(row[ROW.WEIGHT], tuple(row[ROW.WEIGHT_GRAD]),
-                             tuple(row[ROW.UNIT_BEARING]), row[ROW.DISTANCE],
-                             tuple(row[ROW.PROJECTOR]))
+    return PerceptionScalars(**_fields_of(row, ROW_FIELDS, PerceptionScalars._fields))
 
 
 def _barrier_of(row: list[float]) -> BarrierScalars:
-    return BarrierScalars(row[ROW.LAMBDA_BAR], row[ROW.PSI0], row[ROW.PSI1],
-                          tuple(row[ROW.LIE_G]), row[ROW.LOWER])
+    return BarrierScalars(**_fields_of(row, ROW_FIELDS, BarrierScalars._fields))
 
 
 def perception_barrier_rows(drone: Array, estimates: Array, velocities: Array,
@@ -158,9 +203,8 @@ def smooth_min(eigenvalues: Array, exponent: float) -> SmoothMinScalars:
     out = np.empty(_kernels.SMOOTH_MIN_SIZE)
     _kernels.smooth_min(np.asarray(eigenvalues, dtype=float), float(exponent),
                         EIGENVALUE_FLOOR, NEAR_REPEATED_LOG_GAP, out)
-    v = out.tolist()
-    return SmoothMinScalars(v[0], (v[1], v[2], v[3]), (v[4], v[5], v[6]), tuple(v[7:13]),
-                            (v[13], v[14], v[15]))
+    return SmoothMinScalars(**_fields_of(out.tolist(), SMOOTH_MIN_FIELDS,
+                                         SmoothMinScalars._fields))
 
 
 def barrier(drone: Array, estimate: Array, velocity: Array, gramian: Array,
@@ -185,44 +229,39 @@ qp_load = _kernels.qp_load
 # The rows of the local QP (SPEC §8) from ``perception_barrier_rows`` and the drone's
 # surroundings, as ``LocalQpWorkspace.solve`` takes them: ``qp_rows(terms, velocities,
 # weight_sums, position, others, envelope_rows, envelope_lower, constants) -> (columns,
-# lower)``, constants = [N, γ, R_ca, Δ, α_ca, ē, share] (share: ``LOCALIZATION_SHARES``).
+# lower)``, constants from ``qp_row_constants`` (share: ``LOCALIZATION_SHARES``).
 # ``tests/core/test_kernels.py`` binds it to ``localization_barrier`` with
 # ``localization_share``, ``weight_sum_row``, ``collision_row``, ``safety_rows`` and
 # ``robust_lower_bound``.
 qp_rows = _kernels.qp_rows
-# ``qp_rows``' last constant for each ``control.localization_share``.
-LOCALIZATION_SHARES: dict[str, float] = {"equal": 0.0, "weighted": 1.0}
-# Whether every float64 of native-order bytes is finite: ``native_finite(*parts)``, the wire
-# rules' check of every float a peer sends (``swarm.messages.rules``).
-native_finite = _kernels.native_finite
-# ``b"".join(a.tobytes() for a in arrays)`` when every array is a C-contiguous native float64
-# array of its shape in ``shapes``, else None: ``join_native(arrays, shapes)``, the telemetry's
-# packing of a step's arrays (``swarm.messages.wire``; ``tests/core/test_kernels.py``).
-join_native = _kernels.join_native
+# ``qp_rows``' localization share for each ``control.localization_share``.
+LOCALIZATION_SHARES: Final[dict[str, float]] = {
+    name: float(code) for code, name in enumerate(_kernels.LOCALIZATION_SHARES)}
 # The agent's consensus arithmetic on its packed vectors (``DroneAgent.consensus_round``,
 # ``agent.consensus_step``): ``consensus_sums(own_icf, own_cons, blocks, weights, icf_out,
 # disagreement_out) -> dropped`` is ``icf.consensus_iteration`` of the ICF pair (and the
 # round-0 disagreement Σ_j (x − x_j)); ``consensus_step(x, d, u, index, coefficients, out)``
-# the sum of ``agent._consensus_operator``'s terms. ``tests/core/test_fast_paths.py`` binds
+# the sum of ``drone_step._consensus_operator``'s terms. ``tests/core/test_fast_paths.py`` binds
 # both, bit for bit, to their numpy forms and to the readable steps.
 consensus_sums = _kernels.consensus_sums
 # The ICF's local step for all M targets, from the measured image points (SPEC §4-§5):
 # ``initial_information(prior_information, prior_state, n_agents, info_gain, seen_from,
 # image_points, detected, out)`` is ``icf.initial_information`` of each target with the
-# projector of its measured bearing; ``tests/core/test_icf.py`` binds the agent's round-0
-# message to it.
+# projector of its measured bearing, out the packed pair (``ICF_PAIR``);
+# ``tests/core/test_icf.py`` binds the agent's round-0 message to it.
 initial_information = _kernels.initial_information
 consensus_step = _kernels.consensus_step
-# The other drones a step can use, as the core takes them (``swarm.agent.exchange``):
-# ``nearby(rows, width, ids, skip, carry, around, radius, always) -> {id: [x, y, z]}``.
-# ``tests/agent/test_exchange.py`` binds it to each relayed beacon's carry-forward formula
-# computed alone, bit for bit, and to the QP rows the core builds from every drone.
-nearby = _kernels.nearby
-# The columns of a BeaconRelayWire row that ``nearby`` reads (after position 0-2 and velocity
-# 3-5): the wire's layout is these (``swarm.messages.wire.RELAY_*``).
-RELAY_SAMPLE_AGE: int = _kernels.RELAY_SAMPLE_AGE
-RELAY_HELD: int = _kernels.RELAY_HELD
-RELAY_WIDTH: int = _kernels.RELAY_WIDTH
+
+
+def z_starts(n_state: int, n_input: int) -> dict[str, int]:
+    """Where each part of ``consensus_step``'s z starts (``CONSENSUS_STEP_Z``) for a packed
+    state of ``n_state`` floats and a local input of ``n_input``: the state and the
+    disagreement ``n_state`` each, the input, one 0."""
+    sizes = {"state": n_state, "disagreement": n_state, "input": n_input, "zero": 1}
+    starts, at = {}, 0
+    for name in CONSENSUS_STEP_Z:
+        starts[name], at = at, at + sizes[name]
+    return starts
 
 
 def filter_stack(information: Array, vector: Array, transition: Array, process_noise: float,

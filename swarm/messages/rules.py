@@ -37,8 +37,8 @@ from typing import Annotated, Any, Final
 import msgspec
 import numpy as np
 
-from swarm.core.kernels import native_finite
 from swarm.errors import VigilError
+from swarm.messages.native import native_finite
 
 _MAX_REASON_CHARS: Final = 300
 _LE_F64: Final = np.dtype("<f8")

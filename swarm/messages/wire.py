@@ -44,16 +44,23 @@ import msgspec
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from swarm.core import kernels
-from swarm.core.drone_step import Detection, StepDiagnostics
 from swarm.core.consensus_message import (
     STATE_NAMES,
     ConsensusMessage,
     message_layout,
     message_size,
 )
-from swarm.core.kernels import join_native, native_finite
+from swarm.core.drone_step import Detection, StepDiagnostics
 from swarm.core.fast_dataclass import record
+from swarm.messages.native import (
+    RELAY_HELD,
+    RELAY_POSITION,
+    RELAY_SAMPLE_AGE,
+    RELAY_VELOCITY,
+    RELAY_WIDTH,
+    join_native,
+    native_finite,
+)
 from swarm.messages.rules import (
     Check,
     Finite,
@@ -235,13 +242,8 @@ class BeaconWire(_Wire, tag="beacon", kw_only=True):
         return np.array(self.position_m, dtype=np.float64)
 
 
-# A relayed beacon's row in ``BeaconRelayWire.data``: position (3), velocity (3), the
-# sample's age when the drone sent it, and how long the world had held it when the relay left
-# (the compiled reader's layout, ``kernels.nearby``, stated once there).
-RELAY_POSITION: Final = slice(0, 3)
-RELAY_SAMPLE_AGE: Final = kernels.RELAY_SAMPLE_AGE
-RELAY_HELD: Final = kernels.RELAY_HELD
-RELAY_WIDTH: Final = kernels.RELAY_WIDTH
+# A relayed beacon's row in ``BeaconRelayWire.data``: the ``RELAY_*`` columns of
+# ``swarm.messages.native`` (stated once, in the C source the exchange's reader shares).
 _LE_U16: Final = np.dtype("<u2")
 
 
@@ -268,8 +270,12 @@ class BeaconRelayWire(_Wire, tag="beacons", kw_only=True):
         if not all(type(j) is int and 0 <= j <= 0xFFFF for j in ids):
             raise WireError(f"relay senders must be drone ids in [0, 65535], got {ids!r:.60}",
                             rule="range")
-        rows = np.array([(*b.position_m, *b.velocity_m_s, b.sample_age_s, held_s)
-                         for b, held_s in entries], dtype=_LE_F64).reshape(-1, RELAY_WIDTH)
+        rows = np.empty((len(entries), RELAY_WIDTH), dtype=_LE_F64)
+        if entries:
+            rows[:, RELAY_POSITION] = [b.position_m for b, _ in entries]
+            rows[:, RELAY_VELOCITY] = [b.velocity_m_s for b, _ in entries]
+            rows[:, RELAY_SAMPLE_AGE] = [b.sample_age_s for b, _ in entries]
+            rows[:, RELAY_HELD] = [held_s for _, held_s in entries]
         return cls(step=int(step), senders=np.array(ids, dtype=_LE_U16).tobytes(),
                    data=rows.tobytes())
 
@@ -820,7 +826,8 @@ def _relay_block(sizes: Mapping[str, int | None]) -> Check:
         if counts.max() > 1:
             fail(f"sender {int(counts.argmax())} appears twice in senders", "duplicate")
         _finite_block(data, (("data", None, 0, RELAY_WIDTH * n),))
-        ages = np.frombuffer(data, dtype=_LE_F64).reshape(n, RELAY_WIDTH)[:, RELAY_SAMPLE_AGE:]
+        ages = np.frombuffer(data, dtype=_LE_F64).reshape(n, RELAY_WIDTH)[
+            :, [RELAY_SAMPLE_AGE, RELAY_HELD]]
         if ages.min() < 0.0:
             fail("data holds a negative sample age or held time", "range")
     return check

@@ -421,8 +421,11 @@ def test_around_a_position_the_core_gets_every_drone_it_uses_and_no_more_work(
     config = load_config(CASE1)
     ctrl = config.control
     radius = ctrl.collision_radius_m
-    constants = [6.0, ctrl.gamma, radius, ctrl.collision_distance_m, ctrl.collision_gain, 0.1,
-                 0.0]
+    constants = kernels.qp_row_constants({
+        "n_agents": 6.0, "gamma": ctrl.gamma, "collision_radius_m": radius,
+        "collision_distance_m": ctrl.collision_distance_m, "collision_gain": ctrl.collision_gain,
+        "tracking_error_bound_m_s": 0.1,
+        "localization_share": kernels.LOCALIZATION_SHARES["equal"]})
     neighbours = set(config.swarm.graph.neighbours[0])
 
     def qp_rows(beacons: dict[int, list[float]], own: np.ndarray

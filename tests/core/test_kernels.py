@@ -25,8 +25,8 @@ quantity's scale. Measured over these examples: bit for bit for the perception t
 
 from __future__ import annotations
 
-import itertools
 import math
+from typing import get_args
 
 import numpy as np
 import pytest
@@ -43,9 +43,14 @@ from swarm.core.barrier import (
     robust_lower_bound,
     weight_sum_row,
 )
-from swarm.core.params import PerceptionParams
+from swarm.core.params import LocalizationShare, PerceptionParams
 from swarm.core.perception import PerceptionTerms, perception_terms
-from swarm.core.smooth_min import EIGENVALUE_FLOOR, smooth_min_eigenvalue
+from swarm.core.smooth_min import (
+    EIGENVALUE_FLOOR,
+    NEAR_REPEATED_LOG_GAP,
+    smooth_min_eigenvalue,
+)
+from swarm.errors import VigilError
 
 from .finite_difference import REGIMES, central_gradient, drone_at, random_drone_in_regime
 
@@ -297,12 +302,26 @@ def test_perception_barrier_refuses_a_non_finite_gramian() -> None:
 # -- the QP's rows --------------------------------------------------------------------------
 
 
+def _row_constants(n_agents: float, *, gamma: float = 0.3, radius_m: float = 1.5,
+                   gain: float = 1.0, bound: float = 0.0, rule: str = "equal") -> dict[str, float]:
+    """``qp_rows``' constants by name (collision distance 0.5 m)."""
+    return {"n_agents": n_agents, "gamma": gamma, "collision_radius_m": radius_m,
+            "collision_distance_m": 0.5, "collision_gain": gain,
+            "tracking_error_bound_m_s": bound,
+            "localization_share": kernels.LOCALIZATION_SHARES[rule]}
+
+
 def _readable_rows(terms, velocities, weight_sums, position, others, envelope_rows,
-                   envelope_lower, constants, barriers: list[LocalizationBarrier]):
+                   envelope_lower, constants: dict[str, float],
+                   barriers: list[LocalizationBarrier]):
     """The rows of SPEC §8 from the readable functions, one by one: (rows (R × 3), lower).
     The localization rows' bounds are ``barriers``' with each drone's share of (3.27)."""
-    n, gamma, radius, delta, gain, bound, share = constants
-    rule = {code: name for name, code in kernels.LOCALIZATION_SHARES.items()}[share]
+    n, gamma, radius, delta, gain, bound = (
+        constants[name] for name in ("n_agents", "gamma", "collision_radius_m",
+                                     "collision_distance_m", "collision_gain",
+                                     "tracking_error_bound_m_s"))
+    rule = {code: name for name, code in kernels.LOCALIZATION_SHARES.items()}[
+        constants["localization_share"]]
     rows = [row[kernels.ROW.LIE_G] for row in terms]
     lower = [b.shared_lower_bound(localization_share(rule, row[kernels.ROW.WEIGHT], s_w, int(n)))
              for b, row, s_w in zip(barriers, terms, weight_sums, strict=True)]
@@ -356,9 +375,10 @@ def test_the_qp_rows_are_the_rows_of_the_readable_functions(rule, seed, m, n_oth
     others = (drone + rng.normal(scale=1.5, size=(n_others, 3))).tolist()
     envelope_rows = [tuple(a) for a in rng.normal(size=(n_envelope, 3)).tolist()]
     envelope_lower = rng.normal(size=n_envelope).tolist()
-    constants = [float(n_agents), 0.3, 1.5, 0.5, 1.2, bound, kernels.LOCALIZATION_SHARES[rule]]
+    constants = _row_constants(float(n_agents), gain=1.2, bound=bound, rule=rule)
     columns, lower = kernels.qp_rows(terms, velocities, weight_sums, position, others,
-                                     envelope_rows, envelope_lower, constants)
+                                     envelope_rows, envelope_lower,
+                                     kernels.qp_row_constants(constants))
     rows, readable_lower = _readable_rows(terms, velocities, weight_sums, position, others,
                                           envelope_rows, envelope_lower, constants, barriers)
     assert len(lower) == rows.shape[0] and len(columns) == 3 * len(lower)
@@ -398,8 +418,8 @@ def test_weighted_shares_put_the_condition_on_the_drones_that_see_the_target() -
             drift = -float(a @ velocity[0])  # d_i = −L_gi ψ1·v̂
             row[0, kernels.ROW.LOWER] = -combined / n - drift  # the barrier kernel's 1/N bound
             _, lower = kernels.qp_rows(row, velocity, [1.0], [0.0, 0.0, 3.0], [], [], [],
-                                       [float(n), 0.5, 3.0, 0.5, 1.0, 0.0,
-                                        kernels.LOCALIZATION_SHARES[rule]])
+                                       kernels.qp_row_constants(_row_constants(
+                                           float(n), gamma=0.5, radius_m=3.0, rule=rule)))
             parts.append(lower[0] + drift)  # what the row asks of L_gi ψ1·(u_i − v̂)
         np.testing.assert_allclose(parts, [-k * combined for k in expected], rtol=1e-15,
                                    atol=1e-16)
@@ -414,10 +434,14 @@ def test_a_drone_exactly_at_the_collision_radius_has_a_row_and_one_beyond_has_no
     beyond = [math.nextafter(1.5, 2.0), 0.0, 3.0]
     columns, lower = kernels.qp_rows(terms, np.zeros((1, 3)), [1.0], [0.0, 0.0, 3.0],
                                      [beyond, beside, beyond], [], [],
-                                     [4.0, 0.3, 1.5, 0.5, 1.0, 0.0, 0.0])
+                                     kernels.qp_row_constants(_row_constants(4.0)))
     assert len(lower) == 3  # localization, weight sum, the one at R_ca
     assert columns[2::3] == [-3.0, 0.0, 0.0]  # x, y, z of the collision row: 2(p_i − p_j)
     assert lower[2] == -0.5 * (1.5**2 - 0.5**2)
+
+
+_SHARE_AT = kernels.QP_ROW_CONSTANTS.index("localization_share")
+_ROW_CONSTANTS = kernels.qp_row_constants(_row_constants(1.0))
 
 
 @pytest.mark.parametrize(("change", "error", "message"), [
@@ -427,14 +451,16 @@ def test_a_drone_exactly_at_the_collision_radius_has_a_row_and_one_beyond_has_no
     ({"others": [[1.0, 2.0, 3.0], [1.0, 2.0]]}, ValueError, r"others\[1\]: expected 3"),
     ({"others": [[1.0, 2.0, "3"]]}, TypeError, r"others\[0\]\[2\]: expected a float"),
     ({"envelope_lower": [0.0]}, ValueError, "envelope_lower: expected 0 floats"),
-    ({"constants": [1.0] * 6}, ValueError, "constants: expected 7 floats"),
-    ({"constants": [1.0] * 6 + [0.5]}, ValueError,
-     r"constants\[6\] \(the localization share\) must be 0 \(1/N\) or 1 \(weighted\), got 0.5"),
+    ({"constants": _ROW_CONSTANTS[1:]}, ValueError,
+     f"constants: expected {len(_ROW_CONSTANTS)} floats"),
+    ({"constants": [*_ROW_CONSTANTS[:_SHARE_AT], 0.5, *_ROW_CONSTANTS[_SHARE_AT + 1:]]},
+     ValueError, rf"constants\[{_SHARE_AT}\] \(the localization share\) must be 0 \(1/N\) "
+                 r"or 1 \(weighted\), got 0.5"),
 ])
 def test_qp_rows_names_what_it_was_given_wrong(change, error, message) -> None:
     args = {"terms": np.zeros((1, kernels.ROW_SIZE)), "velocities": np.zeros((1, 3)),
             "weight_sums": [1.0], "position": [0.0, 0.0, 3.0], "others": [],
-            "envelope_rows": [], "envelope_lower": [], "constants": [1.0] * 6 + [0.0]} | change
+            "envelope_rows": [], "envelope_lower": [], "constants": _ROW_CONSTANTS} | change
     with pytest.raises(error, match=message) as err:
         kernels.qp_rows(*args.values())
     assert "\n" not in str(err.value)
@@ -589,91 +615,74 @@ def test_the_filter_refuses_mismatched_stacks() -> None:
         kernels._kernels.filter_stack(np.eye(6), np.ones(6), np.ones(5), 0.01, 3.0, *outputs)
 
 
-@settings(max_examples=300, deadline=None)
-@given(values=st.lists(st.one_of(st.floats(), st.sampled_from([0.0, -0.0, 1e308, -1e-320])),
-                       max_size=40),
-       cuts=st.lists(st.integers(0, 40), max_size=4), shift=st.integers(0, 7))
-def test_native_finite_is_isfinite_all(values: list[float], cuts: list[int], shift: int) -> None:
-    """``native_finite`` (the wire rules' check of received floats) is
-    ``np.isfinite(...).all()`` of the floats in all its parts together, however they are cut
-    and wherever in memory they start (unaligned: a memoryview ``shift`` bytes in)."""
-    raw = np.array(values, dtype=np.float64).tobytes()
-    bounds = sorted({0, len(values), *(min(c, len(values)) for c in cuts)})
-    parts = [raw[8 * a:8 * b] for a, b in itertools.pairwise(bounds)]
-    shifted = [memoryview(b"x" * shift + part)[shift:] for part in parts]
-    expected = bool(np.isfinite(np.array(values, dtype=np.float64)).all())
-    assert kernels.native_finite(*parts) is expected
-    assert kernels.native_finite(*shifted) is expected
-    assert kernels.native_finite() is True
+# -- the layouts the module exports -------------------------------------------------------------
 
 
-def test_native_finite_names_a_part_that_is_not_floats() -> None:
-    with pytest.raises(ValueError, match="part 1 holds 12 bytes"):
-        kernels.native_finite(b"", b"x" * 12)
-    with pytest.raises(TypeError, match="part 0 is not bytes-like"):
-        kernels.native_finite([1.0])
+def _tile(fields: tuple[tuple[str, int, int], ...], size: int) -> bool:
+    """The fields lie one after the other from 0 to ``size``, none empty."""
+    starts = [start for _, start, _ in fields]
+    return (starts == [0, *(stop for _, _, stop in fields[:-1])] and fields[-1][2] == size
+            and all(stop > start for _, start, stop in fields))
 
 
-_SHAPES = st.lists(st.lists(st.integers(0, 4), min_size=0, max_size=3).map(tuple),
-                   min_size=0, max_size=12)
+# ``kernels.ROW``'s attributes and the fields they stand for.
+_ROW_NAMES = {"WEIGHT": "weight", "WEIGHT_GRAD": "weight_grad_drone",
+              "UNIT_BEARING": "unit_bearing", "DISTANCE": "distance_m", "PROJECTOR": "projector",
+              "LAMBDA_BAR": "lambda_bar", "PSI0": "psi0", "PSI1": "psi1", "LIE_G": "lie_g",
+              "LOWER": "lower_bound"}
 
 
-@given(_SHAPES, st.data())
-def test_join_native_is_the_join_of_the_arrays_bytes(shapes: list[tuple[int, ...]],
-                                                    data: st.DataObject) -> None:
-    """``join_native`` (the telemetry's packing) is ``b"".join(a.tobytes())`` of native
-    float64 arrays of the given shapes, and None as soon as one array is anything else: another
-    dtype or byte order, not C-contiguous, another shape, not an array."""
-    arrays = [np.asarray(data.draw(st.lists(st.floats(allow_nan=True), min_size=math.prod(s),
-                                            max_size=math.prod(s))),
-                         dtype=np.float64).reshape(s) for s in shapes]
-    expected = b"".join(a.tobytes() for a in arrays)
-    assert kernels.join_native(tuple(arrays), tuple(shapes)) == expected
-    if not arrays:
-        return
-    k = data.draw(st.integers(0, len(arrays) - 1))
-    a = arrays[k]
-    with np.errstate(over="ignore"):  # float32 of a large float64: inf, still not native
-        single = a.astype(np.float32)
-    for odd, its_shape in ((single, shapes[k]), (a.astype(">f8"), shapes[k]),
-                           (a.tolist(), shapes[k]), (a, (*shapes[k], 1)),
-                           (np.zeros((2, 3))[:, ::2], (2, 2))):
-        swapped = [*arrays]
-        swapped[k] = odd
-        shape_list = [*shapes]
-        shape_list[k] = its_shape
-        assert kernels.join_native(tuple(swapped), tuple(shape_list)) is None, (odd, its_shape)
+def test_the_row_layout_is_the_compiled_modules() -> None:
+    """``ROW`` and the named tuples read a row where the C module says each field is: the
+    fields tile the row (perception terms first), are named as the named tuples' fields, and
+    every one is an attribute of ``ROW`` at the module's place."""
+    fields = kernels._kernels.ROW_FIELDS
+    assert kernels.ROW_FIELDS is fields and _tile(fields, kernels.ROW_SIZE)
+    assert [name for name, _, _ in fields] == [*kernels.PerceptionScalars._fields,
+                                               *kernels.BarrierScalars._fields]
+    assert fields[len(kernels.PerceptionScalars._fields)][1] == kernels.PERCEPTION_SIZE
+    at = {name: (start, stop) for name, start, stop in fields}
+    row = {name: value for name, value in vars(kernels.ROW).items() if name.isupper()}
+    assert row.keys() == _ROW_NAMES.keys() and set(_ROW_NAMES.values()) == at.keys()
+    for name, value in row.items():
+        start, stop = at[_ROW_NAMES[name]]
+        assert value == (start if stop - start == 1 else slice(start, stop)), name
 
 
-def test_join_native_refuses_what_is_not_two_tuples() -> None:
-    with pytest.raises(TypeError, match="arrays and shapes must be tuples of the same length"):
-        kernels.join_native([np.zeros(3)], ((3,),))
-    with pytest.raises(TypeError, match="shape 0 is not a tuple"):
-        kernels.join_native((np.zeros(3),), ([3],))
+def test_the_smooth_min_layout_is_the_compiled_modules() -> None:
+    fields = kernels._kernels.SMOOTH_MIN_FIELDS
+    assert kernels.SMOOTH_MIN_FIELDS is fields
+    assert _tile(fields, kernels._kernels.SMOOTH_MIN_SIZE)
+    assert tuple(name for name, _, _ in fields) == kernels.SmoothMinScalars._fields
 
 
-@pytest.mark.parametrize(("change", "error", "message"), [
-    ({"rows": [0.0] * 6}, TypeError, "rows: expected a C-contiguous float64 array"),
-    ({"rows": np.zeros(7)}, ValueError, "rows: 7 floats are not rows of 3"),
-    ({"width": 2}, ValueError, "width 2"),
-    ({"carry": [0.0] * 6}, ValueError, "width 3: expected >= 3 .8 with carry."),
-    ({"ids": [0]}, ValueError, "ids: expected None or a list of 2 ints"),
-    ({"ids": [1, -1]}, ValueError, r"ids\[1\]: drone -1 is negative"),
-    ({"around": [0.0, 0.0]}, ValueError, "around: expected 3 floats"),
-    ({"always": [1, 0]}, TypeError, "always: expected bytes"),
-])
-def test_nearby_names_what_it_was_given_wrong(change, error, message) -> None:
-    args = {"rows": np.zeros(6), "width": 3, "ids": None, "skip": 0, "carry": None,
-            "around": [0.0, 0.0, 0.0], "radius": 1.0, "always": b"\x00\x00"} | change
-    with pytest.raises(error, match=message) as err:
-        kernels.nearby(*args.values())
-    assert "\n" not in str(err.value)
+def test_the_constants_go_where_the_compiled_module_names_them() -> None:
+    """``perception_constants``, ``barrier_constants`` and ``qp_row_constants`` put each
+    value at the position the C module names for it (distinct values, read back by name)."""
+    assert kernels.PERCEPTION_CONSTANTS is kernels._kernels.PERCEPTION_CONSTANTS
+    params = PerceptionParams(d_min_th_m=1.5, d_max_th_m=7.0, sigma_dmin_sq_m2=0.05,
+                              sigma_dmax_sq_m2=2.0, alpha_th_deg=30.0, sigma_beta_sq=0.02)
+    by_name = {name: getattr(params, name) for name in kernels.PERCEPTION_CONSTANTS}
+    assert len(set(by_name.values())) == len(by_name) == 6
+    assert dict(zip(kernels.PERCEPTION_CONSTANTS, kernels.perception_constants(params),
+                    strict=True)) == by_name
+    assert kernels.BARRIER_CONSTANTS is kernels._kernels.BARRIER_CONSTANTS
+    assert len(kernels.BARRIER_CONSTANTS) == kernels._kernels.CONSTANTS_SIZE
+    constants = kernels.barrier_constants(params, n_agents=5, forgetting=0.25, epsilon=0.07,
+                                          exponent=-9.0, info_gain=1.75)
+    assert dict(zip(kernels.BARRIER_CONSTANTS, constants.tolist(), strict=True)) == by_name | {
+        "n_agents": 5.0, "forgetting": 0.25, "epsilon": 0.07, "exponent": -9.0,
+        "info_gain": 1.75, "eigenvalue_floor": EIGENVALUE_FLOOR,
+        "near_repeated_log_gap": NEAR_REPEATED_LOG_GAP}
+    assert kernels.QP_ROW_CONSTANTS is kernels._kernels.QP_ROW_CONSTANTS
+    values = dict(zip(kernels.QP_ROW_CONSTANTS, [2.0, 3.0, 5.0, 7.0, 11.0, 13.0, 1.0],
+                      strict=True))
+    assert kernels.qp_row_constants(values) == [values[n] for n in kernels.QP_ROW_CONSTANTS]
+    with pytest.raises(VigilError, match=r"missing \['gamma'\]"):
+        kernels.qp_row_constants({k: v for k, v in values.items() if k != "gamma"})
 
 
-def test_nearby_keeps_the_drones_within_the_radius_the_marked_and_the_not_finite() -> None:
-    rows = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [math.nextafter(1.0, 2.0), 0.0, 0.0],
-                     [9.0, 0.0, 0.0], [np.nan, 0.0, 0.0], [7.0, 0.0, 0.0]])
-    got = kernels.nearby(rows, 3, None, 0, None, [0.0, 0.0, 0.0], 1.0, b"\x00\x00\x00\x01")
-    assert list(got) == [1, 3, 4] and got[1] == [1.0, 0.0, 0.0]  # 5: past the marks
-    assert kernels.nearby(rows, 3, [5, 4, 3, 2, 1, 0], 0, None, None, 1.0, b"").keys() == {
-        5, 4, 3, 2, 1}
+def test_the_localization_shares_are_the_compiled_modules_and_the_configs() -> None:
+    assert list(kernels.LOCALIZATION_SHARES) == list(get_args(LocalizationShare))
+    codes = {name: float(code) for code, name in enumerate(kernels._kernels.LOCALIZATION_SHARES)}
+    assert codes == kernels.LOCALIZATION_SHARES
