@@ -25,13 +25,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from swarm.core.consensus_layout import ConsensusLayout
+from swarm.core.kernels import ICF_PAIR
 from swarm.errors import VigilError
 
 Array = NDArray[np.float64]
 
-# The arrays of a message in packing order: the ICF pair, then the consensus states in the
-# order of ``ConsensusLayout``.
-PAIR_NAMES: Final = ("information", "information_vector")
+# The arrays of a message in packing order: the ICF pair as the agent's kernel packs it
+# (``kernels.ICF_PAIR``: V, then v), then the consensus states in the order of
+# ``ConsensusLayout``.
+PAIR_NAMES: Final = ICF_PAIR
 STATE_NAMES: Final = ("projector_mean", "weight_mean", "projector_integral", "weight_integral",
                       "gramian")
 ARRAY_NAMES: Final = PAIR_NAMES + STATE_NAMES
@@ -56,10 +58,11 @@ def message_layout(n_targets: int, n_state: int, with_states: bool
     """(name, shape, start, stop) of each array in ``data``, in floats: the ICF pair, then
     the states where the agent's packed state (``ConsensusLayout``) keeps them."""
     shapes = array_shapes(n_targets, n_state)
-    pair = math.prod(shapes["information"])
-    size = pair + math.prod(shapes["information_vector"])
-    layout = [("information", shapes["information"], 0, pair),
-              ("information_vector", shapes["information_vector"], pair, size)]
+    layout: list[tuple[str, tuple[int, ...], int, int]] = []
+    size = 0
+    for name in PAIR_NAMES:
+        layout.append((name, shapes[name], size, size + math.prod(shapes[name])))
+        size = layout[-1][3]
     if with_states:
         states = ConsensusLayout(n_targets)
         layout += [(name, shapes[name], size + getattr(states, name).start,

@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 
 from swarm.core import icf, kernels
 from swarm.core.consensus_layout import ConsensusLayout
-from swarm.core.consensus_message import ConsensusMessage, message_size
+from swarm.core.consensus_message import ConsensusMessage, message_layout, message_size
 from swarm.core.fast_dataclass import record
 from swarm.core.formation import bearing_formation_scalars
 from swarm.core.gramian import initial_gramian
@@ -186,9 +186,12 @@ class DroneAgent:
         self._prior_information = np.broadcast_to(np.eye(n), (m, n, n)).copy()
         self._posterior_state = self._prior_state.copy()
         self._position_covariance = np.broadcast_to(np.eye(3), (m, 3, 3)).copy()  # pinv(I)
-        # ICF pair (V, v) packed as one vector: V (M·n·n) then v (M·n).
-        self._n_info = m * n * n
-        self._icf = np.zeros(self._n_info + m * n)
+        # ICF pair (V, v) packed as one vector, as ``kernels.initial_information`` writes it
+        # and a consensus message carries it (``message_layout``): (where, shape) of each.
+        pair = {name: (slice(start, stop), shape)
+                for name, shape, start, stop in message_layout(m, n, False)}
+        self._information_at, self._vector_at = pair["information"], pair["information_vector"]
+        self._icf = np.zeros(message_size(m, n, False))
         # Consensus states packed as one vector (SPEC §6, ``ConsensusLayout``).
         self._layout = layout = ConsensusLayout(m)
         self._cons_array = np.zeros(layout.size)
@@ -460,10 +463,12 @@ class DroneAgent:
         """ICF posterior and prediction (2.8-2.11), all targets at once, from the consensus
         result. Returns the posterior estimates (M, n) and the targets' velocities the barrier
         uses (M, 3: estimated, communicated or zero)."""
-        m, n = self.setup.n_targets, self._n_state
+        m = self.setup.n_targets
         packed = self._icf
+        (information, information_shape), (vector, vector_shape) = (self._information_at,
+                                                                    self._vector_at)
         posterior_state, self._prior_state, self._prior_information, covariance = self._filter(
-            packed[:self._n_info].reshape(m, n, n), packed[self._n_info:].reshape(m, n),
+            packed[information].reshape(information_shape), packed[vector].reshape(vector_shape),
             self._communicated_velocity if self._single_integrator else None)
         self._posterior_state = posterior_state
         self._position_covariance = covariance[:, :3, :3].copy()  # contiguous, as sent
@@ -495,11 +500,15 @@ class DroneAgent:
 
     def _qp_row_constants(self, n_agents: int) -> list[float]:
         """``kernels.qp_rows``' constants for N = ``n_agents``: N, γ, R_ca, Δ, α_ca, ē and the
-        localization share (0 = 1/N, 1 = weighted; ``control.localization_share``)."""
+        localization share (``control.localization_share``)."""
         ctrl = self.setup.control
-        return [float(n_agents), ctrl.gamma, ctrl.collision_radius_m, ctrl.collision_distance_m,
-                ctrl.collision_gain, ctrl.tracking_error_bound_m_s,
-                kernels.LOCALIZATION_SHARES[ctrl.localization_share]]
+        return kernels.qp_row_constants({
+            "n_agents": float(n_agents), "gamma": ctrl.gamma,
+            "collision_radius_m": ctrl.collision_radius_m,
+            "collision_distance_m": ctrl.collision_distance_m,
+            "collision_gain": ctrl.collision_gain,
+            "tracking_error_bound_m_s": ctrl.tracking_error_bound_m_s,
+            "localization_share": kernels.LOCALIZATION_SHARES[ctrl.localization_share]})
 
     # -- helpers ------------------------------------------------------------------------
 
@@ -687,7 +696,8 @@ _F64 = np.dtype(np.float64)  # native: what the agent and the decoder make
 
 def _consensus_operator(layout: ConsensusLayout, dt: float, gram: GramianParams,
                         rate_gain: float) -> tuple[Array, Array]:
-    """Gather index and coefficients of the consensus step on z = [x, D, u] (SPEC §6).
+    """Gather index and coefficients of the consensus step on z = [x, D, u, 0] (SPEC §6),
+    its parts where ``kernels.consensus_step`` takes them (``kernels.z_starts``).
 
     x is the packed state (``ConsensusLayout``: s, η, G), D = Σ_j (x − x_j) over the
     round-0 neighbours, u = [wΠ̂, w] the local input. With K = (ζ, K_p, K_i) per entry:
@@ -697,8 +707,9 @@ def _consensus_operator(layout: ConsensusLayout, dt: float, gram: GramianParams,
     """
     m, n = layout.n_targets, layout.size
     means, integrals, gramian = layout.means, layout.integrals, layout.gramian
-    d0, u0 = n, 2 * n  # offsets of D and u in z
-    index = np.full((6, n), u0 + means.stop, dtype=np.intp)
+    z = kernels.z_starts(n, means.stop)  # where x, D, u and the 0 start in z
+    x0, d0, u0 = z["state"], z["disagreement"], z["input"]
+    index = np.full((6, n), z["zero"], dtype=np.intp)
     coefficients = np.zeros((6, n))
 
     def put(row: int, entry: int, source: int, coefficient: float) -> None:
@@ -708,11 +719,11 @@ def _consensus_operator(layout: ConsensusLayout, dt: float, gram: GramianParams,
     for i in range(means.start, means.stop):
         gains = pc if i < layout.projector_mean.stop else wc
         e = integrals.start + i  # the matching η entry
-        put(0, i, i, 1.0 - dt * gains.zeta)
+        put(0, i, x0 + i, 1.0 - dt * gains.zeta)
         put(1, i, u0 + i, dt * gains.zeta)
         put(2, i, d0 + i, -dt * gains.kp)
         put(3, i, d0 + e, dt * gains.ki)
-        put(0, e, e, 1.0)
+        put(0, e, x0 + e, 1.0)
         put(1, e, d0 + i, -dt * gains.ki)
     keep, rate, couple = 1.0 - dt * gram.forgetting, dt * rate_gain, -dt * gram.consensus_gain
     for r in range(m):
@@ -720,10 +731,10 @@ def _consensus_operator(layout: ConsensusLayout, dt: float, gram: GramianParams,
             for b in range(3):
                 k, kt = 9 * r + 3 * a + b, 9 * r + 3 * b + a  # G[a, b] and G[b, a] in the block
                 i, it = gramian.start + k, gramian.start + kt
-                put(0, i, i, 0.5 * keep)
-                put(1, i, it, 0.5 * keep)
-                put(2, i, layout.projector_mean.start + k, 0.5 * rate)  # s of wΠ̂ (3.29)
-                put(3, i, layout.projector_mean.start + kt, 0.5 * rate)
+                put(0, i, x0 + i, 0.5 * keep)
+                put(1, i, x0 + it, 0.5 * keep)
+                put(2, i, x0 + layout.projector_mean.start + k, 0.5 * rate)  # s of wΠ̂ (3.29)
+                put(3, i, x0 + layout.projector_mean.start + kt, 0.5 * rate)
                 put(4, i, d0 + i, 0.5 * couple)
                 put(5, i, d0 + it, 0.5 * couple)
     return index, coefficients

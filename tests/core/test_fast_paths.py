@@ -18,6 +18,7 @@ import numpy as np
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
+from swarm.core import kernels
 from swarm.core.consensus_layout import ConsensusLayout
 from swarm.core.drone_step import AgentSetup, DroneAgent, _consensus_operator, consensus_step
 from swarm.core.dynamic_consensus import pi_consensus_step
@@ -91,7 +92,8 @@ def test_consensus_operator_equals_the_pi_consensus_and_gramian_steps(
     local_input = rng.normal(size=10 * m)
     index, coefficients = _consensus_operator(layout, dt, gram, rate_gain)
     disagreement = sum((own - x for x in others), np.zeros(layout.size))
-    z = np.concatenate((own, disagreement, local_input, [0.0]))
+    parts = {"state": own, "disagreement": disagreement, "input": local_input, "zero": [0.0]}
+    z = np.concatenate([parts[name] for name in kernels.CONSENSUS_STEP_Z])
     packed = consensus_step((index, coefficients), own, disagreement, local_input.tolist())
     # The compiled sum is numpy's gather-product-sum, bit for bit.
     assert packed.tobytes() == np.add.reduce(z[index] * coefficients, axis=0).tobytes()

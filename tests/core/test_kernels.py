@@ -43,6 +43,7 @@ from swarm.core.barrier import (
     robust_lower_bound,
     weight_sum_row,
 )
+from swarm.core.consensus_message import PAIR_NAMES, message_layout
 from swarm.core.params import LocalizationShare, PerceptionParams
 from swarm.core.perception import PerceptionTerms, perception_terms
 from swarm.core.smooth_min import (
@@ -686,3 +687,34 @@ def test_the_localization_shares_are_the_compiled_modules_and_the_configs() -> N
     assert list(kernels.LOCALIZATION_SHARES) == list(get_args(LocalizationShare))
     codes = {name: float(code) for code, name in enumerate(kernels._kernels.LOCALIZATION_SHARES)}
     assert codes == kernels.LOCALIZATION_SHARES
+
+
+def test_the_packed_icf_pair_is_the_compiled_modules() -> None:
+    """A consensus message packs the ICF pair as ``initial_information`` writes it."""
+    assert kernels.ICF_PAIR is kernels._kernels.ICF_PAIR
+    assert PAIR_NAMES is kernels.ICF_PAIR
+    layout = message_layout(2, 6, False)
+    assert [name for name, _, _, _ in layout] == list(kernels.ICF_PAIR)
+    sizes = {"information": 2 * 6 * 6, "information_vector": 2 * 6}
+    assert [(start, stop - start) for _, _, start, stop in layout] == [
+        (0, sizes[kernels.ICF_PAIR[0]]), (sizes[kernels.ICF_PAIR[0]], sizes[kernels.ICF_PAIR[1]])]
+
+
+def test_consensus_step_reads_each_part_of_z_where_z_starts_says() -> None:
+    """An index at ``z_starts``' start of each part (plus an offset) reads that part's value:
+    the state, the disagreement, the input, the 0."""
+    assert kernels.CONSENSUS_STEP_Z is kernels._kernels.CONSENSUS_STEP_Z
+    n, n_u = 4, 3
+    x, d, u = np.arange(1.0, 5.0), np.arange(10.0, 14.0), [100.0, 200.0, 300.0]
+    starts = kernels.z_starts(n, n_u)
+    assert sorted(starts.values()) == [0, n, 2 * n, 2 * n + n_u]
+    for part, values in (("state", x.tolist()), ("disagreement", d.tolist()), ("input", u),
+                         ("zero", [0.0])):
+        at = [min(i, len(values) - 1) for i in range(n)]  # each of the part's values
+        index = np.array([[starts[part] + k for k in at]], dtype=np.intp)
+        out = np.empty(n)
+        kernels.consensus_step(x, d, u, index, np.ones((1, n)), out)
+        assert out.tolist() == [values[k] for k in at], part
+    with pytest.raises(ValueError, match=r"an index lies outside z \(12 floats\)"):
+        kernels.consensus_step(x, d, u, np.full((1, n), 12, dtype=np.intp), np.ones((1, n)),
+                               np.empty(n))
