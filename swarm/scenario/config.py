@@ -239,8 +239,8 @@ DEFAULT_SETPOINT_TIMEOUT_S = {"px4": 0.5, "ardupilot": 3.0}  # COM_OF_LOSS_T, GU
 # What [control] takes for tracking_error_bound_m_s (ē [m/s]) and command_accel_limit_m_s2
 # (a [m/s²]) when the config leaves them out, by how the vehicles move: ideal vehicles fly
 # the thesis' QP unchanged; for the SITL fits, ē and a are the values that held Case 1 in
-# the in-process runs with each fitted response and on the SITL builds (README, "The
-# guarantee on real vehicles"; sweeps/sitl_soak/).
+# the in-process runs with each fitted response and on the SITL builds
+# (docs/guarantee_real_vehicles.md; sweeps/sitl_soak/).
 TRACKING_DEFAULTS: dict[str, tuple[float, float]] = {
     "ideal": (0.0, 0.0), "custom": (0.0, 0.0), "arducopter": (0.1, 4.0), "px4": (0.2, 4.0)}
 TRACKING_KEYS = ("tracking_error_bound_m_s", "command_accel_limit_m_s2")
