@@ -113,6 +113,36 @@ class StepResult:
     diagnostics: StepDiagnostics
 
 
+@dataclass(frozen=True)
+class TargetPrior:
+    """The ICF prior of every target, what the next step starts from (SPEC §5): x̂⁻ and W⁻.
+
+    Given to ``DroneAgent`` in place of the initial guesses, it is the prior of the first
+    step (a drone that resumes with what it knew); ``DroneAgent.snapshot`` shows it."""
+
+    state: Array  # x̂⁻ per target, (M, n): position [m], then velocity [m/s] if estimated
+    information: Array  # W⁻ per target, (M, n, n)
+
+
+@dataclass(frozen=True)
+class AgentSnapshot:
+    """A copy of a drone's filter and consensus state between two calls of the step API
+    (``DroneAgent.snapshot``), for tests and tools: its arrays are copies, read-only."""
+
+    phase: str  # "idle" (next: begin_step), "consensus" (consensus_round), "finish"
+    step: int  # the step under way or last finished (-1 before the first)
+    rounds_done: int  # consensus rounds done in this step
+    position: Array  # the own position of the step [m]
+    last_command: tuple[float, float, float]  # u of the last step [m/s] (the rate box's)
+    prior: TargetPrior  # of the next begin_step (the prediction of the last finish_step)
+    posterior_state: Array  # x̂⁺ per target of the last finish_step, (M, n)
+    icf_pair: Array  # the ICF pair (V, v) after the latest round, packed (``message_layout``)
+    consensus_states: Array  # s, η and G packed (SPEC §6, ``ConsensusLayout``)
+    disagreement: Array  # Σ_j (x_i − x_j) of the round-0 consensus states of this step
+    missing_this_step: int  # consensus sums without a neighbour so far in this step
+    rejected_this_step: int  # inputs dropped so far in this step
+
+
 class AgentStateError(VigilError, RuntimeError):
     """The step API was called out of order (a bug in the caller, not bad data)."""
 
@@ -170,7 +200,12 @@ class DroneAgent:
     for bit too).
     """
 
-    def __init__(self, setup: AgentSetup, initial_target_guesses: Array) -> None:
+    def __init__(self, setup: AgentSetup, initial_target_guesses: Array | TargetPrior, *,
+                 last_command_m_s: Sequence[float] | None = None) -> None:
+        """``initial_target_guesses``: each target's position (M, 3) [m], the prior of the
+        first step with zero velocity and W⁻ = I; or the whole prior (``TargetPrior``).
+        ``last_command_m_s``: the velocity the vehicle was last commanded (the first step's
+        rate box is around it; default zero)."""
         self.setup = setup
         m = setup.n_targets
         est, gram, ctrl = setup.estimation, setup.gramian, setup.control
@@ -180,10 +215,14 @@ class DroneAgent:
         self._swarm_size = setup.n_drones
         self._filter = icf.StackedFilter(icf.transition_matrix(est.model, setup.dt_s),
                                          est.process_noise, setup.n_drones, setup.dt_s)
-        guesses = np.asarray(initial_target_guesses, dtype=float).reshape(m, 3)
-        self._prior_state = np.zeros((m, n))
-        self._prior_state[:, :3] = guesses
-        self._prior_information = np.broadcast_to(np.eye(n), (m, n, n)).copy()
+        if isinstance(initial_target_guesses, TargetPrior):
+            self._prior_state, self._prior_information = _checked_prior(
+                initial_target_guesses, setup.drone_id, m, n)
+        else:
+            guesses = np.asarray(initial_target_guesses, dtype=float).reshape(m, 3)
+            self._prior_state = np.zeros((m, n))
+            self._prior_state[:, :3] = guesses
+            self._prior_information = np.broadcast_to(np.eye(n), (m, n, n)).copy()
         self._posterior_state = self._prior_state.copy()
         self._position_covariance = np.broadcast_to(np.eye(3), (m, 3, 3)).copy()  # pinv(I)
         # ICF pair (V, v) packed as one vector, as ``kernels.initial_information`` writes it
@@ -219,6 +258,12 @@ class DroneAgent:
         self._max_change = ctrl.command_accel_limit_m_s2 * setup.dt_s
         self._n_safety_rows = setup.safety.n_rows  # the last rows of every QP
         self._last_command = _ZERO3
+        if last_command_m_s is not None:
+            command = np.asarray(last_command_m_s, dtype=float)
+            if command.shape != (3,) or not _all_finite(command.tolist()):
+                raise ValueError(f"drone {setup.drone_id}: last command must be 3 finite "
+                                 f"numbers [m/s], got {last_command_m_s!r}")
+            self._last_command = (float(command[0]), float(command[1]), float(command[2]))
         # Per-step working state.
         self._phase = "idle"
         self._step = -1
@@ -521,6 +566,18 @@ class DroneAgent:
     def target_estimates(self) -> Array:
         return self._posterior_state.copy()
 
+    def snapshot(self) -> AgentSnapshot:
+        """A read-only copy of the filter and consensus state as it is now (for tests and
+        tools; it copies every array, so the step never calls it)."""
+        return AgentSnapshot(
+            phase=self._phase, step=self._step, rounds_done=self._round,
+            position=_frozen(self._position), last_command=self._last_command,
+            prior=TargetPrior(_frozen(self._prior_state), _frozen(self._prior_information)),
+            posterior_state=_frozen(self._posterior_state), icf_pair=_frozen(self._icf),
+            consensus_states=_frozen(self._cons_array),
+            disagreement=_frozen(self._disagreement),
+            missing_this_step=self._missing, rejected_this_step=self._rejected)
+
     @property
     def section_us(self) -> dict[str, float]:
         """Compute time of the last step by section [µs] (estimation: ICF local steps;
@@ -750,6 +807,25 @@ def consensus_step(operator: tuple[Array, Array], x: Array, disagreement: Array,
     updated = np.empty_like(x)
     kernels.consensus_step(x, disagreement, local_input, index, coefficients, updated)
     return updated
+
+
+def _checked_prior(prior: TargetPrior, drone_id: int, m: int, n: int) -> tuple[Array, Array]:
+    """Copies of a given prior's arrays, checked: finite, (M, n) and (M, n, n)."""
+    state = np.array(prior.state, dtype=float)
+    information = np.array(prior.information, dtype=float)
+    if (state.shape != (m, n) or information.shape != (m, n, n)
+            or not (np.isfinite(state).all() and np.isfinite(information).all())):
+        raise ValueError(f"drone {drone_id}: a prior must be finite, its state ({m}, {n}) and "
+                         f"its information ({m}, {n}, {n}); got {state.shape} and "
+                         f"{information.shape}")
+    return state, information
+
+
+def _frozen(values: Array) -> Array:
+    """A read-only copy."""
+    copy = np.array(values, dtype=float)
+    copy.flags.writeable = False
+    return copy
 
 
 def _clip3(u: tuple[float, float, float] | list[float],

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +16,7 @@ from swarm.core.drone_step import (
     ConsensusMessage,
     Detection,
     DroneAgent,
+    TargetPrior,
 )
 from swarm.core.params import ControlParams, EstimationParams, GramianParams, PerceptionParams
 from swarm.core.qp import QpSolver, build_local_qp
@@ -28,13 +30,15 @@ from swarm.scenario.world_step import Scene
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
 
-def lone_agent(control: ControlParams, n_drones: int = 2, guess=(0.0, 0.0, 0.0)) -> DroneAgent:
-    """Drone 0 of a two-drone swarm whose only neighbour is drone 1."""
+def lone_agent(control: ControlParams, n_drones: int = 2, guess=(0.0, 0.0, 0.0),
+               **injected) -> DroneAgent:
+    """Drone 0 of a two-drone swarm whose only neighbour is drone 1 (``injected``: keyword
+    arguments of ``DroneAgent``)."""
     setup = AgentSetup(
         drone_id=0, n_drones=n_drones, n_targets=1, dt_s=0.02,
         neighbour_weights={1: 0.5}, perception=PerceptionParams(),
         estimation=EstimationParams(), gramian=GramianParams(), control=control)
-    return DroneAgent(setup, np.array([guess]))
+    return DroneAgent(setup, np.array([guess]), **injected)
 
 
 def run_alone(agent: DroneAgent, step: int, position, detections=(), beacons=None):
@@ -62,6 +66,37 @@ def test_non_finite_position_is_a_clear_error() -> None:
         agent.begin_step(0, np.array([0.0, np.nan, 3.0]), [])
 
 
+def test_an_injected_prior_and_command_are_checked_copied_and_shown_read_only() -> None:
+    """``TargetPrior`` and ``last_command_m_s`` start the agent where they say (checked, and
+    copied: the caller's arrays may change afterwards); ``snapshot`` shows the state as it
+    is, in arrays the caller cannot write, and follows the step's phases."""
+    state, information = np.array([[1.0, 2.0, 3.0, 0.5, 0.0, 0.0]]), 2.0 * np.eye(6)[None]
+    setup = lone_agent(ControlParams()).setup
+    agent = DroneAgent(setup, TargetPrior(state, information), last_command_m_s=[0.5, 0.0, -0.5])
+    state[0, 0] = information[0, 0, 0] = 99.0
+    snap = agent.snapshot()
+    assert (snap.phase, snap.step, snap.rounds_done) == ("idle", -1, 0)
+    assert snap.last_command == (0.5, 0.0, -0.5)
+    np.testing.assert_array_equal(snap.prior.state, [[1.0, 2.0, 3.0, 0.5, 0.0, 0.0]])
+    np.testing.assert_array_equal(snap.prior.information, 2.0 * np.eye(6)[None])
+    for array in (snap.prior.state, snap.icf_pair, snap.consensus_states, snap.position):
+        with pytest.raises(ValueError, match="read-only"):
+            array[0] = 1.0
+    agent.begin_step(0, np.array([0.0, 0.0, 3.0]), [])
+    assert (agent.snapshot().phase, agent.snapshot().step) == ("consensus", 0)
+    agent.consensus_round({})  # the neighbour's message is missing
+    snap = agent.snapshot()
+    assert (snap.phase, snap.rounds_done, snap.missing_this_step) == ("finish", 1, 1)
+    agent.finish_step({})
+    assert agent.snapshot().phase == "idle"
+    with pytest.raises(ValueError, match=r"^drone 0: a prior must be finite, its state \(1, 6\)"):
+        DroneAgent(setup, TargetPrior(np.zeros((1, 3)), np.eye(3)[None]))
+    with pytest.raises(ValueError, match="a prior must be finite"):
+        DroneAgent(setup, TargetPrior(np.full((1, 6), np.nan), np.eye(6)[None]))
+    with pytest.raises(ValueError, match=r"^drone 0: last command must be 3 finite numbers"):
+        DroneAgent(setup, np.zeros((1, 3)), last_command_m_s=(1.0, math.inf, 0.0))
+
+
 def test_detections_are_measured_from_the_camera_position_when_given() -> None:
     """begin_step(camera_position=c) folds the detections in exactly as a step taken at c,
     the rest of the step keeps the vehicle's position; None means the vehicle's position."""
@@ -78,7 +113,7 @@ def test_detections_are_measured_from_the_camera_position_when_given() -> None:
     agent, paired = round0(here, there)
     np.testing.assert_array_equal(paired.information, from_there.information)
     np.testing.assert_array_equal(paired.information_vector, from_there.information_vector)
-    np.testing.assert_array_equal(agent._position, here)
+    np.testing.assert_array_equal(agent.snapshot().position, here)
     _, plain = round0(here, keyword=False)
     _, same = round0(here, here)
     _, unset = round0(here, None)
@@ -458,8 +493,8 @@ def test_a_rate_box_that_blocks_a_collision_row_is_released_and_counted() -> Non
     stopping in time needs: the QP within the rate box is infeasible, so the step solves it
     again without the box (the collision row wins), says so and counts it."""
     control = ControlParams(start_s=0.0, qp="relaxed", command_accel_limit_m_s2=0.5)
-    agent = lone_agent(control, guess=(0.0, 0.0, 0.0))
-    agent._last_command = (2.0, 0.0, 0.0)  # flying at the other drone
+    agent = lone_agent(control, guess=(0.0, 0.0, 0.0),
+                       last_command_m_s=(2.0, 0.0, 0.0))  # flying at the other drone
     result = run_alone(agent, 0, [0.0, 0.0, 3.0], beacons={1: np.array([0.62, 0.0, 3.0])})
     d = result.diagnostics
     assert d.rate_limit_released and agent.rate_limit_releases == 1

@@ -140,22 +140,23 @@ def test_the_agents_consensus_round_is_consensus_iteration_bit_for_bit(
     message = agent.begin_step(0, np.array([0.3, -0.1, 3.0]), [])
     bad = int(rng.choice(neighbours)) if poisoned else None
     for rnd in (0, 1):
-        own_pair, own_states = agent._icf.copy(), agent._cons_array.copy()
+        before = agent.snapshot()
+        own_pair, own_states = before.icf_pair, before.consensus_states
         blocks = {j: rng.normal(size=message.data.shape) * 10.0 ** rng.integers(-3, 4)
                   for j in neighbours}
         if bad is not None:
             blocks[bad][rng.integers(blocks[bad].size if rnd == 0 else own_pair.size)] = (
                 np.nan if poisoned == "nan" else -np.inf)
         inbox = {j: dataclasses.replace(message, sender=j, data=blocks[j]) for j in neighbours}
-        rejected_before = agent._rejected
         message = agent.consensus_round(inbox) or message
+        after = agent.snapshot()
         used = [j for j in neighbours if j != bad]
         expected = consensus_iteration(own_pair, [(weights[j], blocks[j][:own_pair.size])
                                                   for j in used])
-        assert agent._icf.tobytes() == expected.tobytes()
-        assert agent._rejected - rejected_before == (bad is not None)
+        assert after.icf_pair.tobytes() == expected.tobytes()
+        assert after.rejected_this_step - before.rejected_this_step == (bad is not None)
         if rnd == 0:
             differences = [own_states - blocks[j][own_pair.size:] for j in used]
             np.testing.assert_array_equal(
-                agent._disagreement, sum(differences[1:], differences[0]) if used
+                after.disagreement, sum(differences[1:], differences[0]) if used
                 else np.zeros_like(own_states))

@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from swarm.core import icf
-from swarm.core.drone_step import AgentSetup, Detection, DroneAgent
+from swarm.core.drone_step import AgentSetup, Detection, DroneAgent, TargetPrior
 from swarm.core.graph import CommunicationGraph
 from swarm.core.params import (
     ControlParams,
@@ -285,10 +285,10 @@ def test_the_agents_round_0_pair_is_initial_information_of_each_target(
         neighbour_weights={j: 0.1 for j in range(1, n_drones)}, perception=PerceptionParams(),
         estimation=EstimationParams(model=model, info_gain=gain), gramian=GramianParams(),
         control=ControlParams())
-    agent = DroneAgent(setup, rng.normal(size=(m, 3)))
-    priors = rng.normal(size=(m, n, n))
-    agent._prior_information = priors @ priors.transpose(0, 2, 1) + np.eye(n)
-    agent._prior_state = rng.normal(size=(m, n)) * 5.0
+    factors = rng.normal(size=(m, n, n))
+    prior = TargetPrior(state=rng.normal(size=(m, n)) * 5.0,
+                        information=factors @ factors.transpose(0, 2, 1) + np.eye(n))
+    agent = DroneAgent(setup, prior)
     seen = rng.random(m) < 0.6
     points = rng.normal(0.0, 0.5, (m, 2))
     detections = [Detection(r, points[r]) for r in range(m) if seen[r]]
@@ -296,8 +296,8 @@ def test_the_agents_round_0_pair_is_initial_information_of_each_target(
     message = agent.begin_step(0, position, detections, camera_position=camera)
     for r in range(m):
         measured = projector(bearing_from_image_point(points[r])) if seen[r] else None
-        info, vector = icf.initial_information(agent._prior_state[r], agent._prior_information[r],
-                                               measured, camera, n_drones, gain)
+        info, vector = icf.initial_information(prior.state[r], prior.information[r], measured,
+                                               camera, n_drones, gain)
         scale = 1.0 + np.abs(info).max() + np.abs(vector).max()
         np.testing.assert_allclose(message.information[r], info, rtol=0, atol=1e-14 * scale)
         np.testing.assert_allclose(message.information_vector[r], vector, rtol=0,
