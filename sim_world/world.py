@@ -31,7 +31,7 @@ import math
 import time
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -69,6 +69,10 @@ CLOCK_PERIOD_S = 0.25
 BEACON_RING_PERIODS = 4
 MISSION_TIME_OFFSET_MS = 1000  # mission stamps start this far past every pre-mission stamp
 DONE_LINGER_S = 10.0  # the world stays up this long after the mission unless stopped
+# How the world declares each of its publishers: ``declare(session, key, block=...)`` returns
+# something with ``put(payload, timestamp=None)``. ``declare_publisher`` in a run; a test
+# passes one whose publishers keep what is put.
+DeclarePublisher = Callable[..., Any]
 
 
 class WorldAbortError(VigilError, RuntimeError):
@@ -95,7 +99,8 @@ class WorldOptions:
 class World:
     """State of the simulated world; ``run()`` drives it to the end of the mission."""
 
-    def __init__(self, options: WorldOptions) -> None:
+    def __init__(self, options: WorldOptions, *,
+                 declare: DeclarePublisher = declare_publisher) -> None:
         self.options = options
         cfg = options.config
         reason = realtime_only_reason(cfg.vehicles, mode=options.mode,
@@ -156,13 +161,19 @@ class World:
         # Nothing the world publishes is dropped: lockstep peers wait for every message, and a
         # recording keeps every detection and truth sample. zenoh_config gives each link room
         # for a whole step's burst, so a put waits only if a link is stuck.
-        self._pub_camera = [declare_publisher(self.session, self.keys.camera(i), block=True)
+        self._pub_camera = [declare(self.session, self.keys.camera(i), block=True)
                             for i in range(self.n)]
-        self._pub_truth = declare_publisher(self.session, self.keys.truth, block=True)
-        self._pub_clock = declare_publisher(self.session, self.keys.clock, block=True)
+        self._pub_truth = declare(self.session, self.keys.truth, block=True)
+        self._pub_clock = declare(self.session, self.keys.clock, block=True)
         # Realtime only; it drops rather than waits: the next tick brings the newest beacons.
-        self._pub_relay = (declare_publisher(self.session, self.keys.beacon_relay, block=False)
+        self._pub_relay = (declare(self.session, self.keys.beacon_relay, block=False)
                            if self._beacon_ring is not None else None)
+
+    @property
+    def takes_beacons(self) -> bool:
+        """Whether the world subscribes to the drones' beacons: in realtime (to relay them,
+        and with external vehicles to place the drones); a lockstep world takes none."""
+        return self._beacon_ring is not None
 
     # -- plumbing ---------------------------------------------------------------------------
 
@@ -247,7 +258,9 @@ class World:
         return [i for i, v in enumerate(self.fleet.vehicles)
                 if not (v.accepting_setpoints and v.setpoints_streaming(now))]
 
-    def _external_positions(self) -> None:
+    def place_external_drones(self) -> None:
+        """External vehicles: each drone where its newest beacon says, with that beacon's
+        autopilot stamp for the frames rendered from there (a drone not heard stays put)."""
         for i in range(self.n):
             latest = self.beacons.get(i)
             if latest is not None:
@@ -339,7 +352,7 @@ class World:
         for k in range(self.options.config.n_steps):
             self.take_beacons()
             if self.fleet is None:
-                self._external_positions()
+                self.place_external_drones()
                 stamps = self.pose_stamps_ms
             else:
                 self._wait(0.0)  # telemetry reports the failsafe state: setpoints count first

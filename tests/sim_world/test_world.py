@@ -15,11 +15,12 @@ import numpy as np
 import pytest
 
 import sim_world.world as world_module
-from sim_world.world import CLOCK_PERIOD_S, World, WorldOptions
+from sim_world.world import CLOCK_PERIOD_S, DeclarePublisher, World, WorldOptions
 from swarm.launch.launcher import free_tcp_port, reserve_mavlink_base
 from swarm.messages.wire import RELAY_HELD, RELAY_POSITION, BeaconWire
-from swarm.net.session import open_session, zenoh_config
+from swarm.net.session import declare_publisher, open_session, zenoh_config
 from swarm.scenario.config import load_config
+from tests.helpers.waiting import wait_until
 
 CASE1 = Path(__file__).resolve().parents[2] / "configs" / "case1.toml"
 
@@ -32,19 +33,57 @@ class FakeClock:
         return self.now
 
 
+class _Captured:
+    """A publisher that keeps what is put, and whether it came with a timestamp."""
+
+    def __init__(self, block: bool) -> None:
+        self.block = block
+        self.payloads: list[bytes] = []
+        self.stamped: list[bool] = []
+
+    def put(self, payload: bytes, timestamp: object = None) -> None:
+        self.payloads.append(payload)
+        self.stamped.append(timestamp is not None)
+
+
+class CapturedPublishers:
+    """What a world declares its publishers with (``World(declare=...)``) when a test reads
+    what it publishes: one ``_Captured`` per key, nothing sent."""
+
+    def __init__(self) -> None:
+        self.by_key: dict[str, _Captured] = {}
+
+    def __call__(self, _session: object, key: str, *, block: bool = True) -> _Captured:
+        assert key not in self.by_key, f"{key} declared twice"
+        self.by_key[key] = _Captured(block)
+        return self.by_key[key]
+
+    def __getitem__(self, key: str) -> _Captured:
+        return self.by_key[key]
+
+    def total(self) -> int:
+        return sum(len(publisher.payloads) for publisher in self.by_key.values())
+
+
 @pytest.fixture
-def world() -> Iterator[World]:
-    """A lockstep world whose vehicles send to a MAVLink block it holds as a launcher does
-    (``reserve_mavlink_base``'s lock): a launch-swarm in a test beside it never takes the same
-    block (seen in CI: an agent of that swarm heard this world's vehicle 2 as a second
-    autopilot on its port and refused to fly)."""
+def captured() -> CapturedPublishers:
+    return CapturedPublishers()
+
+
+@pytest.fixture
+def world(captured: CapturedPublishers) -> Iterator[World]:
+    """A lockstep world whose publishers are ``captured``, and whose vehicles send to a
+    MAVLink block it holds as a launcher does (``reserve_mavlink_base``'s lock): a
+    launch-swarm in a test beside it never takes the same block (seen in CI: an agent of that
+    swarm heard this world's vehicle 2 as a second autopilot on its port and refused to
+    fly)."""
     config = load_config(CASE1)
     base, lock = reserve_mavlink_base(0, config.swarm.n_drones)
     with lock:
         made = World(WorldOptions(
             config=config, seed=0, run_id="clocktest",
             listen=(f"tcp/127.0.0.1:{free_tcp_port()}",), mavlink_base=base,
-            log=lambda _line: None))
+            log=lambda _line: None), declare=captured)
         try:
             yield made
         finally:
@@ -52,13 +91,15 @@ def world() -> Iterator[World]:
 
 
 @contextlib.contextmanager
-def external_world(run_id: str) -> Iterator[tuple[World, Any]]:
+def external_world(run_id: str, declare: DeclarePublisher = declare_publisher
+                   ) -> Iterator[tuple[World, Any]]:
     """A realtime world with external vehicles (it serves none) and a client session on its
     router, both closed on the way out."""
     port = free_tcp_port()
     made = World(WorldOptions(config=load_config(CASE1), seed=0, run_id=run_id,
                               mode="realtime", vehicles="external",
-                              listen=(f"tcp/127.0.0.1:{port}",), log=lambda _line: None))
+                              listen=(f"tcp/127.0.0.1:{port}",), log=lambda _line: None),
+                 declare=declare)
     try:
         session = open_session(zenoh_config(mode="client",
                                             connect=[f"tcp/127.0.0.1:{port}"]))
@@ -71,56 +112,43 @@ def external_world(run_id: str) -> Iterator[tuple[World, Any]]:
 
 
 def test_running_is_published_at_the_start_then_every_clock_period(
-        world: World, monkeypatch: pytest.MonkeyPatch) -> None:
+        world: World, captured: CapturedPublishers, monkeypatch: pytest.MonkeyPatch) -> None:
     clock = FakeClock()
     monkeypatch.setattr(world_module.time, "monotonic", clock)
-    published: list[tuple[int, str]] = []
-    real_publish = world.publish_clock
 
-    def record(step: int, state: str, detail: str = "") -> None:
-        published.append((step, state))
-        real_publish(step, state, detail)
+    def published() -> list[tuple[int, str]]:
+        return [(c.step, c.state) for c in map(world.codec.decode_clock,
+                                               captured[world.keys.clock].payloads)]
 
-    monkeypatch.setattr(world, "publish_clock", record)
     for step in range(50):  # a fast lockstep: 50 steps within one clock period
         clock.now += CLOCK_PERIOD_S / 100
         world.publish_running(step)
-    assert published == [(0, "running")]
+    assert published() == [(0, "running")]
     clock.now += CLOCK_PERIOD_S
     world.publish_running(50)
     world.publish_running(51)
-    assert published == [(0, "running"), (50, "running")]
+    assert published() == [(0, "running"), (50, "running")]
+    assert captured[world.keys.clock].block  # lockstep peers wait for it: never dropped
 
 
-class _Captured:
-    def __init__(self) -> None:
-        self.payloads: list[bytes] = []
-        self.stamped: list[bool] = []
-
-    def put(self, payload: bytes, timestamp: object = None) -> None:
-        self.payloads.append(payload)
-        self.stamped.append(timestamp is not None)
-
-
-def test_the_clock_reports_every_input_the_world_rejected(world: World) -> None:
+def test_the_clock_reports_every_input_the_world_rejected(
+        world: World, captured: CapturedPublishers) -> None:
     """The world has no telemetry of its own: its clock carries its rejection count."""
-    assert world.fleet is not None
-    captured = _Captured()
-    world._pub_clock = captured
+    fleet = world.fleet
+    assert fleet is not None
+    clock_payloads = captured[world.keys.clock].payloads
     world.publish_clock(0, "waiting")
-    assert world.codec.decode_clock(captured.payloads[-1]).rejected_inputs == 0
+    assert world.codec.decode_clock(clock_payloads[-1]).rejected_inputs == 0
     with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as junk:
-        for endpoint in world.fleet.endpoints:
+        for endpoint in fleet.endpoints:
             for datagram in (b"", b"\xfd\x03abc", b"\x00" * 40):
                 junk.sendto(datagram, endpoint.local_address)
-        deadline = time.monotonic() + 5.0
-        while world.rejected_total() < 3 * len(world.fleet.endpoints) \
-                and time.monotonic() < deadline:
-            world.fleet.service(0.1)
+        wait_until(lambda: world.rejected_total() >= 3 * len(fleet.endpoints), 5.0,
+                   "the vehicles to count three junk datagrams each",
+                   between=lambda: fleet.service(0.1))
     total = world.rejected_total()
-    assert total >= 3 * len(world.fleet.endpoints)
     world.publish_clock(0, "running")
-    clock = world.codec.decode_clock(captured.payloads[-1])
+    clock = world.codec.decode_clock(clock_payloads[-1])
     assert clock.state == "running" and clock.rejected_inputs == total
 
 
@@ -129,9 +157,8 @@ def test_an_external_vehicle_world_counts_bad_beacons_on_its_clock() -> None:
     """With external vehicles the world subscribes to the beacons: junk there is counted and
     shows on its clock, and only a valid beacon moves a drone; the frame rendered from it
     carries the autopilot stamp of that position (the agent pairs the two)."""
-    with external_world("extfuzz") as (made, session):
-        captured = _Captured()
-        made._pub_clock = captured
+    captured = CapturedPublishers()
+    with external_world("extfuzz", captured) as (made, session):
         valid = made.codec.encode(BeaconWire.build(2, 5, 0.1, (1.0, 2.0, 3.0),
                                                    vehicle_time_ms=43_210))
         junk = [b"", b"\x93\x01\x02", valid[:-3], valid.replace(b"beacon", b"camera"),
@@ -141,20 +168,22 @@ def test_an_external_vehicle_world_counts_bad_beacons_on_its_clock() -> None:
                 made.codec.encode(BeaconWire.build(3, 5, 0.1, (9.0, 9.0, 9.0)))]
         for payload in [*junk, valid]:
             session.put(made.keys.beacon(2), payload)
-        deadline = time.monotonic() + 10.0
-        while (made.rejections.total() < len(junk) or made.beacons.get(2) is None) \
-                and time.monotonic() < deadline:
+        assert made.takes_beacons
+
+        def all_taken() -> bool:
             made.take_beacons()  # what the realtime loop does at each tick
-            time.sleep(0.01)  # polling the world's counters (bounded by the deadline)
+            return made.rejections.total() >= len(junk) and made.beacons.get(2) is not None
+
+        wait_until(all_taken, 10.0, "the world to take the junk and the valid beacon")
         assert made.rejections.total() == len(junk)
         made.publish_clock(0, "waiting")
-        assert made.codec.decode_clock(captured.payloads[-1]).rejected_inputs == len(junk)
-        made._external_positions()
+        clock_payloads = captured[made.keys.clock].payloads
+        assert made.codec.decode_clock(clock_payloads[-1]).rejected_inputs == len(junk)
+        made.place_external_drones()  # what the realtime loop does next
         assert made.positions[2].tolist() == [1.0, 2.0, 3.0]
         assert made.beacons.get(3) is None
         assert made.pose_stamps_ms == [0, 0, 43_210, 0, 0, 0]
-        cameras = made._pub_camera = [_Captured() for _ in range(made.n)]
-        made._pub_truth = _Captured()
+        cameras = [captured[made.keys.camera(i)] for i in range(made.n)]
         made.publish_step(7, made.pose_stamps_ms)
         frames = [made.codec.decode_camera(c.payloads[-1]) for c in cameras]
         assert [f.vehicle_time_ms for f in frames] == [0, 0, 43_210, 0, 0, 0]
@@ -224,26 +253,21 @@ def test_a_realtime_world_relays_every_drones_newest_beacon_and_how_long_it_held
         for j, x in ((1, 1.0), (4, 4.0), (1, 1.5)):
             session.put(made.keys.beacon(j), made.codec.encode(
                 BeaconWire.build(j, 5, 0.1, (x, 0.0, 3.0))))
-        deadline = time.monotonic() + 10.0
 
         def both_in() -> bool:
             made.take_beacons()
             one = made.beacons.get(1)
-            return one is not None and one[0].position_m[0] == 1.5 and made.beacons.get(4)
+            return (one is not None and one[0].position_m[0] == 1.5
+                    and made.beacons.get(4) is not None)
 
-        while not both_in():
-            assert time.monotonic() < deadline, "the beacons did not reach the world"
-            time.sleep(0.01)  # polling the world's store (bounded by the deadline)
+        wait_until(both_in, 10.0, "drone 1's newest and drone 4's beacon at the world")
         relays = []
         for step in (9, 10):
             before = time.monotonic()
             made.relay_beacons(step)
             relays.append((before, time.monotonic()))
-            time.sleep(0.05)  # so that the second relay's beacons are older
-        deadline = time.monotonic() + 10.0
-        while len(heard) < 2:
-            assert time.monotonic() < deadline, "no relay reached the subscriber"
-            time.sleep(0.01)
+            time.sleep(0.05)  # the scenario, not a wait: the second relay's beacons are older
+        wait_until(lambda: len(heard) >= 2, 10.0, "both relays at the subscriber")
         first, second = (made.codec.decode_beacon_relay(payload) for payload, _ in heard)
         assert all(stamped for _, stamped in heard)
         assert (first.step, second.step) == (9, 10)
@@ -255,17 +279,17 @@ def test_a_realtime_world_relays_every_drones_newest_beacon_and_how_long_it_held
         assert made.rejections.total() == 0
 
 
-def test_a_lockstep_worlds_frames_carry_every_drones_reported_position(world: World) -> None:
+def test_a_lockstep_worlds_frames_carry_every_drones_reported_position(
+        world: World, captured: CapturedPublishers) -> None:
     """Lockstep: every camera frame of step k carries each drone's position as its vehicle
     reports it in LOCAL_POSITION_NED then (what that drone's beacon of step k would carry);
     the world takes no beacon and publishes no relay, so nothing waits for N beacons."""
     fleet = world.fleet
     assert fleet is not None
-    captured = [_Captured() for _ in range(world.n)]
-    world._pub_camera = captured  # type: ignore[assignment]
+    cameras = [captured[world.keys.camera(i)] for i in range(world.n)]
     reported = fleet.reported_positions_w()
     world.publish_step(3, [1060] * world.n, reported)
-    for i, publisher in enumerate(captured):
+    for i, publisher in enumerate(cameras):
         (payload,) = publisher.payloads
         frame = world.codec.decode_camera(payload)
         assert (frame.drone, frame.step, frame.vehicle_time_ms) == (i, 3, 1060)
@@ -274,7 +298,9 @@ def test_a_lockstep_worlds_frames_carry_every_drones_reported_position(world: Wo
         np.testing.assert_array_equal(positions.view(np.uint64), reported.view(np.uint64))
     for i, vehicle in enumerate(fleet.vehicles):
         np.testing.assert_array_equal(reported[i], vehicle.reported_position_w)
-    assert world._beacon_ring is None and world._pub_relay is None
-    assert world._subscribers == []
+    assert not world.takes_beacons and world.keys.beacon_relay not in captured.by_key
+    published = captured.total()
+    world.relay_beacons(3)
+    assert captured.total() == published  # a lockstep world relays nothing
     world.publish_step(4, [1080] * world.n)  # no positions: frames without them
-    assert world.codec.decode_camera(captured[0].payloads[-1]).drone_positions is None
+    assert world.codec.decode_camera(cameras[0].payloads[-1]).drone_positions is None
