@@ -1,5 +1,6 @@
-"""sim_world.vehicle.EmulatedVehicle flying itself: takeoff, hold, land, return, failsafes,
-the ground, the velocity response, position setpoints (the module docstring's "Behaviour").
+"""An emulated vehicle flying itself (sim_world.vehicle.flight through EmulatedVehicle):
+takeoff, hold, land, return, failsafes, the ground, the velocity response, position setpoints
+(the behaviour docs/vehicle_emulator.md describes).
 
 Every test drives the vehicle with explicit times: ``fly(dt, now)`` at dt = 0.02 s, commands
 and setpoints through ``receive`` as an agent would send them (pymavlink encoder). The

@@ -1,4 +1,5 @@
-"""sim_world.vehicle.EmulatedVehicle (pure protocol, explicit times) and its UDP endpoint.
+"""The emulated vehicle's MAVLink side (sim_world.vehicle.protocol.EmulatedVehicle: pure
+protocol, explicit times) and its UDP endpoint.
 
 The "agent" side of these tests is a real pymavlink MAVLink 2 encoder/parser; no byte is
 packed by hand except deliberate corruption.
