@@ -1,100 +1,10 @@
 """Agent side of the MAVLink 2 link to one autopilot (PX4 or ArduPilot; real or emulated).
 
-SPEC §12. The agent talks to its vehicle only through this class. It opens a pymavlink
-connection (any pymavlink URL: ``udpin:127.0.0.1:<port>`` for the emulated world, PX4 SITL
-and ArduPilot SITL sending with ``--serial0 udpclient:...``; ``tcp:host:port``; a serial
-device) as a companion computer: system id = the vehicle's (``drone_id + 1``) unless
-overridden, component MAV_COMP_ID_ONBOARD_COMPUTER (191), MAVLink 2 framing, ardupilotmega
-dialect. It sends a companion HEARTBEAT at 1 Hz whenever it sends anything else.
-
-Positions come from LOCAL_POSITION_NED and are brought into the world frame W with
-``frames.world_from_local_ned_xyz(ned, origin_w)`` (``origin_w``: the configured per-drone
-origin offset, i.e. the vehicle's local NED origin in W); velocities with
-``frames.ned_to_enu_xyz`` (the float forms of the frame conversions: one per sample and
-setpoint). Setpoints are SET_POSITION_TARGET_LOCAL_NED in MAV_FRAME_LOCAL_NED: velocity only
-(type_mask 0x0DC7, ``frames.link_float_xyz(*frames.enu_to_ned_xyz(*velocity_w))``),
-position + velocity + acceleration along the command reference (``send_tracked``,
-``TRACKED_TYPE_MASK``), or position only (0x0DF8) for holds and climbs.
-
-One vehicle per agent. The link binds to the first autopilot it hears with the vehicle's
-system id (component 1) — over ``udpin`` also to that sender's address, the only address it
-ever sends to — and refuses every other autopilot: a clean datagram (nothing in it rejected)
-holding the HEARTBEAT of an autopilot from another address or with another system id makes
-every later call raise ``LinkError`` naming both, and the link sends that vehicle nothing.
-No command that moves or arms the vehicle goes out before the link has listened for
-``EXCLUSIVE_LISTEN_S`` (longer than one heartbeat period), so an autopilot already sending on
-the port is heard before anything is armed. Junk from other addresses (even a valid frame
-behind junk) is counted as ``foreign_address`` and dropped, as before.
-
-Reading drains the socket completely and keeps only the newest sample (a queue of stale
-samples is the classic bug). Bad bytes never raise: BAD_DATA (garbage, bad CRC, bad length)
-and unknown message ids are counted in ``rejected_frames`` (reasons in ``rejections``);
-frames of components other than the autopilot (MAVProxy's own heartbeat, a camera) are
-ignored and counted in ``foreign_frames``; NaN/inf positions are dropped as
-``nonfinite_position``. PX4's EVENT messages, which pymavlink's dialects do not define, are
-decoded by ``swarm.mavlink.px4_events`` (the reason PX4 gives for refusing to arm); STATUSTEXT is
-ArduPilot's way of saying the same. The last few of either are kept (``autopilot_said``) and
-quoted in refusals. The per-step messages (LOCAL_POSITION_NED in, the velocity setpoint out)
-take ``swarm.mavlink.parse``'s fast path over UDP.
-
-Handshake (``handshake(timeout_s, start_position_w=...)``; every stage logged as ``drone <id>:
-...``, a stage already in effect skipped; the whole handshake within ``timeout_s``):
-
-1. HEARTBEAT of the vehicle, autopilot type = configured flavour.
-2. Streams: LOCAL_POSITION_NED at 50 Hz and EXTENDED_SYS_STATE at 2 Hz requested (again every
-   2 s) until the first position sample arrives — ArduPilot sends none until its EKF has an
-   origin (10-40 s after boot) — and the landed state is known.
-3. On the ground or in the air (EXTENDED_SYS_STATE; armed and > 0.5 m up if the autopilot
-   does not send it):
-   - ArduPilot, ground: GUIDED; ARM; NAV_TAKEOFF to the start height (``start_position_w``'s
-     z above the local origin); no setpoint until the climb is done (each would replace the
-     takeoff target); done when within ``CLIMB_TOLERANCE_M`` and in the air.
-   - ArduPilot, in the air: GUIDED only (NAV_TAKEOFF in the air is refused by ArduPilot).
-   - PX4, ground: position setpoints at ``start_position_w`` streamed, OFFBOARD, ARM; PX4
-     climbs there; done when within ``CLIMB_TOLERANCE_M`` and in the air; the link then
-     holds that position (``keepalive`` sends it) until the first velocity setpoint.
-   - PX4, in the air: zero-velocity setpoints streamed, OFFBOARD (ARM if not armed).
-   Commands are retried: no ACK within ``ack_timeout_s`` or DENIED up to ``retries`` times;
-   TEMPORARILY_REJECTED and FAILED ("not now": pre-arm checks, an EKF settling) until the
-   handshake's deadline, each new reason logged once; UNSUPPORTED at once. A refusal that
-   ends the handshake is one LinkError line naming the stage, the autopilot's answer (with
-   what it said) and what the operator can do.
-
-End (``end_mission(action)``): a zero-velocity setpoint at once, then the end action's mode:
-"hold" (ArduPilot BRAKE, PX4 AUTO.LOITER "Hold"), "land" (LAND, PX4 AUTO.LAND "Land") or "rtl"
-(RTL, PX4 AUTO.RTL "Return"); never raises (it runs on the way out of errors and signals). What
-became of it is one ``EndReport`` line in the log, always, with the mode as the autopilot names
-it: ``drone 3: end action hold (Hold) accepted``, ``... refused: result 2 MAV_RESULT_DENIED;
-...``, ``... got no answer: ...`` or ``... not sent: <why>``; ``EndReport.parse`` reads it back
-(the launcher does, from every agent's log).
-
-Public API
-----------
-``Flavour``, ``EndAction``, ``END_ACTIONS``, ``EndReport``, ``autopilot_mode_name(flavour,
-mode)`` (pymavlink's name of a mode → the autopilot's own: PX4's "Hold", "Return", "Land";
-ArduPilot's are pymavlink's), ``end_mode_name(flavour, action)``; ``IDLE_STAMP_MS =
-0xFFFFFFFF`` (time_boot_ms of the idle setpoints sent by ``handshake`` and ``keepalive``, so
-they never match a lockstep step stamp); ``PositionSample``; ``LinkError``.
-
-``AutopilotLink(url, drone_id, flavour, origin_w, *, log=print, source_system=None,
-clock=time.monotonic, signing_key=None, bound=None)`` (``bound``: the ``udpin`` socket,
-bound earlier by ``swarm.mavlink.udpin.bind_udpin``; its listening time counts):
-``wait_heartbeat(timeout_s)``, ``handshake(...)``,
-``keepalive(now_s=None)``, ``latest_position()``, ``position_at(time_boot_ms)``,
-``wait_position(time_boot_ms, timeout_s)``,
-``send_velocity(velocity_w, time_boot_ms)``, ``send_position(position_w, time_boot_ms)``,
-``end_mission(action)``, ``poll()``, ``close()`` (also a context manager). Properties:
-``end_report`` (None until ``end_mission`` ran), ``url``, ``drone_id``, ``system_id``,
-``flavour``, ``origin_w``, ``local_address``, ``peer`` (the pinned (host, port) over udpin),
-``armed``, ``mode``, ``custom_mode``, ``autopilot``, ``landed_state``, ``last_heartbeat_s``,
-``rejected_frames``, ``rejections``, ``foreign_frames``, ``autopilot_said``, ``signing``.
-
-MAVLink 2 signing (``signing_key``: the 32-byte secret, see ``swarm.mavlink.signing``; None:
-off): pymavlink's own ``setup_signing`` on the connection, link id 1. Everything sent is
-signed (setpoints and heartbeats leave the fast path); frames from the vehicle that are
-unsigned or wrongly signed, or whose signing timestamp is not newer than the last (replay),
-are dropped and counted in ``rejected_frames`` (over UDP as ``unsigned``, ``bad_signature``
-or ``stale_signature``; stream links count them as ``bad_data``).
+SPEC §12. The agent talks to its vehicle only through ``AutopilotLink``: a pymavlink
+connection as a companion computer that reads positions into the world frame, sends
+setpoints, brings the vehicle to "armed, in the setpoint mode, in the air" (``handshake``),
+refuses a second autopilot, and ends the mission with the configured action. How it does
+each, and its public API: docs/mavlink_link.md.
 """
 
 from __future__ import annotations
@@ -298,7 +208,7 @@ class _Stage:
 
 
 class AutopilotLink:
-    """MAVLink 2 link from one agent to its autopilot (see module docstring)."""
+    """MAVLink 2 link from one agent to its autopilot (docs/mavlink_link.md)."""
 
     def __init__(
         self,
@@ -566,7 +476,8 @@ class AutopilotLink:
         retries: int = 5,
         ack_timeout_s: float = 1.0,
     ) -> None:
-        """Bring the vehicle to "armed, in the setpoint mode, in the air" (module docstring).
+        """Bring the vehicle to "armed, in the setpoint mode, in the air"
+        (docs/mavlink_link.md, Handshake).
         ``start_position_w``: where to climb to from the ground (W); None: the vehicle must
         already be in the air (LinkError if it is on the ground)."""
         if retries < 1:
@@ -755,7 +666,7 @@ class AutopilotLink:
 
     # ---------------------------------------------------------------- end of mission
     def end_mission(self, action: EndAction) -> bool:
-        """Zero velocity now, then the end action's mode (module docstring); True when the
+        """Zero velocity now, then the end action's mode (docs/mavlink_link.md); True when the
         autopilot confirmed it. What became of it is logged as one ``EndReport`` line and kept
         in ``end_report``. Never raises: this runs on every way out."""
         if action not in END_ACTIONS:
@@ -1055,7 +966,7 @@ class AutopilotLink:
         (for 5 s), so one forged datagram would get a copy of every setpoint. Instead the
         vehicle's address is pinned at its first valid frame (the only address sent to) for
         good; a datagram from anywhere else is counted as ``foreign_address`` and dropped —
-        read only far enough to notice a second autopilot (module docstring)."""
+        read only far enough to notice a second autopilot (docs/mavlink_link.md)."""
         conn = self._conn
         for _ in range(_MAX_MESSAGES_PER_DRAIN):
             try:

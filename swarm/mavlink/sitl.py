@@ -3,10 +3,10 @@
 An instance is the autopilot's own flight code compiled for the host ("software in the loop")
 with a simulated airframe inside: ArduPilot's ``arducopter`` binary with its built-in
 multicopter model, or PX4's ``px4`` with SIH, PX4's built-in physics. Nothing of either is
-part of this package: the user points at a build (see the README for the build commands),
-with ``--sitl PATH`` on ``launch-swarm`` or the environment variables ``VIGIL_ARDUCOPTER``
-(the ``arducopter`` binary) and ``VIGIL_PX4`` (a PX4 SITL build directory holding
-``bin/px4`` and ``etc/``).
+part of this package: the user points at a build (docs/real_autopilots.md has the build
+commands) with ``--sitl PATH`` on ``launch-swarm`` or the environment variables
+``VIGIL_ARDUCOPTER`` (the ``arducopter`` binary) and ``VIGIL_PX4`` (a PX4 SITL build
+directory holding ``bin/px4`` and ``etc/``).
 
 Each instance runs in a temporary working directory of its own (its eeprom, parameters,
 logs), leads a process group of its own (stopped as one: SIGTERM, then SIGKILL) and dies with
@@ -32,11 +32,10 @@ PATH before the simulator starts.
 Clock: ArduPilot boots at ``boot_speedup``× (its EKF and simulated GPS settle in ~4 s of wall
 time instead of ~40) and is set back to 1× (``SIM_SPEEDUP``) once ready, before any agent
 flies it: the swarm runs on the wall clock. PX4's SIH speed factor is fixed at start, so PX4
-runs at 1× throughout (and can arm ~37 s after boot: its EKF2 aligns its tilt only after ~33 s
-of SIH's noisy accelerometer. A smaller initial tilt uncertainty, EKF2_ANGERR_INIT = 0.03 rad,
-made it ready in 2.5 s, but the vehicle then flew differently: in two conformance dialogues
-with it, one velocity step took 2.6 s to 63 % and one landing came down at 0.36 m/s, outside
-the bands the stock boot meets in every CI run; so the stock boot it is).
+runs at 1× throughout, and can arm ~37 s after boot: its EKF2 aligns its tilt only after ~33 s
+of SIH's noisy accelerometer. The stock boot is kept: a smaller initial tilt uncertainty
+(EKF2_ANGERR_INIT) makes it ready in seconds but changes how the vehicle flies, outside the
+bands of the conformance dialogues.
 """
 
 from __future__ import annotations
