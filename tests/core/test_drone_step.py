@@ -226,7 +226,7 @@ def test_before_start_the_nominal_input_passes_the_safety_qp_unchanged() -> None
 @pytest.mark.parametrize("qp", ["hard", "relaxed"])
 def test_before_start_the_collision_rows_hold_the_nominal_input_back(qp: str) -> None:
     """u_d flies at drone 2 (0.8 m away, Δ = 0.5 m) during the warm-up: every command meets
-    the collision row (4.1-4.2) and the drones never get closer than Δ (issue 41, point 1)."""
+    the collision row (4.1-4.2) and the drones never get closer than Δ."""
     agent = formation_agent(ControlParams(start_s=10.0, task="bearing_formation", qp=qp))
     position = np.array([0.0, 0.0, 3.0])
     other = np.array([0.0, 0.8, 3.0])
@@ -283,7 +283,7 @@ def test_hard_qp_infeasibility_falls_back_to_relaxed_and_is_counted() -> None:
 def test_the_qp_has_a_collision_row_per_drone_within_range_only(
         monkeypatch: pytest.MonkeyPatch) -> None:
     """Drone 0 of a 40-drone swarm with two drones within R_ca and 37 far away: its QP has
-    2M + 2 rows, whatever N (issue 16: the step's cost depends on the drones near it)."""
+    2M + 2 rows, whatever N (the step's cost depends on the drones near it)."""
     from swarm.core import qp as qp_module
 
     sizes = []

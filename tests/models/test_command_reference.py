@@ -71,7 +71,7 @@ def test_a_restarted_reference_starts_on_the_vehicle_again() -> None:
     assert sp.velocity_error_m_s is None and sp.acceleration_w == (0.0, 0.0, 0.0)
 
 
-# -- what mutation testing found untested (issue 46, point 2; docs/mutation.md) ------------
+# -- what mutation testing found untested (docs/mutation.md) --------------------------------
 
 
 def test_no_reference_before_the_first_setpoint_and_no_velocity_error_at_it() -> None:

@@ -118,7 +118,7 @@ def beacons_to_a_hub(run_id: str) -> Iterator[tuple[zenoh.Session, Keys, LatestV
 
     ``seen`` hearing a beacon does not mean the subscription under test has it yet: the hub
     hands each sample to its subscriptions one after the other, and on a loaded machine the
-    test's thread ran between the two (a CI run drained an empty ring). ``settle`` puts a
+    test's thread can run between the two (its drain then finds nothing). ``settle`` puts a
     fence on another key over the same link and waits until the hub has heard it: the hub
     handles a link's messages in order, so every beacon before it has been handed out."""
     port = free_tcp_port()
@@ -364,7 +364,7 @@ def test_a_preemption_between_the_drains_clock_reads_dates_a_sample_late_never_e
 
 def test_a_process_left_with_ring_subscriptions_exits_cleanly() -> None:
     """No ``undeclare``, no session close, samples left in the rings: the process still
-    exits cleanly (a thread woken inside zenoh while Python finalizes used to abort it)."""
+    exits cleanly (a thread woken inside zenoh while Python finalizes must not abort it)."""
     script = (
         "import time\n"
         "from swarm.net.session import open_session, zenoh_config\n"
