@@ -310,6 +310,12 @@ class AutopilotLink:
         return None
 
     @property
+    def file_descriptor(self) -> int | None:
+        """The descriptor the link reads from (a UDP or TCP socket), None if it has none."""
+        fd = getattr(self._conn, "fd", None)
+        return fd if isinstance(fd, int) else None
+
+    @property
     def peer(self) -> tuple[str, int] | None:
         return self._peer
 
@@ -399,7 +405,7 @@ class AutopilotLink:
                     f"{self._me}: no LOCAL_POSITION_NED stamped {stamp} ms from "
                     f"system {self._sysid} on {self._url} within {timeout_s:g} s "
                     f"(newest seen: {newest})")
-            self._wait_readable(min(remaining, 0.05))
+            self.wait_readable(min(remaining, 0.05))
 
     def wait_heartbeat(self, timeout_s: float) -> None:
         """Wait for a HEARTBEAT of the vehicle's autopilot (one seen in the last 1.5 s counts)
@@ -842,7 +848,7 @@ class AutopilotLink:
                         or now - self._last_setpoint_sent_s >= _SETPOINT_PERIOD_S:
                     self._send_idle()
                 wait = min(wait, _SETPOINT_PERIOD_S)
-            self._wait_readable(min(wait, 0.05))
+            self.wait_readable(min(wait, 0.05))
 
     def _check_exclusive(self) -> None:
         if self._second_autopilot is not None:
@@ -905,7 +911,9 @@ class AutopilotLink:
                                           mavlink2.MAV_AUTOPILOT_INVALID, 0, 0,
                                           mavlink2.MAV_STATE_ACTIVE)
 
-    def _wait_readable(self, timeout_s: float) -> None:
+    def wait_readable(self, timeout_s: float) -> None:
+        """Block until the link has something to read or ``timeout_s`` has passed (what a
+        caller that drives the link with ``poll`` does between two polls)."""
         fd = getattr(self._conn, "fd", None)
         if fd is None:
             self._conn.select(max(0.0, timeout_s))

@@ -159,8 +159,18 @@ def pump_until(link: AutopilotLink, condition: Callable[[], bool], timeout: floa
         if velocity is not None and time.monotonic() - last_send >= DT:
             link.send_velocity(velocity, 7)
             last_send = time.monotonic()
-        link._wait_readable(0.01)
+        link.wait_readable(0.01)
     return False
+
+
+def newest_is(link: AutopilotLink, time_boot_ms: int) -> Callable[[], bool]:
+    """Whether the link's newest position sample is the one stamped ``time_boot_ms``."""
+
+    def check() -> bool:
+        sample = link.latest_position()
+        return sample is not None and sample.time_boot_ms == time_boot_ms
+
+    return check
 
 
 # ---------------------------------------------------------------- full handshake and flight
@@ -377,8 +387,7 @@ def test_latest_position_returns_the_newest_of_many_queued(pair: Any) -> None:
     link, vehicle, endpoint = pair
     assert link.latest_position() is None
     truths = _emit(vehicle, endpoint, range(0, 4000, 20))  # 200 queued samples
-    assert pump_until(link, lambda: link._latest is not None
-                      and link._latest.time_boot_ms == 3980)
+    assert pump_until(link, newest_is(link, 3980))
     sample = link.latest_position()
     assert isinstance(sample, PositionSample) and sample.time_boot_ms == 3980
     np.testing.assert_array_equal(sample.position_w,
@@ -395,8 +404,7 @@ def test_latest_position_returns_the_newest_of_many_queued(pair: Any) -> None:
         bad[-2] ^= 0x55  # bad CRC
         junk.sendto(bytes(bad), link.local_address)
         truths = _emit(vehicle, endpoint, range(4000, 4100, 20), coalesce=True)
-        assert pump_until(link, lambda: link._latest is not None
-                          and link._latest.time_boot_ms == 4080)
+        assert pump_until(link, newest_is(link, 4080))
     sample = link.latest_position()
     assert sample is not None and sample.time_boot_ms == 4080
     np.testing.assert_array_equal(sample.position_w,
@@ -429,8 +437,7 @@ def test_position_at_pairs_a_stamp_without_waiting(pair: Any) -> None:
     truths = []
     for first in (0, 200, 400):  # 600 samples in three bursts (a socket buffer each), 512 kept
         truths += _emit(vehicle, endpoint, range(20 * first, 20 * (first + 200), 20))
-        assert pump_until(link, lambda last=20 * (first + 199): link._latest is not None
-                          and link._latest.time_boot_ms == last)
+        assert pump_until(link, newest_is(link, 20 * (first + 199)))
     sample = link.position_at(11000)
     assert sample is not None and sample.time_boot_ms == 11000
     np.testing.assert_array_equal(sample.position_w,
@@ -548,8 +555,9 @@ def test_udpin_pins_the_vehicle_address_and_counts_other_senders() -> None:
     forger.bind(("127.0.0.1", 0))
     try:
         _introduce(link, vehicle, endpoint)
+        as_the_vehicle = mav.MAVLink(None, srcSystem=SYS, srcComponent=1)
         forged = [b"", b"\xfd\x05junk", vehicle.telemetry(1234, 1.0)[0],
-                  LOCAL_POSITION_NED.pack(vehicle._tx, 1236, *[math.nan] * 6),
+                  LOCAL_POSITION_NED.pack(as_the_vehicle, 1236, *[math.nan] * 6),
                   vehicle.heartbeat() + b"junk"]
         for datagram in forged:
             forger.sendto(datagram, link.local_address)
@@ -647,13 +655,14 @@ def test_a_link_on_an_early_bound_socket_listens_from_the_bind(logs: list[str]) 
         # Its datagrams wait in the kernel for a link that does not exist yet, as while
         # swarm-agent imports (~1 s of a 6-drone launch on two cores).
         assert select.select([bound.sock], [], [], 5.0)[0]
-        time.sleep(1.2)
+        time.sleep(1.2)  # the scenario, not a wait: time passes before the link exists
         created_s = time.monotonic()
         link = AutopilotLink(bound.url, DRONE, flavour, ORIGIN,  # type: ignore[arg-type]
                              log=logs.append, bound=bound)
         try:
             assert link.local_address == ("127.0.0.1", port)
-            assert not os.get_inheritable(link._conn.port.fileno())
+            assert link.file_descriptor is not None
+            assert not os.get_inheritable(link.file_descriptor)
             link.handshake(timeout_s=30.0, start_position_w=START)
             with server.lock:  # everything came from the bound port
                 assert server.endpoint.peer_address == ("127.0.0.1", port)
@@ -846,7 +855,7 @@ def test_tracked_setpoints_pull_a_displaced_vehicle_onto_the_reference(
             link.send_tracked(sp.position_w, sp.velocity_w, sp.acceleration_w, 5)
             errors.append(sp.position_error_m)
             last = now
-        link._wait_readable(0.005)
+        link.wait_readable(0.005)
     assert pushed and reference.resets == 0
     assert max(errors) > 0.3  # the push was seen
     assert errors[-1] < 0.05, errors[-20:]  # and taken out

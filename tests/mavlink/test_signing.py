@@ -130,7 +130,7 @@ def pump(link: AutopilotLink, seconds: float, velocity: np.ndarray | None = None
             last = time.monotonic()
         elif velocity is None:
             link.keepalive()
-        link._wait_readable(0.01)
+        link.wait_readable(0.01)
     return until is None
 
 

@@ -31,10 +31,11 @@ from sim_world.mavlink_endpoint import VehicleEndpoint
 from sim_world.vehicle import EmulatedVehicle
 from swarm.launch.launcher import MissionError, reserve_mavlink_base, udp_ports_free
 from swarm.mavlink.link import AutopilotLink, LinkError
-from swarm.mavlink.sitl import Kind, free_udp_port
+from swarm.mavlink.sitl import Kind, VehicleView, free_udp_port
 from swarm.models import frames
 from tests.helpers.process_tools import start_mavproxy
 from tests.helpers.sitl_tools import RunningSitl, firmware_or_skip, running_sitl, sitl_processes
+from tests.helpers.waiting import wait_until
 
 pytestmark = [pytest.mark.slow, pytest.mark.wallclock]
 
@@ -81,7 +82,7 @@ def _fly(link: AutopilotLink, velocity_w: np.ndarray, duration_s: float,
         deadline = time.monotonic() + 0.02
         while time.monotonic() < deadline:
             link.poll()
-            link._wait_readable(0.005)
+            link.wait_readable(0.005)
 
 
 def _speed(link: AutopilotLink) -> float:
@@ -95,7 +96,7 @@ def _pump_until(link: AutopilotLink, condition, timeout_s: float) -> bool:
         link.keepalive()
         if condition():
             return True
-        link._wait_readable(0.02)
+        link.wait_readable(0.02)
     return False
 
 
@@ -226,8 +227,13 @@ def test_a_second_autopilot_on_the_port_is_refused_and_nothing_is_armed() -> Non
         assert link.peer is not None and f"{link.peer[0]}:{link.peer[1]}" in message, message
         assert impostor_address in message, message
         assert (emulated.mode, emulated.armed) == emulated_state
-        time.sleep(1.2)  # one more heartbeat of the SITL on the monitor link
-        view = sitl.monitor.view(0)
+        refused_s = time.monotonic()
+
+        def heard_since() -> VehicleView | None:
+            view = sitl.monitor.view(0)
+            return view if (view.heartbeat_s or -math.inf) > refused_s else None
+
+        view = wait_until(heard_since, 5.0, "a heartbeat of the SITL after the refusal")
         assert not view.armed and view.mode == "STABILIZE", (view.mode, view.armed)
 
 
