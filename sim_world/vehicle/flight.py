@@ -279,6 +279,15 @@ class Flight:
                                                       self._u_max, dt_s, self._response)
         self._clamp_to_ground()
 
+    def push(self, offset_w: Array) -> None:
+        """Move by ``offset_w`` [m] at once, the velocity as it was: a disturbance (a gust)
+        that the guidance has to take out; then the ground."""
+        offset = np.asarray(offset_w, dtype=np.float64).reshape(3)
+        if not np.all(np.isfinite(offset)):
+            raise ValueError(f"offset_w must be 3 finite numbers [m], got {offset_w!r}")
+        self._position = self._position + offset
+        self._clamp_to_ground()
+
     # ---------------------------------------------------------------- realtime
     def fly(self, dt_s: float, now_s: float) -> None:
         """Fly for ``dt_s`` (ending at ``now_s``) as the mode and state say."""

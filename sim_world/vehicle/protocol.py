@@ -312,6 +312,10 @@ class EmulatedVehicle:
     def integrate(self, dt_s: float, velocity_w: ArrayLike) -> None:
         self._flight.integrate(dt_s, np.asarray(velocity_w, dtype=np.float64))
 
+    def push(self, offset_w: ArrayLike) -> None:
+        """Move the vehicle by ``offset_w`` [m] at once (a gust; ``Flight.push``)."""
+        self._flight.push(np.asarray(offset_w, dtype=np.float64))
+
     # ---------------------------------------------------------------- realtime
     def fly(self, dt_s: float, now_s: float) -> None:
         """Fly for ``dt_s`` (ending at ``now_s``) as the mode and state say."""

@@ -847,8 +847,7 @@ def test_tracked_setpoints_pull_a_displaced_vehicle_onto_the_reference(
         if sample is not None and now - last >= DT:
             if not pushed and now - started > 1.5:
                 with server.lock:  # a gust: 0.4 m north, at once
-                    flight = server.vehicle._flight
-                    flight._position = flight.position_w + np.array([0.0, 0.4, 0.0])
+                    server.vehicle.push([0.0, 0.4, 0.0])
                 pushed = True
             p, v = sample.position_w.tolist(), sample.velocity_w.tolist()
             sp = reference.setpoint((p[0], p[1], p[2]), (v[0], v[1], v[2]), u, now - last)
