@@ -9,7 +9,6 @@ puts valid messages on the wrong keys (another drone's data, a beacon claiming t
 from __future__ import annotations
 
 import contextlib
-import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
@@ -25,17 +24,9 @@ from swarm.net.session import open_session, zenoh_config
 from swarm.net.stores import LatestValues
 from swarm.scenario.config import load_config
 from tests.helpers.process_tools import free_tcp_port
+from tests.helpers.waiting import wait_until
 
 CASE1 = Path(__file__).resolve().parents[2] / "configs" / "case1.toml"
-
-
-def wait_until(condition, timeout_s: float = 10.0) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            return False
-        time.sleep(0.01)  # polling a condition with a deadline
-    return True
 
 
 def consensus(sender: int, m: int, n_state: int) -> ConsensusMessage:
@@ -82,9 +73,10 @@ def test_messages_on_another_drones_key_are_counted_and_dropped() -> None:
             router.put(keys.consensus(1), payload)
             return taken(agent, lambda: agent.exchange.consensus_latest.get((1, 1)) is not None)
 
-        assert wait_until(delivered)
+        wait_until(delivered, 10.0, "drone 1's consensus message at the agent")
         router.put(keys.consensus(3), payload)  # drone 1's message on drone 3's key
-        assert wait_until(lambda: taken(agent, lambda: agent.rejections.total() == 1))
+        wait_until(lambda: taken(agent, lambda: agent.rejections.total() == 1), 10.0,
+                   "the message on the wrong key counted")
         counts = agent.rejections.snapshot()
         assert counts["consensus"]["rejected"] == 1
         assert counts["consensus"]["rules"] == {"source": 1}
@@ -114,7 +106,7 @@ def test_lockstep_positions_of_step_k_come_with_the_camera_frame_of_step_k() -> 
             agent.exchange.wait_first_frame(0.01)
             return agent.camera_latest.get(0) is not None
 
-        assert wait_until(delivered)
+        wait_until(delivered, 10.0, "the camera frame at the agent")
         got = agent.exchange.beacons(1, 0.0, np.zeros(3))
         assert got == {
             j: positions[j].tolist() for j in range(1, 6)}  # not our own
@@ -137,7 +129,7 @@ def test_realtime_beacons_come_from_the_worlds_relay_dated_from_their_arrival_th
             router.put(keys.beacon_relay, relay)
             return taken(agent, lambda: 2 in agent.exchange.beacon_ages())
 
-        assert wait_until(delivered)
+        wait_until(delivered, 10.0, "the world's relay at the agent")
         ages = agent.exchange.beacon_ages()
         assert set(ages) == {2, 3}  # not our own
         assert ages[3] >= 5.0 and ages[2] >= 0.004 and ages[3] - ages[2] == pytest.approx(
@@ -147,7 +139,8 @@ def test_realtime_beacons_come_from_the_worlds_relay_dated_from_their_arrival_th
         # beacon would be too, had the agent listened to drone 4's key.
         router.put(keys.beacon_relay, codec.encode(BeaconRelayWire.build(10, (
             (BeaconWire.build(1, 9, 0.18, (1.0, 0.0, 3.0)), 0.0),))))
-        assert wait_until(lambda: taken(agent, lambda: 1 in agent.exchange.beacon_ages()))
+        wait_until(lambda: taken(agent, lambda: 1 in agent.exchange.beacon_ages()), 10.0,
+                   "the second relay at the agent")
         assert 4 not in agent.exchange.beacon_ages()
         assert agent.rejections.total() == 0
 
@@ -169,7 +162,7 @@ def test_realtime_reads_drain_only_the_rings_of_their_stream() -> None:
             return (2 in exchange.beacon_ages()
                     and exchange.consensus_latest.get((1, 1)) is not None)
 
-        assert wait_until(routed)
+        wait_until(routed, 10.0, "a relay and a consensus message at the agent")
         # One link, in order: once the later sample is taken, the earlier one is in its ring,
         # and only its own stream's drain takes it.
         def beacon() -> object:
@@ -187,8 +180,8 @@ def test_realtime_reads_drain_only_the_rings_of_their_stream() -> None:
             exchange.relay, exchange.consensus_latest = None, LatestValues()
             router.put(first_key, first)
             router.put(later_key, later)
-            assert wait_until(lambda s=later_stream, t=later_taken: (drain(s), t())[1]
-                              is not None)
+            wait_until(lambda s=later_stream, t=later_taken: (drain(s), t())[1] is not None,
+                       10.0, f"the later sample taken by a drain of {later_stream}")
             assert first_taken() is None
             drain(first_stream)
             assert first_taken() is not None

@@ -150,7 +150,7 @@ def send_setpoints(conn: Any, velocity_w: np.ndarray, count: int, stamp: int = 4
     for _ in range(count):
         conn.mav.set_position_target_local_ned_send(
             stamp, SYS, 1, mav.MAV_FRAME_LOCAL_NED, 0x0DC7, 0, 0, 0, vn, ve, vd, 0, 0, 0, 0, 0)
-        time.sleep(0.005)
+        time.sleep(0.005)  # the pace of a sender, not a wait for anything
 
 
 def nothing_received(conn: Any, seconds: float = 0.3) -> bool:

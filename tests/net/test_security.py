@@ -95,7 +95,7 @@ def publish_until(publish: Callable[[], None], done: Callable[[], bool]) -> None
         publish()
         time.sleep(0.05)
     publish()
-    time.sleep(SETTLE_S)
+    time.sleep(SETTLE_S)  # the scenario: an absence cannot be polled for, only given time
 
 
 # -- certificates and sessions -------------------------------------------------------------------

@@ -372,6 +372,8 @@ def test_a_process_left_with_ring_subscriptions_exits_cleanly() -> None:
         "s = open_session(zenoh_config(mode='peer'))\n"
         "subs = [subscribe(s, f'r/{i}', bytes, lambda k, v: None, RejectionCounter(), 'x',\n"
         "                  keep_latest=4) for i in range(4)]\n"
+        # The scenario: the process leaves while the sample is in a ring (nothing to poll
+        # without draining it, which the scenario rules out).
         "s.put('r/0', b'x'); time.sleep(0.2)\n"
     )
     for _ in range(3):

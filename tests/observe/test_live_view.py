@@ -22,7 +22,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -40,6 +40,7 @@ from tests.helpers.cli_tools import cli_env, launch_swarm_in_process
 from tests.helpers.foxglove_client import FoxgloveClient
 from tests.helpers.process_tools import free_tcp_port
 from tests.helpers.scene_tools import decode_scene_bytes
+from tests.helpers.waiting import wait_until
 
 ROOT = Path(__file__).resolve().parents[2]
 CASE1 = ROOT / "configs" / "case1.toml"
@@ -133,13 +134,6 @@ def refused_as_an_old_viewer(url: str, source_host: str = "127.0.0.1",
             time.sleep(0.05)
 
 
-def wait_for(condition: Callable[[], bool], timeout_s: float = 10.0) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        assert time.monotonic() < deadline, "not within the time allowed"
-        time.sleep(0.01)
-
-
 def test_an_old_viewer_gets_one_line_per_host_and_a_current_one_still_connects(
         caplog: pytest.LogCaptureFixture) -> None:
     config = load_config(CASE1)
@@ -150,10 +144,12 @@ def test_an_old_viewer_gets_one_line_per_host_and_a_current_one_still_connects(
         statuses = [refused_as_an_old_viewer(view.url) for _ in range(4)]
         statuses += [refused_as_an_old_viewer(view.url, "127.0.0.2") for _ in range(2)]
         assert statuses == [400] * 6
-        wait_for(lambda: view.refused == 6)  # the SDK reports each one on a thread of its own
+        # The SDK reports each refusal on a thread of its own.
+        wait_until(lambda: view.refused == 6, 10.0, "six refusals counted by the live view")
         current = FoxgloveClient(view.url)
         current.start()
-        wait_for(lambda: current.server_info is not None or current.error is not None)
+        wait_until(lambda: current.server_info is not None or current.error is not None, 10.0,
+                   "the current viewer's serverInfo or its error")
         assert current.error is None and current.server_info is not None
     current.wait_closed()
     assert len(lines) == 2, lines
