@@ -46,8 +46,10 @@ def holding(shared: Path, *, alone: bool) -> Iterator[Holder]:
 
 
 def test_tests_that_share_the_machine_run_together(tmp_path: Path) -> None:
-    with holding(tmp_path, alone=False), holding(tmp_path, alone=False):
-        pass  # both got in (holding waits for each)
+    with holding(tmp_path, alone=False) as first, holding(tmp_path, alone=False) as second:
+        # Both hold their share at once: neither waited for the other to let go.
+        assert first.holding.is_set() and second.holding.is_set()
+        assert not first.release.is_set() and not second.release.is_set()
 
 
 def test_an_alone_test_keeps_the_others_out_until_it_ends(tmp_path: Path) -> None:

@@ -290,6 +290,19 @@ def test_camera_params_reject_invalid_values(kwargs: dict[str, float], field: st
 
 
 def test_camera_params_accept_edge_values() -> None:
-    CameraParams(image_noise_std=0.0)
-    CameraParams(half_fov_deg=89.9)
-    CameraParams(range_min_m=1e-6, range_max_m=2e-6)
+    """Values at the edges of the valid ranges are accepted and do what they say: σ_img = 0
+    detects exactly, a half field of view just under 90° sees a target almost level with the
+    camera, and a range band of a micrometre still detects inside it."""
+    drone, target = np.array([0.0, 0.0, 5.0]), np.array([[1.0, -0.5, 0.0]])
+    exact = CameraParams(image_noise_std=0.0)
+    [detection] = detect(drone, target, exact, np.random.default_rng(0))
+    np.testing.assert_array_equal(detection.image_point,
+                                  ideal_image_point(drone, target[0], exact))
+    far_to_the_side = np.array([300.0, 0.0, 4.0])  # 1 m below, 300 m east: x̄ = 300
+    wide = CameraParams(half_fov_deg=89.9, range_max_m=1000.0)
+    assert wide.image_half_width == pytest.approx(math.tan(math.radians(89.9)))
+    assert ideal_image_point(drone, far_to_the_side, wide) is not None
+    assert ideal_image_point(drone, far_to_the_side, CameraParams(range_max_m=1000.0)) is None
+    thin = CameraParams(range_min_m=1e-6, range_max_m=2e-6)
+    assert ideal_image_point(drone, drone - [0.0, 0.0, 1.5e-6], thin) is not None
+    assert ideal_image_point(drone, drone - [0.0, 0.0, 3e-6], thin) is None
