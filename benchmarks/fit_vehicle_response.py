@@ -62,12 +62,12 @@ from numpy.typing import NDArray
 from rich.table import Table
 from scipy.optimize import minimize
 
+from swarm.errors import EXIT_FAILED, EXIT_OK, VigilError, run_main
 from swarm.mavlink.parse import POSITION_ONLY_TYPE_MASK, VELOCITY_ONLY_TYPE_MASK
 from swarm.mavlink.sitl import (
     KINDS,
     Firmware,
     Kind,
-    SitlError,
     SitlInstance,
     SitlMonitor,
     SitlSpec,
@@ -120,7 +120,7 @@ STEADY_WINDOW_S = 1.0  # the last second of a hold
 STEADY_MIN_HOLD_S = 2.9
 
 
-class FitError(RuntimeError):
+class FitError(VigilError, RuntimeError):
     """The flight could not be flown or the log cannot be fitted; one line."""
 
 
@@ -846,6 +846,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--from-log", type=Path, default=None,
                         help="fit this *_log.json again instead of flying")
     args = parser.parse_args(argv)
+    return run_main("fit_vehicle_response", lambda: _run(parser, args, argv))
+
+
+def _run(parser: argparse.ArgumentParser, args: argparse.Namespace,
+         argv: Sequence[str] | None) -> int:
     out = console()
     try:
         if args.from_log is not None:
@@ -862,9 +867,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             log = fly(firmware, args.out / f"{stem}_sitl.log")
             write_json(args.out / f"{stem}_log.json", log.to_json())
         result = analyse(log)
-    except (SitlError, FitError, OSError) as error:
+    except OSError as error:  # a file or the firmware's sockets: not ours, said in one line
         print(f"fit_vehicle_response: {error}", file=sys.stderr)
-        return 1
+        return EXIT_FAILED
     for table in tables(result):
         out.print(table)
     result["command"] = " ".join(["python", "benchmarks/fit_vehicle_response.py",
@@ -873,7 +878,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     path = args.out / f"{stem}_fit.json"
     write_json(path, result)
     out.print(f"wrote {path} and {args.out / (stem + '_log.json')}")
-    return 0
+    return EXIT_OK
 
 
 if __name__ == "__main__":

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import sys
 from collections.abc import Sequence
 
@@ -11,16 +12,15 @@ from swarm.children import follow_parent
 from swarm.net.session import check_tls_endpoints, local_endpoint
 from swarm.scenario.cli_common import (
     DEFAULT_MAVLINK_BASE,
-    ConfigError,
     OneLineParser,
+    UsageError,
     add_gcs_arguments,
     add_run_arguments,
-    exit_code,
-    fail,
     fail_on,
     gcs_problem,
     load_scenario,
     port,
+    run_main,
     terminate_on_sigterm,
 )
 from swarm.scenario.config import realtime_only_reason
@@ -54,30 +54,27 @@ def build_parser() -> OneLineParser:
 def main(argv: Sequence[str] | None = None) -> int:
     follow_parent(PROG)  # started by launch-swarm: die with it (swarm.children)
     args = build_parser().parse_args(argv)
-    try:
-        config = load_scenario(args.config, args.duration)
-    except ConfigError as err:
-        return fail_on(PROG, err, "config error: ")
-    try:
-        mavlink_hosts(args.mavlink_host, config.swarm.n_drones)
-    except ValueError as err:
-        return fail(PROG, str(err))
+    return run_main(PROG, lambda: _run(args))
+
+
+def _run(args: argparse.Namespace) -> int:
+    """``main`` after parsing: input that cannot be used raises a ``UsageError`` (a
+    ``ConfigError`` for the config), which ``run_main`` prints as one line."""
+    config = load_scenario(args.config, args.duration)
+    mavlink_hosts(args.mavlink_host, config.swarm.n_drones)
     gcs = args.gcs
     problem = gcs_problem(gcs, args.gcs_control,
                           signing=bool(config.vehicles.signing_key_file))
     if problem is not None:
-        return fail(PROG, problem)
+        raise UsageError(problem)
     if gcs is not None and args.vehicles == "external":
-        return fail(PROG, "--gcs: with --vehicles external the world serves no vehicles; "
-                          "connect the ground station to the autopilots")
+        raise UsageError("--gcs: with --vehicles external the world serves no vehicles; "
+                         "connect the ground station to the autopilots")
     reason = realtime_only_reason(config.vehicles, mode=args.mode,
                                   external=args.vehicles == "external")
     if reason is not None:
-        return fail(PROG, reason)
-    try:
-        check_tls_endpoints([*(args.listen or []), *args.connect], tls=config.security.enabled)
-    except ValueError as err:
-        return fail(PROG, str(err))
+        raise UsageError(reason)
+    check_tls_endpoints([*(args.listen or []), *args.connect], tls=config.security.enabled)
     terminate_on_sigterm()
     options = WorldOptions(
         config=config, seed=config.scenario.seed if args.seed is None else args.seed,
@@ -91,11 +88,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         world = World(options)
         return world.run()
-    except KeyboardInterrupt as err:
-        return exit_code(err)
-    except ConfigError as err:  # the signing key file, read again when the vehicles start
-        return fail_on(PROG, err, "config error: ")
-    except OSError as err:
+    except OSError as err:  # the OS refused a socket: not ours, but said in one line
         return fail_on(PROG, err, "cannot open the world's sockets: ")
     finally:
         if world is not None:

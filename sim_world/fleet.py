@@ -41,6 +41,7 @@ from numpy.typing import NDArray
 from sim_world.gcs_link import GcsLink
 from sim_world.mavlink_endpoint import VehicleEndpoint
 from sim_world.vehicle import EmulatedVehicle, Flavour, Start
+from swarm.errors import UsageError
 from swarm.models.frames import GeoPoint
 from swarm.models.kinematics import VelocityResponse
 from swarm.scenario.config import DEFAULT_GEO_ORIGIN
@@ -50,14 +51,18 @@ HEARTBEAT_PERIOD_S = 1.0
 Array = NDArray[np.float64]
 
 
+class MavlinkHostsError(UsageError, ValueError):
+    """A ``--mavlink-host`` that names neither one address nor one per drone."""
+
+
 def mavlink_hosts(host: str, n: int) -> list[str]:
     """``--mavlink-host``: where each vehicle sends, i.e. where its agent listens. One address
     for every vehicle, or N comma-separated addresses, vehicle 0 first (agents spread over
-    several machines). ValueError (one line) otherwise."""
+    several machines). MavlinkHostsError (one line) otherwise."""
     hosts = [part.strip() for part in host.split(",")]
     if not all(hosts) or len(hosts) not in (1, n):
-        raise ValueError(f"--mavlink-host {host!r}: give one address for every drone or {n} "
-                         f"comma-separated addresses, one per drone")
+        raise MavlinkHostsError(f"--mavlink-host {host!r}: give one address for every drone "
+                                f"or {n} comma-separated addresses, one per drone")
     return hosts * n if len(hosts) == 1 else hosts
 
 

@@ -8,6 +8,7 @@ air or on the ground below it (``[vehicles] start``), moving as ``[vehicles] res
 
 from __future__ import annotations
 
+import argparse
 import sys
 import time
 from collections.abc import Sequence
@@ -18,15 +19,14 @@ from swarm.models.frames import GeoPoint
 from swarm.scenario.cli_common import (
     DEFAULT_MAVLINK_BASE,
     EXIT_OK,
-    ConfigError,
     OneLineParser,
+    UsageError,
     add_gcs_arguments,
-    exit_code,
-    fail,
     fail_on,
     gcs_problem,
     load_scenario,
     port,
+    run_main,
     seed,
     terminate_on_sigterm,
 )
@@ -52,17 +52,18 @@ def build_parser() -> OneLineParser:
 def main(argv: Sequence[str] | None = None) -> int:
     follow_parent(PROG)  # started by launch-swarm: die with it (swarm.children)
     args = build_parser().parse_args(argv)
-    try:
-        config = load_scenario(args.config, None)
-    except ConfigError as err:
-        return fail_on(PROG, err, "config error: ")
-    try:
-        signing_key = config.vehicles.signing_key()
-    except ConfigError as err:
-        return fail_on(PROG, err, "config error: ")
+    return run_main(PROG, lambda: _run(args))
+
+
+def _run(args: argparse.Namespace) -> int:
+    """``main`` after parsing: input that cannot be used raises a ``UsageError`` (a
+    ``ConfigError`` for the config and its signing key), which ``run_main`` prints as one
+    line."""
+    config = load_scenario(args.config, None)
+    signing_key = config.vehicles.signing_key()
     problem = gcs_problem(args.gcs, args.gcs_control, signing=signing_key is not None)
     if problem is not None:
-        return fail(PROG, problem)
+        raise UsageError(problem)
     terminate_on_sigterm()
     seed_value = config.scenario.seed if args.seed is None else args.seed
     started = time.monotonic()
@@ -78,7 +79,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             gcs=args.gcs, gcs_control=args.gcs_control,
             geo_origin=GeoPoint(*config.vehicles.geo_origin),
             log=lambda line: print(line, flush=True))
-    except OSError as err:
+    except OSError as err:  # the OS refused a socket: not ours, but said in one line
         return fail_on(PROG, err, "cannot open the vehicles' sockets: ")
     print(f"sim-vehicles: {len(fleet)} {config.vehicles.flavour} vehicles sending to "
           f"{args.mavlink_host}:{args.mavlink_base}..{args.mavlink_base + len(fleet) - 1}"
@@ -87,8 +88,6 @@ def main(argv: Sequence[str] | None = None) -> int:
           flush=True)
     try:
         serve_forever(fleet, config.scenario.dt_s, started)
-    except KeyboardInterrupt as err:
-        return exit_code(err)
     finally:
         fleet.close()
     return EXIT_OK

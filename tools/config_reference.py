@@ -21,7 +21,6 @@ from what the code gives (a test runs it), and a field without a comment is an e
 
 from __future__ import annotations
 
-import argparse
 import ast
 import dataclasses
 import inspect
@@ -40,7 +39,9 @@ from typing import Any, Literal
 from swarm.core import params as core_params
 from swarm.core.graph import CommunicationGraph
 from swarm.core.safety import KeepOutCylinder, SafetyParams, convex_counter_clockwise
+from swarm.errors import EXIT_FAILED, EXIT_OK, VigilError, run_main
 from swarm.scenario import config as config_module
+from swarm.scenario.cli_common import OneLineParser
 from swarm.scenario.config import (
     AUTOPILOT_RESPONSE,
     DEFAULT_SETPOINT_TIMEOUT_S,
@@ -70,7 +71,7 @@ UNIT_SUFFIXES = (("_m_s2", "m/s²"), ("_rad_s", "rad/s"), ("_m_s", "m/s"), ("_m2
 ITEM = "<i>"  # the index of an array of tables in a dotted key (targets.0.start_m)
 
 
-class ReferenceError_(Exception):  # noqa: N801 (not the builtin ReferenceError)
+class ReferenceError_(VigilError):  # noqa: N801 (not the builtin ReferenceError)
     """The schema cannot be documented as it stands (e.g. a field without a comment)."""
 
 
@@ -591,7 +592,7 @@ def render(found: Sequence[Section] | None = None) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = OneLineParser(prog="config_reference", description=__doc__.split("\n\n")[0])
     mode = parser.add_mutually_exclusive_group(required=True)
     mode.add_argument("--write", action="store_true", help="write the reference")
     mode.add_argument("--check", action="store_true",
@@ -599,24 +600,24 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--output", type=Path, default=DEFAULT_OUTPUT,
                         help=f"the page (default: {DEFAULT_OUTPUT.relative_to(ROOT)})")
     args = parser.parse_args(argv)
+    return run_main("config_reference", lambda: _run(args.output, write=args.write))
+
+
+def _run(output: Path, *, write: bool) -> int:
+    text = render()
+    if write:
+        output.write_text(text, encoding="utf-8")
+        print(f"config_reference: wrote {output}")
+        return EXIT_OK
     try:
-        text = render()
-    except ReferenceError_ as err:
-        print(f"config_reference: {err}", file=sys.stderr)
-        return 1
-    if args.write:
-        args.output.write_text(text, encoding="utf-8")
-        print(f"config_reference: wrote {args.output}")
-        return 0
-    try:
-        current = args.output.read_text(encoding="utf-8")
+        current = output.read_text(encoding="utf-8")
     except FileNotFoundError:
         current = None
     if current != text:
-        print(f"config_reference: {args.output} is stale (or missing): run `{COMMAND}`",
+        print(f"config_reference: {output} is stale (or missing): run `{COMMAND}`",
               file=sys.stderr)
-        return 1
-    return 0
+        return EXIT_FAILED
+    return EXIT_OK
 
 
 if __name__ == "__main__":

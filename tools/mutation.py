@@ -34,7 +34,6 @@ Exit 2: bad command line, or a tree that cannot be mutated (one line).
 
 from __future__ import annotations
 
-import argparse
 import os
 import re
 import shlex
@@ -50,15 +49,19 @@ from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from swarm.errors import EXIT_FAILED, EXIT_OK, UsageError, run_main
+from swarm.scenario.cli_common import OneLineParser
+
 ROOT = Path(__file__).resolve().parent.parent
 EQUIVALENTS = Path(__file__).resolve().with_name("mutation_equivalents.toml")
 # Tests that run a swarm of processes or against the wall clock are not "fast tests".
 FAST = ("-m", "not slow and not wallclock")
 
 
-class MutationError(RuntimeError):
+class MutationError(UsageError, RuntimeError):
     """A tree that cannot be mutation-tested (no mutmut, a failing clean test run, a C build
-    that fails); one line."""
+    that fails); one line. Exit 2 (the tree given cannot be judged), apart from ``--check``'s
+    1 (judged, and a survivor is unexplained)."""
 
 
 @dataclass(frozen=True)
@@ -397,7 +400,7 @@ def stale_equivalents(python: list[tuple[str, list[ModuleResult], float]],
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = OneLineParser(prog="mutation", description=__doc__.split("\n\n")[0])
     parser.add_argument("--groups", default=",".join(GROUPS),
                         help=f"comma-separated, of {', '.join(GROUPS)} (default: all)")
     parser.add_argument("--max-children", type=int, default=os.cpu_count() or 1,
@@ -417,10 +420,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         parser.error(f"--workdir {args.workdir} is not empty")
     workdir = args.workdir or Path(tempfile.mkdtemp(prefix="vigil-mutation-"))
     try:
-        return run(groups, workdir, args.max_children, args.markdown, args.check)
-    except MutationError as exc:
-        print(f"mutation: {exc}", file=sys.stderr)
-        return 2
+        return run_main("mutation", lambda: run(groups, workdir, args.max_children,
+                                                args.markdown, args.check))
     finally:
         if args.workdir is None:
             shutil.rmtree(workdir, ignore_errors=True)
@@ -466,7 +467,7 @@ def run(groups: list[str], workdir: Path, max_children: int, markdown: Path | No
     found = problems(python, c)
     for line in found:
         print(f"mutation: {line}", file=sys.stderr)
-    return 1 if check and found else 0
+    return EXIT_FAILED if check and found else EXIT_OK
 
 
 if __name__ == "__main__":

@@ -23,15 +23,17 @@ import sys
 from collections.abc import Iterable, Mapping
 from pathlib import Path
 
+from swarm.errors import EXIT_OK, UsageError, VigilError, run_main
 from swarm.mavlink.px4_events import px4_event_id
+from swarm.scenario.cli_common import OneLineParser
 
 DEFAULT_OUTPUT = Path(__file__).resolve().parent.parent / "swarm" / "px4_event_names.py"
 SOURCE_SUFFIXES = (".c", ".cpp", ".h", ".hpp")
 _EVENT_NAME = re.compile(r'events::ID\(\s*"([A-Za-z0-9_]+)"\s*\)')
 
 
-class EventNamesError(RuntimeError):
-    """The checkout gave no usable table; one line."""
+class EventNamesError(VigilError, RuntimeError):
+    """The checkout gave no usable table; one line (exit 1)."""
 
 
 def names_in_text(text: str) -> set[str]:
@@ -105,34 +107,32 @@ def _git(checkout: Path, *args: str) -> str | None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = OneLineParser(prog="px4_event_names", description=__doc__.split("\n\n")[0])
     parser.add_argument("checkout", type=Path, help="PX4-Autopilot source tree")
     parser.add_argument("--output", type=Path, default=DEFAULT_OUTPUT)
     parser.add_argument("--px4-commit", help="the checkout's commit (default: git rev-parse)")
     parser.add_argument("--px4-version", help="its release tag (default: git describe)")
     args = parser.parse_args(argv)
+    return run_main("px4_event_names", lambda: _run(args))
+
+
+def _run(args: argparse.Namespace) -> int:
     src = args.checkout / "src"
     if not (src / "modules" / "commander").is_dir():
-        print(f"{args.checkout}: not a PX4-Autopilot checkout (no src/modules/commander)",
-              file=sys.stderr)
-        return 2
+        raise UsageError(f"{args.checkout}: not a PX4-Autopilot checkout (no "
+                         f"src/modules/commander)")
     commit = args.px4_commit or _git(args.checkout, "rev-parse", "HEAD")
     version = args.px4_version or _git(args.checkout, "describe", "--tags", "--always")
     if commit is None or version is None:
-        print(f"{args.checkout}: not a git checkout; give --px4-commit and --px4-version",
-              file=sys.stderr)
-        return 2
-    try:
-        names = names_in_tree(src)
-        if not names:
-            raise EventNamesError(f"no events::ID(\"...\") names under {src}")
-        table = id_table(names)
-    except EventNamesError as err:
-        print(err, file=sys.stderr)
-        return 1
+        raise UsageError(f"{args.checkout}: not a git checkout; give --px4-commit and "
+                         f"--px4-version")
+    names = names_in_tree(src)
+    if not names:
+        raise EventNamesError(f"no events::ID(\"...\") names under {src}")
+    table = id_table(names)
     args.output.write_text(render(table, px4_version=version, px4_commit=commit))
     print(f"{args.output}: {len(table)} event names from PX4 {version} ({commit[:10]})")
-    return 0
+    return EXIT_OK
 
 
 if __name__ == "__main__":

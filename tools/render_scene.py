@@ -15,7 +15,6 @@ sent.
 
 from __future__ import annotations
 
-import argparse
 import sys
 from pathlib import Path
 from typing import Any
@@ -28,8 +27,11 @@ from mcap_protobuf.decoder import DecoderFactory
 from mpl_toolkits.mplot3d.art3d import Line3DCollection
 from scipy.spatial.transform import Rotation
 
+from swarm.errors import EXIT_OK, run_main
 from swarm.observe.foxglove_scene import SCENE_TOPIC
 from swarm.observe.recording.reader import locate
+from swarm.observe.recording.schema import RecordingFileError
+from swarm.scenario.cli_common import OneLineParser
 
 RING_POINTS = 48
 
@@ -109,25 +111,28 @@ def draw_scene(scene: Any, title: str = "") -> Figure:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = OneLineParser(prog="render_scene", description=(__doc__ or "").splitlines()[0])
     parser.add_argument("recording", type=Path, help="a --record directory or its run.mcap")
     parser.add_argument("out", type=Path, help="the PNG to write")
     parser.add_argument("--time", type=float, default=None, metavar="S",
                         help="sim time of the scene (default: the last one)")
     args = parser.parse_args(argv)
-    scenes = read_scenes(args.recording)
+    return run_main("render_scene", lambda: _run(args.recording, args.out, args.time))
+
+
+def _run(recording: Path, out: Path, time_s: float | None) -> int:
+    scenes = read_scenes(recording)
     if not scenes:
-        print(f"render_scene: {args.recording}: no scene channel", file=sys.stderr)
-        return 1
-    if args.time is None:
+        raise RecordingFileError(f"{recording}: no scene channel")
+    if time_s is None:
         log_time, _, _, scene = scenes[-1]
     else:
-        log_time, _, _, scene = min(scenes, key=lambda s: abs(s[0] - args.time * 1e9))
+        log_time, _, _, scene = min(scenes, key=lambda s: abs(s[0] - time_s * 1e9))
     figure = draw_scene(scene, f"recorded scene at t = {log_time / 1e9:.1f} s "
                                f"(foxglove.SceneUpdate, drawn primitive by primitive)")
-    figure.savefig(args.out)
-    print(f"render_scene: wrote {args.out}")
-    return 0
+    figure.savefig(out)
+    print(f"render_scene: wrote {out}")
+    return EXIT_OK
 
 
 if __name__ == "__main__":

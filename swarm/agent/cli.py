@@ -22,6 +22,7 @@ os.environ.setdefault("MAVLINK20", "1")
 os.environ.setdefault("MAVLINK_DIALECT", "ardupilotmega")
 
 from swarm.children import follow_parent  # noqa: E402
+from swarm.errors import run_main  # noqa: E402
 from swarm.mavlink.udpin import DEFAULT_MAVLINK_BASE, BoundSocket, bind_early  # noqa: E402
 
 if TYPE_CHECKING:
@@ -69,22 +70,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     early = bind_early(argv)
     try:
-        return _main(argv, early)
+        return run_main(PROG, lambda: _main(argv, early))
     finally:
         if early is not None:
             early.close()  # a no-op once the link took it over and closed it
 
 
 def _main(argv: list[str], early: BoundSocket | None) -> int:
+    """``main`` once the MAVLink socket is bound: input that cannot be used raises a
+    ``UsageError`` (a ``ConfigError`` for the config), which ``run_main`` prints as one line."""
     # Imported now, with the MAVLink socket already bound (module docstring).
     from swarm.agent.process import AgentOptions, AgentProcess
-    from swarm.mavlink.link import LinkError
     from swarm.net.faults import LinkFaults
     from swarm.net.session import check_tls_endpoints, local_endpoint
     from swarm.scenario.cli_common import (
-        ConfigError,
-        exit_code,
-        fail,
+        UsageError,
         fail_on,
         load_scenario,
         terminate_on_sigterm,
@@ -92,26 +92,20 @@ def _main(argv: list[str], early: BoundSocket | None) -> int:
     from swarm.scenario.config import realtime_only_reason
 
     args = build_parser().parse_args(argv)
-    try:
-        config = load_scenario(args.config, args.duration)
-    except ConfigError as err:
-        return fail_on(PROG, err, "config error: ")
+    config = load_scenario(args.config, args.duration)
     if not 0 <= args.id < config.swarm.n_drones:
-        return fail(PROG, f"--id {args.id} is out of range 0..{config.swarm.n_drones - 1} "
-                          f"for {config.source}")
+        raise UsageError(f"--id {args.id} is out of range 0..{config.swarm.n_drones - 1} "
+                         f"for {config.source}")
     if config.security.enabled and args.listen:
-        return fail(PROG, "--listen (peer mode) is not available with [security]: agents join "
-                          "the world's router as clients")
-    try:
-        check_tls_endpoints([*args.listen, *(args.connect or [])], tls=config.security.enabled)
-    except ValueError as err:
-        return fail(PROG, str(err))
+        raise UsageError("--listen (peer mode) is not available with [security]: agents join "
+                         "the world's router as clients")
+    check_tls_endpoints([*args.listen, *(args.connect or [])], tls=config.security.enabled)
     faults = LinkFaults(drop_rate=args.drop_consensus, delay_steps=args.delay_consensus,
                         seed=(args.seed or 0) * 1000 + args.id)
     reason = realtime_only_reason(config.vehicles, mode=args.mode,
                                   faulty_consensus=faults.active)
     if reason is not None:
-        return fail(PROG, reason)
+        raise UsageError(reason)
     terminate_on_sigterm()
     url = args.mavlink or f"udpin:127.0.0.1:{DEFAULT_MAVLINK_BASE + args.id}"
     options = AgentOptions(
@@ -128,13 +122,7 @@ def _main(argv: list[str], early: BoundSocket | None) -> int:
     try:
         process = AgentProcess(options)
         return process.run()
-    except KeyboardInterrupt as err:
-        return exit_code(err)
-    except LinkError as err:
-        return fail_on(PROG, err)
-    except ConfigError as err:  # the signing key file, read again when the link opens
-        return fail_on(PROG, err, "config error: ")
-    except OSError as err:
+    except OSError as err:  # the OS refused a socket or file: not ours, but said in one line
         return fail_on(PROG, err, f"drone {args.id}: ")
     finally:
         if process is not None:

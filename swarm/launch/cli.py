@@ -20,7 +20,7 @@ from pathlib import Path
 
 from rich.console import Console
 
-from swarm.launch.launcher import LaunchOptions, MissionError, SwarmLauncher
+from swarm.launch.launcher import LaunchOptions, SwarmLauncher
 from swarm.mavlink.sitl import (
     ENV_ARDUCOPTER,
     ENV_PX4,
@@ -28,13 +28,11 @@ from swarm.mavlink.sitl import (
     KINDS,
     Firmware,
     FirmwareError,
-    SitlError,
     firmware_from_env,
 )
-from swarm.models.kinematics import InitialPlacementError
 from swarm.observe.dashboard import Dashboard, DashboardSettings, InProcessFeed
-from swarm.observe.live_view import LiveViewAddressError, check_address
-from swarm.observe.recording.schema import RECORDING_FILE, RecordingError
+from swarm.observe.live_view import check_address
+from swarm.observe.recording.schema import RECORDING_FILE
 from swarm.observe.recording.writer import record_directory, record_reference
 from swarm.observe.run_observer import print_process_counters, print_summary
 from swarm.runs.reference import run_reference
@@ -44,11 +42,12 @@ from swarm.scenario.cli_common import (
     EXIT_OK,
     ConfigError,
     OneLineParser,
+    UsageError,
+    VigilError,
     add_foxglove_argument,
     add_gcs_arguments,
     config_assignment,
     exit_code,
-    fail,
     fail_on,
     gcs_problem,
     load_scenario,
@@ -56,6 +55,7 @@ from swarm.scenario.cli_common import (
     positive_float,
     restart_count,
     run_id,
+    run_main,
     seed,
     terminate_on_sigterm,
 )
@@ -221,85 +221,71 @@ def resolved_config_file(config: ScenarioConfig) -> str:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    return run_main(PROG, lambda: _run(args))
+
+
+def _run(args: argparse.Namespace) -> int:
+    """``main`` after parsing: input that cannot be used raises a ``UsageError`` (a
+    ``ConfigError`` for the config), which ``run_main`` prints as one line."""
     console = Console()
     if not console.is_terminal:
         console = Console(width=140)  # logs and CI: keep table columns unwrapped
-    try:
-        config = load_scenario(args.config, args.duration, overrides=args.overrides)
-    except ConfigError as err:
-        return fail_on(PROG, err, "config error: ")
+    config = load_scenario(args.config, args.duration, overrides=args.overrides)
     seed_value = config.scenario.seed if args.seed is None else args.seed
-    try:
-        sitl = sitl_firmware(args.sitl)
-        config = with_mavlink_urls(config, dict(args.mavlink))
-    except (SitlError, ConfigError) as err:
-        return fail_on(PROG, err)
+    sitl = sitl_firmware(args.sitl)
+    config = with_mavlink_urls(config, dict(args.mavlink))
     real = sitl is not None or bool(config.vehicles.mavlink_urls)
     if real:  # the tracking margins the config leaves out: the firmware's fitted ones
         autopilot = sitl.kind if sitl is not None else config.vehicles.flavour
-        try:
-            config = with_mavlink_urls(load_scenario(args.config, args.duration,
-                                                     autopilot=autopilot,
-                                                     overrides=args.overrides),
-                                       dict(args.mavlink))
-        except ConfigError as err:
-            return fail_on(PROG, err, "config error: ")
+        config = with_mavlink_urls(load_scenario(args.config, args.duration,
+                                                 autopilot=autopilot, overrides=args.overrides),
+                                   dict(args.mavlink))
     if args.print_config:
-        try:
-            shown = config.with_seed(seed_value)
-        except ConfigError as err:
-            return fail_on(PROG, err, "config error: ")
-        sys.stdout.write(config_to_toml(shown))
+        sys.stdout.write(config_to_toml(config.with_seed(seed_value)))
         return EXIT_OK
     reason = realtime_only_reason(config.vehicles, mode=args.mode, inprocess=args.inprocess,
                                   external=real, restarts_agents=bool(args.agent_restarts),
                                   kills_agents=bool(args.kill_agents))
     if reason is not None:
-        return fail(PROG, reason)
+        raise UsageError(reason)
     if args.sitl_params and sitl is None:
-        return fail(PROG, "--sitl-param needs --sitl (it sets parameters on the SITL "
-                          "autopilots launch-swarm starts)")
+        raise UsageError("--sitl-param needs --sitl (it sets parameters on the SITL "
+                         "autopilots launch-swarm starts)")
     problem = record_dir_problem(args.record, overwrite=args.overwrite)
     if problem is not None:
-        return fail(PROG, problem)
+        raise UsageError(problem)
     if sitl is not None and config.vehicles.mavlink_urls:
-        return fail(PROG, "--sitl starts its own autopilots: leave out --mavlink and "
-                          "vehicles.mavlink_urls")
+        raise UsageError("--sitl starts its own autopilots: leave out --mavlink and "
+                         "vehicles.mavlink_urls")
     problem = gcs_problem(args.gcs, args.gcs_control,
                           signing=bool(config.vehicles.signing_key_file))
     if problem is not None:
-        return fail(PROG, problem)
+        raise UsageError(problem)
     if args.gcs is not None and (args.inprocess or sitl is not None
                                  or config.vehicles.mavlink_urls):
-        return fail(PROG, "--gcs gives the world's emulated vehicles a ground-station link; "
-                          "with --inprocess there are none, and real autopilots have their own "
-                          "(PX4 SITL sends to 14550)")
+        raise UsageError("--gcs gives the world's emulated vehicles a ground-station link; "
+                         "with --inprocess there are none, and real autopilots have their own "
+                         "(PX4 SITL sends to 14550)")
     if args.foxglove is not None and args.inprocess:
-        return fail(PROG, "--foxglove serves a process swarm as it runs; --inprocess runs as "
-                          "fast as it can: record it (--record DIR) and open DIR/run.mcap in "
-                          "Foxglove")
-    if args.foxglove is not None:
-        try:  # before any process starts: a taken port is found now, not after SITL boots
-            check_address(*args.foxglove)
-        except LiveViewAddressError as err:
-            return fail_on(PROG, err)
+        raise UsageError("--foxglove serves a process swarm as it runs; --inprocess runs as "
+                         "fast as it can: record it (--record DIR) and open DIR/run.mcap in "
+                         "Foxglove")
+    if args.foxglove is not None:  # before any process starts: a taken port is found now,
+        check_address(*args.foxglove)  # not after SITL boots
     options = None
     if not args.inprocess:
-        try:
-            config_path = str(Path(args.config).resolve())
-            if args.overrides:  # the children read the config as resolved here, --set applied
-                config_path = resolved_config_file(config)
-            options = LaunchOptions(
-                config=config, config_path=config_path, seed=seed_value,
-                mode=args.mode, run_id=args.run_id or "", mavlink_base=args.mavlink_base,
-                log_dir=Path(args.log_dir) if args.log_dir else None, record_dir=args.record,
-                agent_restarts=args.agent_restarts,
-                agent_restart_delay_s=args.agent_restart_delay, sitl=sitl,
-                sitl_params=tuple(args.sitl_params), kill_agents=tuple(args.kill_agents),
-                defer_log_cleanup=True,  # removed below if the run succeeds, verdict and all
-                gcs=args.gcs, gcs_control=args.gcs_control, foxglove=args.foxglove)
-        except ValueError as err:
-            return fail(PROG, str(err))
+        config_path = str(Path(args.config).resolve())
+        if args.overrides:  # the children read the config as resolved here, --set applied
+            config_path = resolved_config_file(config)
+        options = LaunchOptions(
+            config=config, config_path=config_path, seed=seed_value,
+            mode=args.mode, run_id=args.run_id or "", mavlink_base=args.mavlink_base,
+            log_dir=Path(args.log_dir) if args.log_dir else None, record_dir=args.record,
+            agent_restarts=args.agent_restarts,
+            agent_restart_delay_s=args.agent_restart_delay, sitl=sitl,
+            sitl_params=tuple(args.sitl_params), kill_agents=tuple(args.kill_agents),
+            defer_log_cleanup=True,  # removed below if the run succeeds, verdict and all
+            gcs=args.gcs, gcs_control=args.gcs_control, foxglove=args.foxglove)
     terminate_on_sigterm()
     launcher: SwarmLauncher | None = None
 
@@ -328,13 +314,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                                       telemetry_listeners=[dashboard.on_telemetry])
             print_process_counters(launcher.collector, console)
             counters = launcher.collector.drone_counters()
-    except InitialPlacementError as err:
-        return failed(fail_on(PROG, err, f"config error: {config.source}: "
-                                         f"swarm.initial_box_size_m: "))
-    except MissionError as err:
-        return failed(fail_on(PROG, err, "mission failed: "))
-    except RecordingError as err:
-        return failed(fail_on(PROG, err, "recording failed: "))
+    except VigilError as err:  # said here, before the log directory kept is said
+        return failed(fail_on(PROG, err))
     except KeyboardInterrupt as err:
         print(f"{PROG}: interrupted; every process stopped", file=sys.stderr)
         return failed(exit_code(err))

@@ -29,12 +29,12 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO
+from typing import IO, ClassVar
 
 import numpy as np
 
 from swarm.children import child_environment
-from swarm.errors import EXIT_END_MISSION, VigilError
+from swarm.errors import EXIT_END_MISSION, UsageError, VigilError
 from swarm.mavlink.link import EndReport, autopilot_mode_name, end_mode_name
 from swarm.mavlink.sitl import (
     DEFAULT_BOOT_SPEEDUP,
@@ -70,6 +70,12 @@ BLAS_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THR
 
 class MissionError(VigilError, RuntimeError):
     """The swarm could not run the mission; the message says which process and why."""
+
+    label: ClassVar[str] = "mission failed: "
+
+
+class LaunchOptionsError(UsageError, ValueError):
+    """Launch options that cannot be used together (the command line's, and the config's)."""
 
 
 @dataclass(frozen=True)
@@ -116,26 +122,28 @@ class LaunchOptions:
 
     def __post_init__(self) -> None:
         if self.agent_restarts < 0 or not self.agent_restart_delay_s >= 0:
-            raise ValueError("agent_restarts and agent_restart_delay_s must be >= 0")
+            raise LaunchOptionsError("agent_restarts and agent_restart_delay_s must be >= 0")
         reason = realtime_only_reason(
             self.config.vehicles, mode=self.mode,
             external=(self.sitl is not None or self.external_vehicles
                       or bool(self.config.vehicles.mavlink_urls)),
             restarts_agents=bool(self.agent_restarts), kills_agents=bool(self.kill_agents))
         if reason is not None:
-            raise ValueError(reason)
+            raise LaunchOptionsError(reason)
         for drone, time_s in self.kill_agents:
             if not 0 <= drone < self.config.swarm.n_drones:
-                raise ValueError(f"--kill-agent {drone}@{time_s:g}: no drone {drone} (the "
-                                 f"swarm has 0..{self.config.swarm.n_drones - 1})")
+                raise LaunchOptionsError(f"--kill-agent {drone}@{time_s:g}: no drone {drone} "
+                                         f"(the swarm has 0..{self.config.swarm.n_drones - 1})")
             if not (math.isfinite(time_s) and 0 < time_s < self.config.scenario.duration_s):
-                raise ValueError(f"--kill-agent {drone}@{time_s:g}: the time must be within "
-                                 f"the mission (0, {self.config.scenario.duration_s:g}) s")
+                raise LaunchOptionsError(f"--kill-agent {drone}@{time_s:g}: the time must be "
+                                         f"within the mission (0, "
+                                         f"{self.config.scenario.duration_s:g}) s")
         if len({drone for drone, _ in self.kill_agents}) < len(self.kill_agents):
-            raise ValueError("--kill-agent: one kill per drone")
+            raise LaunchOptionsError("--kill-agent: one kill per drone")
         if self.sitl is not None and self.config.vehicles.mavlink_urls:
-            raise ValueError("--sitl starts its own autopilots: leave vehicles.mavlink_urls "
-                             "empty (or drop --sitl to fly those)")
+            raise LaunchOptionsError("--sitl starts its own autopilots: leave "
+                                     "vehicles.mavlink_urls empty (or drop --sitl to fly "
+                                     "those)")
 
 
 def _placement(drone: int | None) -> dict[str, int | bool]:

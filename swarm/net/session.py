@@ -24,7 +24,7 @@ from typing import Any, Final, Literal
 
 import zenoh
 
-from swarm.errors import VigilError
+from swarm.errors import UsageError, VigilError
 from swarm.net.security import TlsIdentity
 
 Mode = Literal["peer", "client", "router"]
@@ -58,48 +58,53 @@ class TransportError(VigilError, RuntimeError):
     """A Zenoh session could not be opened (one line: what and why)."""
 
 
+class EndpointError(UsageError, ValueError):
+    """A Zenoh endpoint that cannot be used as given (``--listen``, ``--connect``): malformed,
+    or plain where ``[security]`` wants TLS (or the other way round)."""
+
+
 # -- configuration -------------------------------------------------------------------------------
 
 
 def parse_endpoint(endpoint: str, *, role: Literal["listen", "connect"] = "connect"
                    ) -> tuple[str, str, int]:
     """Split ``"<tcp|udp|tls>/<host>:<port>"`` into (protocol, host, port), or raise
-    ``ValueError``.
+    ``EndpointError`` (a ``ValueError``).
 
     Hosts are IPv4 addresses, bracketed IPv6 addresses (``tcp/[::1]:7447``) or host names. Port
     0 (any free port) is allowed for ``listen`` only. Zenoh itself accepts malformed strings at
     configuration time and fails later, so every endpoint goes through here first.
     """
     if not isinstance(endpoint, str):
-        raise ValueError(f"zenoh {role} endpoint must be a string like 'tcp/127.0.0.1:7447', "
-                         f"got {type(endpoint).__name__}")
+        raise EndpointError(f"zenoh {role} endpoint must be a string like "
+                            f"'tcp/127.0.0.1:7447', got {type(endpoint).__name__}")
     shown = endpoint if len(endpoint) <= 80 else endpoint[:77] + "..."
     expected = "expected '<tcp|udp|tls>/<host>:<port>', e.g. 'tcp/127.0.0.1:7447'"
     proto, slash, rest = endpoint.partition("/")
     if not slash or proto not in PROTOCOLS:
-        raise ValueError(f"zenoh {role} endpoint {shown!r}: {expected}")
+        raise EndpointError(f"zenoh {role} endpoint {shown!r}: {expected}")
     host, colon, port_text = rest.rpartition(":")
     if not colon or not host or not port_text.isdigit() or len(port_text) > 5:
-        raise ValueError(f"zenoh {role} endpoint {shown!r}: {expected}")
+        raise EndpointError(f"zenoh {role} endpoint {shown!r}: {expected}")
     port = int(port_text)
     if not (0 if role == "listen" else 1) <= port <= 65535:
-        raise ValueError(f"zenoh {role} endpoint {shown!r}: port {port} out of range "
-                         f"({'0' if role == 'listen' else '1'}-65535)")
+        raise EndpointError(f"zenoh {role} endpoint {shown!r}: port {port} out of range "
+                            f"({'0' if role == 'listen' else '1'}-65535)")
     if host.startswith("[") and host.endswith("]"):
         try:
             ipaddress.IPv6Address(host[1:-1])
         except ValueError:
-            raise ValueError(f"zenoh {role} endpoint {shown!r}: {host} is not an IPv6 "
-                             "address") from None
+            raise EndpointError(f"zenoh {role} endpoint {shown!r}: {host} is not an IPv6 "
+                                "address") from None
     elif re.fullmatch(r"[0-9.]+", host):
         try:
             ipaddress.IPv4Address(host)
         except ValueError:
-            raise ValueError(f"zenoh {role} endpoint {shown!r}: {host} is not an IPv4 "
-                             "address") from None
+            raise EndpointError(f"zenoh {role} endpoint {shown!r}: {host} is not an IPv4 "
+                                "address") from None
     elif not _HOSTNAME.match(host):
-        raise ValueError(f"zenoh {role} endpoint {shown!r}: {host!r} is not a host name; "
-                         f"{expected}")
+        raise EndpointError(f"zenoh {role} endpoint {shown!r}: {host!r} is not a host "
+                            f"name; {expected}")
     return proto, host, port
 
 
@@ -120,10 +125,11 @@ def local_endpoint(port: int, *, tls: bool = False) -> str:
 
 
 def check_tls_endpoints(endpoints: Iterable[str], *, tls: bool) -> None:
-    """``ValueError`` unless every endpoint is ``tls/...`` with TLS on, and none is without."""
+    """``EndpointError`` unless every endpoint is ``tls/...`` with TLS on, and none is
+    without."""
     for endpoint in endpoints:
         if endpoint.startswith("tls/") != tls:
-            raise ValueError(f"zenoh endpoint {endpoint[:80]!r}: " + (
+            raise EndpointError(f"zenoh endpoint {endpoint[:80]!r}: " + (
                 "plain, but [security] is on: use tls/<host>:<port>" if tls
                 else "tls needs certificates: set [security] tls_dir in the config"))
 

@@ -18,7 +18,6 @@ Foxglove Studio, imports the older layout data instead (``configById``, ``global
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from collections.abc import Sequence
@@ -39,8 +38,10 @@ from foxglove.layouts import (
     ThreeDeePanel,
 )
 
+from swarm.errors import EXIT_OK, run_main
 from swarm.observe.foxglove_scene import FRAME, LOG_TOPIC, SCENE_TOPIC, plot_topic
-from swarm.scenario.config import ConfigError, ScenarioConfig, load_config
+from swarm.scenario.cli_common import OneLineParser
+from swarm.scenario.config import ScenarioConfig, load_config
 
 
 def plot_path(drone: int, field: str) -> str:
@@ -124,21 +125,21 @@ def layout_json(config: ScenarioConfig, lichtblick: bool = False) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m swarm.observe.layout",
-                                     description=__doc__.splitlines()[0])
+    parser = OneLineParser(prog="python -m swarm.observe.layout",
+                           description=(__doc__ or "").splitlines()[0])
     parser.add_argument("config", help="scenario file (its drones and targets)")
     parser.add_argument("out", type=Path, help="the layout JSON to write")
     parser.add_argument("--lichtblick", action="store_true",
                         help="write it as Lichtblick imports layouts (the older layout data)")
     args = parser.parse_args(argv)
-    try:
-        config = load_config(args.config)
-    except ConfigError as err:
-        print(f"layout: config error: {err}", file=sys.stderr)
-        return 2
-    args.out.write_text(layout_json(config, lichtblick=args.lichtblick))
-    print(f"layout: wrote {args.out}")
-    return 0
+    return run_main("layout", lambda: _write(load_config(args.config), args.out,
+                                             lichtblick=args.lichtblick))
+
+
+def _write(config: ScenarioConfig, out: Path, *, lichtblick: bool) -> int:
+    out.write_text(layout_json(config, lichtblick=lichtblick))
+    print(f"layout: wrote {out}")
+    return EXIT_OK
 
 
 if __name__ == "__main__":

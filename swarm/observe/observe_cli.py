@@ -20,6 +20,7 @@ described, 130 interrupted (the tables of what was seen are printed first).
 
 from __future__ import annotations
 
+import argparse
 import sys
 import threading
 import time
@@ -29,24 +30,21 @@ from pathlib import Path
 
 from rich.console import Console
 
-from swarm.errors import EXIT_FAILED, EXIT_INTERRUPTED, UsageError, VigilError
+from swarm.errors import EXIT_FAILED, EXIT_INTERRUPTED, UsageError, VigilError, run_main
 from swarm.messages.wire import ClockWire
-from swarm.net.session import TransportError, check_tls_endpoints
+from swarm.net.session import check_tls_endpoints
 from swarm.net.subscriptions import subscribe
 from swarm.observe.dashboard import Dashboard, DashboardSettings
-from swarm.observe.live_view import LiveViewError, check_address
-from swarm.observe.recording.schema import RecordingError, RecordingMetadata
+from swarm.observe.live_view import check_address
+from swarm.observe.recording.schema import RecordingMetadata
 from swarm.observe.recording.writer import record_directory
 from swarm.observe.run_observer import RunObserver, print_process_counters, print_summary
 from swarm.runs.record import RunRecord
 from swarm.scenario.cli_common import (
-    ConfigError,
     OneLineParser,
     add_foxglove_argument,
     add_run_arguments,
-    exit_code,
     fail,
-    fail_on,
     load_scenario,
     positive_float,
     terminate_on_sigterm,
@@ -242,17 +240,18 @@ def build_parser(prog: str = PROG) -> OneLineParser:
 
 def main(argv: Sequence[str] | None = None, *, prog: str = PROG) -> int:
     args = build_parser(prog).parse_args(argv)
+    return run_main(prog, lambda: _run(args, prog))
+
+
+def _run(args: argparse.Namespace, prog: str) -> int:
+    """``main`` after parsing: input that cannot be used raises a ``UsageError`` (a
+    ``ConfigError`` for the config), a run that cannot be watched another ``VigilError``,
+    which ``run_main`` prints as one line."""
     console = Console()
     if not console.is_terminal:
         console = Console(width=140)  # logs and CI: keep table columns unwrapped
-    try:
-        config = load_scenario(args.config, args.duration)
-    except ConfigError as err:
-        return fail_on(prog, err, "config error: ")
-    try:
-        check_tls_endpoints(args.connect, tls=config.security.enabled)
-    except ValueError as err:
-        return fail(prog, str(err))
+    config = load_scenario(args.config, args.duration)
+    check_tls_endpoints(args.connect, tls=config.security.enabled)
     terminate_on_sigterm()
     try:
         if args.foxglove is not None:  # a taken port is said now, not after the router
@@ -262,15 +261,10 @@ def main(argv: Sequence[str] | None = None, *, prog: str = PROG) -> int:
                            config_path=str(Path(args.config).resolve()),
                            record_dir=args.record, foxglove=args.foxglove,
                            connect_timeout_s=args.connect_timeout, prog=prog)
-    except (TransportError, ObserveError, RecordingError, LiveViewError, UsageError) as err:
-        return fail_on(prog, err)
-    except KeyboardInterrupt as err:
+    except KeyboardInterrupt:
         print(f"{prog}: interrupted before the run was reached", file=sys.stderr)
-        return exit_code(err)
-    try:
-        return summarize(seen, console, prog)
-    except KeyboardInterrupt as err:  # a second Ctrl-C while the tables are printed
-        return exit_code(err)
+        raise
+    return summarize(seen, console, prog)
 
 
 def summarize(seen: Observation, console: Console, prog: str = PROG) -> int:

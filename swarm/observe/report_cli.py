@@ -13,6 +13,7 @@ such a run is exit 1, and its verdict says both.
 
 from __future__ import annotations
 
+import argparse
 import json
 import sys
 from collections.abc import Sequence
@@ -21,13 +22,8 @@ from pathlib import Path
 from rich.console import Console
 
 from swarm.observe.recording.reader import Recording, read_recording
-from swarm.observe.recording.schema import RecordingError
 from swarm.observe.report import Provenance, RunReport, build_report, render_report, report_to_json
-from swarm.scenario.cli_common import (
-    OneLineParser,
-    exit_code,
-    fail,
-)
+from swarm.scenario.cli_common import OneLineParser, UsageError, run_main
 
 PROG = "swarm-report"
 
@@ -67,15 +63,14 @@ def _console() -> Console:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    try:
-        recording = read_recording(Path(args.recording))
-        report = report_from_recording(recording)
-    except RecordingError as err:  # the file given cannot be used: a usage error
-        return fail(PROG, str(err))
-    except ValueError as err:  # e.g. metadata naming an unknown mode
-        return fail(PROG, f"{args.recording}: {err}")
-    except KeyboardInterrupt as err:
-        return exit_code(err)
+    return run_main(PROG, lambda: _run(args))
+
+
+def _run(args: argparse.Namespace) -> int:
+    """``main`` after parsing: a recording that cannot be read raises a ``RecordingFileError``
+    (a ``UsageError``), which ``run_main`` prints as one line."""
+    recording = read_recording(Path(args.recording))
+    report = report_from_recording(recording)
     written: list[Path] = []
     if args.plots is not None:
         # Before any output: a directory we cannot write is a usage error with empty stdout.
@@ -84,7 +79,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
             written = write_plots(recording.record, args.plots)
         except OSError as err:
-            return fail(PROG, f"cannot write plots to {args.plots}: {err.strerror or err}")
+            raise UsageError(f"cannot write plots to {args.plots}: "
+                             f"{err.strerror or err}") from None
     if args.json:
         document = report_to_json(report)
         if args.plots is not None:

@@ -22,8 +22,9 @@ from pathlib import Path
 import numpy as np
 
 from swarm.core.qp import FailedQp, LocalQp, QpSolver
-from swarm.errors import EXIT_OK, EXIT_USAGE, UsageError, exit_code
+from swarm.errors import EXIT_OK, EXIT_USAGE, UsageError, run_main
 
+PROG = "failed_qp"
 FORMAT = "vigil-failed-qp/1"
 _ARRAYS = ("cost_hessian", "cost_linear", "rows", "lower", "z_min", "z_max")
 
@@ -51,20 +52,21 @@ def save_failed_qp(failed: FailedQp, path: Path) -> Path:
 
 def load_failed_qp(path: Path) -> FailedQp:
     """The ``FailedQp`` in ``path``; ``FailedQpFileError`` naming the file if it is not one."""
+    failed: FailedQp | None = None
     try:
         with np.load(path, allow_pickle=False) as data:
             meta = json.loads(str(data["meta"]))
-            if meta.get("format") != FORMAT:
-                raise FailedQpFileError(f"{path}: not a failed-QP dump (format "
-                                        f"{meta.get('format')!r}, expected {FORMAT!r})")
-            qp = LocalQp(*(np.array(data[name], dtype=float) for name in _ARRAYS))
-            failed = FailedQp(int(meta["drone_id"]), int(meta["step"]), str(meta["attempt"]),
-                              qp, str(meta["status"]), int(meta["iterations"]),
-                              float(meta["max_violation"]))
-    except FailedQpFileError:
-        raise
+            if meta.get("format") == FORMAT:
+                qp = LocalQp(*(np.array(data[name], dtype=float) for name in _ARRAYS))
+                failed = FailedQp(int(meta["drone_id"]), int(meta["step"]),
+                                  str(meta["attempt"]), qp, str(meta["status"]),
+                                  int(meta["iterations"]), float(meta["max_violation"]))
     except (OSError, KeyError, TypeError, ValueError, zipfile.BadZipFile) as err:
         raise FailedQpFileError(f"{path}: not a readable failed-QP dump ({err})") from err
+    if failed is None:
+        raise FailedQpFileError(f"{path}: not a failed-QP dump (format "
+                                f"{meta.get('format')!r}, expected {FORMAT!r})")
+    qp = failed.qp
     n, rows = qp.cost_linear.shape[0], qp.rows.shape
     if qp.cost_hessian.shape != (n, n) or rows[1:] != (n,) or qp.lower.shape != rows[:1] \
             or qp.z_min.shape != (n,) or qp.z_max.shape != (n,):
@@ -79,11 +81,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("usage: python -m swarm.runs.failed_qp FILE.npz  (a QP an agent saved when it "
               "failed: solve it again)", file=sys.stderr)
         return EXIT_USAGE
-    try:
-        failed = load_failed_qp(Path(args[0]))
-    except FailedQpFileError as err:
-        print(f"failed_qp: {err}", file=sys.stderr)
-        return exit_code(err)
+    return run_main(PROG, lambda: _solve_again(Path(args[0])))
+
+
+def _solve_again(path: Path) -> int:
+    failed = load_failed_qp(path)
     print(failed.describe())
     again = QpSolver().solve(failed.qp)
     print(f"solved again: {again.status} after {again.iterations} iterations, max violation "

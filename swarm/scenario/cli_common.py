@@ -11,12 +11,17 @@ import sys
 import typing
 from collections.abc import Sequence
 
-from swarm.errors import (  # noqa: F401 (the executables import the codes from here too)
+from swarm.errors import (  # noqa: F401 (the executables import these from here too)
     EXIT_FAILED,
     EXIT_INTERRUPTED,
     EXIT_OK,
     EXIT_USAGE,
+    UsageError,
+    VigilError,
     exit_code,
+    fail,
+    fail_on,
+    run_main,
 )
 from swarm.mavlink.udpin import DEFAULT_MAVLINK_BASE  # noqa: F401 (the executables' default)
 from swarm.scenario.config import ConfigError, ScenarioConfig, load_config
@@ -31,18 +36,6 @@ class OneLineParser(argparse.ArgumentParser):
     def error(self, message: str) -> typing.NoReturn:
         print(f"{self.prog}: error: {message} (see --help)", file=sys.stderr)
         sys.exit(EXIT_USAGE)
-
-
-def fail(prog: str, message: str, code: int = EXIT_USAGE) -> int:
-    """One plain line on stderr: never wrapped, never styled, no traceback."""
-    print(f"{prog}: {' '.join(message.split())}", file=sys.stderr)
-    return code
-
-
-def fail_on(prog: str, error: BaseException, context: str = "") -> int:
-    """``error`` as one line on stderr (after ``context``, e.g. "config error: "), and the
-    exit code ``swarm.errors.exit_code`` gives it."""
-    return fail(prog, f"{context}{error}", exit_code(error))
 
 
 def positive_float(text: str) -> float:
@@ -192,5 +185,6 @@ def terminate_on_sigterm() -> None:
     signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
-__all__ = ["ConfigError", "OneLineParser", "add_run_arguments", "fail", "load_scenario", "port",
-           "positive_float", "run_id", "seed", "terminate_on_sigterm"]
+__all__ = ["ConfigError", "OneLineParser", "UsageError", "add_run_arguments", "fail", "fail_on",
+           "load_scenario", "port", "positive_float", "run_id", "run_main", "seed",
+           "terminate_on_sigterm"]

@@ -15,7 +15,7 @@ import typing
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import msgspec
 import numpy as np
@@ -60,6 +60,8 @@ Vector3 = tuple[float, float, float]
 
 class ConfigError(UsageError, ValueError):
     """A scenario file that cannot be used; ``str()`` is one line naming key and reason."""
+
+    label: ClassVar[str] = "config error: "
 
 
 @dataclass(frozen=True)

@@ -13,8 +13,8 @@ from numpy.typing import NDArray
 
 from swarm.core.drone_step import AgentSetup, DroneAgent
 from swarm.core.formation import circle_bearings
-from swarm.models.kinematics import sample_initial_positions
-from swarm.scenario.config import ScenarioConfig
+from swarm.models.kinematics import InitialPlacementError, sample_initial_positions
+from swarm.scenario.config import ConfigError, ScenarioConfig
 
 Array = NDArray[np.float64]
 
@@ -30,12 +30,17 @@ def stream(seed: int, purpose: int, index: int = 0) -> np.random.Generator:
 
 
 def initial_drone_positions(config: ScenarioConfig, seed: int) -> Array:
-    """(N, 3) start positions [m] in the configured box, at least the minimum separation apart."""
+    """(N, 3) start positions [m] in the configured box, at least the minimum separation apart;
+    ``ConfigError`` naming the file and key when this seed finds no such placement (the
+    config's checks tried its own seed only)."""
     sw = config.swarm
-    return sample_initial_positions(sw.n_drones, np.array(sw.initial_box_center_m),
-                                    np.array(sw.initial_box_size_m),
-                                    sw.initial_min_separation_m,
-                                    stream(seed, STREAM_INITIAL_POSITIONS))
+    try:
+        return sample_initial_positions(sw.n_drones, np.array(sw.initial_box_center_m),
+                                        np.array(sw.initial_box_size_m),
+                                        sw.initial_min_separation_m,
+                                        stream(seed, STREAM_INITIAL_POSITIONS))
+    except InitialPlacementError as err:
+        raise ConfigError(f"{config.source}: swarm.initial_box_size_m: {err}") from None
 
 
 def initial_target_guesses(config: ScenarioConfig, seed: int, drone_id: int) -> Array:

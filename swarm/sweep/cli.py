@@ -24,9 +24,9 @@ from pathlib import Path
 
 from rich.console import Console
 
-from swarm.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, UsageError
+from swarm.errors import EXIT_FAILED, EXIT_INTERRUPTED, EXIT_OK, UsageError, run_main
 from swarm.scenario.cli_common import OneLineParser, fail
-from swarm.sweep.driver import SchedulerError, new_stop_event, run_sweep
+from swarm.sweep.driver import new_stop_event, run_sweep
 from swarm.sweep.gate import judge_gate
 from swarm.sweep.plan import local_workers, plan_sweep
 from swarm.sweep.results import RESULTS_FILE, ResultsWriter, read_rows
@@ -98,19 +98,23 @@ def _console() -> Console:
 def main(argv: Sequence[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["report"]:
-        return report_main(argv[1:])
+        report_argv = argv[1:]
+        return run_main(PROG, lambda: report_main(report_argv), context="report: ")
     args = build_parser().parse_args(argv)
+    return run_main(PROG, lambda: _run(args))
+
+
+def _run(args: argparse.Namespace) -> int:
+    """The sweep after parsing: a sweep file, point or results file that cannot be used raises
+    a ``UsageError``, which ``run_main`` prints as one line."""
     if args.scheduler is not None and args.workers is not None:
-        return fail(PROG, "--workers sizes the local cluster; with --scheduler the cluster "
-                          "is the one its workers make")
+        raise UsageError("--workers sizes the local cluster; with --scheduler the cluster is "
+                         "the one its workers make")
     console = _console()
     stop_event = new_stop_event()
-    try:
-        plan = plan_sweep(Path(args.sweep), args.out, stop_event=stop_event,
-                          check_firmware=args.scheduler is None)
-        writer = ResultsWriter(args.out)
-    except UsageError as err:
-        return fail(PROG, str(err))
+    plan = plan_sweep(Path(args.sweep), args.out, stop_event=stop_event,
+                      check_firmware=args.scheduler is None)
+    writer = ResultsWriter(args.out)
     keys = {t.key for t in plan.tasks}
     already = len(keys & writer.keys)
     workers = args.workers or local_workers(plan.spec)
@@ -124,12 +128,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             outcome = run_sweep(plan, writer, console, scheduler=args.scheduler,
                                 workers=workers, stop_event=stop_event)
             rows = [row for row in writer.rows if row["key"] in keys]
-    except SchedulerError as err:
-        return fail(PROG, str(err))
     except KeyboardInterrupt:
         print(f"{PROG}: interrupted again: left at once; the rows written are whole",
               file=sys.stderr)
-        return EXIT_INTERRUPTED
+        raise
     if outcome.interrupted:
         print(f"{PROG}: interrupted: {len(rows)} of {len(plan.tasks)} missions in "
               f"{writer.path}; run the same command to run the rest", file=sys.stderr)
@@ -145,9 +147,7 @@ def _summarize(rows: list[dict], out: Path, console: Console, heatmap: Sequence[
     render_summary(cells, console, title)
     try:
         written = [write_summary(cells, out), *write_figures(cells, out, heatmap)]
-    except ValueError as err:  # a heatmap axis not in the rows
-        return fail(PROG, f"--heatmap: {err}")
-    except OSError as err:
+    except OSError as err:  # the run is done and its rows kept: not the input's fault
         return fail(PROG, f"{out}: cannot write the summary: {err.strerror or err}",
                     EXIT_FAILED)
     console.print("wrote " + ", ".join(str(p) for p in written), highlight=False)
@@ -160,28 +160,23 @@ def _summarize(rows: list[dict], out: Path, console: Console, heatmap: Sequence[
 
 
 def report_main(argv: Sequence[str]) -> int:
+    """``swarm-sweep report DIR``; its ``UsageError``s are said after "report: "."""
     args = build_report_parser().parse_args(argv)
     path = args.directory / RESULTS_FILE
-    try:
-        if not path.is_file():
-            return fail(PROG, f"report: {path}: no such file (swarm-sweep SWEEP.toml --out "
-                              f"{args.directory} writes it)")
-        rows = read_rows(path)
-    except UsageError as err:
-        return fail(PROG, f"report: {err}")
+    if not path.is_file():
+        raise UsageError(f"{path}: no such file (swarm-sweep SWEEP.toml --out "
+                         f"{args.directory} writes it)")
+    rows = read_rows(path)
     if not rows:
-        return fail(PROG, f"report: {path}: no rows")
+        raise UsageError(f"{path}: no rows")
     axes = rows[0].get("axes", [])
     for key in args.heatmap or ():
         if key not in axes:
-            return fail(PROG, f"report: --heatmap {key}: not an axis of this sweep (axes: "
-                              f"{', '.join(axes) or 'none'})")
+            raise UsageError(f"--heatmap {key}: not an axis of this sweep (axes: "
+                             f"{', '.join(axes) or 'none'})")
     if args.heatmap is not None and len(args.heatmap) > 2:
-        return fail(PROG, "report: --heatmap takes one or two axes")
-    try:
-        columns = check_columns(args.columns, where="report: --columns")
-    except UsageError as err:
-        return fail(PROG, str(err))
+        raise UsageError("--heatmap takes one or two axes")
+    columns = check_columns(args.columns, where="--columns")
     return _summarize(rows, args.directory, _console(), args.heatmap or (),
                       f"{path}: {len(rows)} missions", columns=columns)
 

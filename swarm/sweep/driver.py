@@ -35,7 +35,7 @@ from rich.progress import (
     TimeRemainingColumn,
 )
 
-from swarm.errors import VigilError
+from swarm.errors import UsageError
 from swarm.sweep.missions import STOPPED, run_mission
 from swarm.sweep.plan import SweepPlan
 from swarm.sweep.results import ResultsWriter
@@ -47,8 +47,8 @@ STOP_GRACE_S = 30.0  # after Ctrl-C, how long running missions get to stop [s]
 CONNECT_TIMEOUT_S = 15.0
 
 
-class SchedulerError(VigilError, RuntimeError):
-    """The scheduler given cannot be reached; one line."""
+class SchedulerError(UsageError, RuntimeError):
+    """The scheduler given (``--scheduler``) cannot be reached; one line."""
 
 
 @dataclass

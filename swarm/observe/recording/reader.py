@@ -27,7 +27,7 @@ from swarm.observe.recording.schema import (
     RECORDING_FILE,
     AutopilotState,
     Recordable,
-    RecordingError,
+    RecordingFileError,
     RecordingMetadata,
     parse_topic,
 )
@@ -83,12 +83,12 @@ class _RecordStream:
                         yield record
             except EndOfFile:
                 if handle.tell() < 8:
-                    raise RecordingError(f"{self.path}: empty or cut before the MCAP header "
+                    raise RecordingFileError(f"{self.path}: empty or cut before the MCAP header "
                                          "(is the run still starting?)") from None
             except InvalidMagic:
-                raise RecordingError(f"{self.path}: not an MCAP file") from None
+                raise RecordingFileError(f"{self.path}: not an MCAP file") from None
             except (McapError, ValueError, KeyError) as err:
-                raise RecordingError(f"{self.path}: corrupt MCAP data: {err}") from None
+                raise RecordingFileError(f"{self.path}: corrupt MCAP data: {err}") from None
 
 
 def locate(path: Path) -> Path:
@@ -97,11 +97,11 @@ def locate(path: Path) -> Path:
     if path.is_dir():
         path = path / RECORDING_FILE
         if not path.is_file():
-            raise RecordingError(f"{path.parent}: no {RECORDING_FILE} in this directory "
+            raise RecordingFileError(f"{path.parent}: no {RECORDING_FILE} in this directory "
                                  "(not a recording made with --record?)")
         return path
     if not path.exists():
-        raise RecordingError(f"{path}: no such file or directory")
+        raise RecordingFileError(f"{path}: no such file or directory")
     return path
 
 
@@ -113,10 +113,10 @@ def _decode(kind: str, data: bytes, codec: WireCodec | None, where: str) -> Reco
             codec.validate(message)
         return message
     except WireError as err:
-        raise RecordingError(f"{where}: invalid {kind} message: {err.reason}") from None
+        raise RecordingFileError(f"{where}: invalid {kind} message: {err.reason}") from None
     except (msgspec.DecodeError, msgspec.ValidationError, ValueError, KeyError,
             TypeError) as err:
-        raise RecordingError(f"{where}: malformed {kind} message: "
+        raise RecordingFileError(f"{where}: malformed {kind} message: "
                              f"{type(err).__name__}: {err}") from None
 
 
@@ -167,7 +167,7 @@ def read_recording(path: Path, *, fill_gaps: bool = False) -> Recording:
 
     The record is built exactly as the launcher builds its own (``TelemetryCollector``);
     ``fill_gaps`` fills missing steps as the launcher's summary does instead of leaving NaN.
-    Raises RecordingError (one line) for a missing path, a non-MCAP file, a file without
+    Raises RecordingFileError (one line) for a missing path, a non-MCAP file, a file without
     Vigil metadata or a malformed message.
     """
     file = locate(path)
@@ -200,7 +200,7 @@ def read_recording(path: Path, *, fill_gaps: bool = False) -> Recording:
             elif kind == "truth":
                 collector.on_truth(name, _decode(kind, record.data, codec, f"{file}: {name}"))
     if metadata is None or collector is None:
-        raise RecordingError(f"{file}: no Vigil metadata (an MCAP file, but not a recording "
+        raise RecordingFileError(f"{file}: no Vigil metadata (an MCAP file, but not a recording "
                              "made by launch-swarm --record)")
     wall_s = max(last_publish - metadata.start_time_ns, 0) / 1e9 if last_publish else 0.0
     record = collector.record(metadata.seed, wall_s, fill=fill_gaps)

@@ -31,12 +31,12 @@ from datetime import UTC, datetime
 from importlib.metadata import PackageNotFoundError
 from importlib.metadata import version as distribution_version
 from pathlib import Path
-from typing import Any, Final
+from typing import Any, ClassVar, Final
 
 import msgspec
 import numpy as np
 
-from swarm.errors import VigilError
+from swarm.errors import UsageError, VigilError
 from swarm.messages.wire import (
     TELEMETRY_ARRAYS,
     BeaconWire,
@@ -82,6 +82,15 @@ Recordable = TelemetryWire | BeaconWire | CameraFrameWire | TruthWire | Autopilo
 
 class RecordingError(VigilError, RuntimeError):
     """A recording that cannot be written or read; ``str()`` is one line naming the file."""
+
+    label: ClassVar[str] = "recording failed: "
+
+
+class RecordingFileError(RecordingError, UsageError):
+    """A file given to be read that is not a readable Vigil recording: input that cannot be
+    used (``swarm-report DIR``), not a run that failed."""
+
+    label: ClassVar[str] = ""
 
 
 # -- provenance ----------------------------------------------------------------------------------
@@ -160,21 +169,24 @@ class RecordingMetadata:
 
     @classmethod
     def from_mcap(cls, data: dict[str, str], where: str) -> RecordingMetadata:
-        """Parse ``to_mcap``'s map; RecordingError (naming ``where``) if it is not one."""
+        """Parse ``to_mcap``'s map; RecordingFileError (naming ``where``) if it is not one."""
         if not data.get("format", "").startswith("vigil-recording/"):
-            raise RecordingError(f"{where}: metadata '{METADATA_NAME}' is not a Vigil "
+            raise RecordingFileError(f"{where}: metadata '{METADATA_NAME}' is not a Vigil "
                                  f"recording's (format {data.get('format')!r})")
         try:
             config = config_from_dict(json.loads(data["config"]),
                                       source=data.get("config_path") or "<recording>")
+            if data["mode"] not in MODES:
+                raise RecordingFileError(f"{where}: Vigil metadata is invalid: mode must be "
+                                         f"one of {', '.join(MODES)}, got {data['mode']!r}")
             return cls(config=config, seed=int(data["seed"]), mode=data["mode"],
                        version=data["version"], git_commit=data["git_commit"],
                        run_id=data["run_id"], start_time_ns=int(data["start_time_ns"]),
                        config_path=data.get("config_path", ""))
         except KeyError as err:
-            raise RecordingError(f"{where}: Vigil metadata lacks {err}") from None
+            raise RecordingFileError(f"{where}: Vigil metadata lacks {err}") from None
         except (ValueError, ConfigError) as err:  # JSONDecodeError is a ValueError
-            raise RecordingError(f"{where}: Vigil metadata is invalid: {err}") from None
+            raise RecordingFileError(f"{where}: Vigil metadata is invalid: {err}") from None
 
 
 # -- JSON converters, one per kind ---------------------------------------------------------------
