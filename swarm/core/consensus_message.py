@@ -103,7 +103,7 @@ class ConsensusMessage:
         """The message of these arrays (V (M, n, n), v (M, n), and either all five consensus
         states or none), converted to float64 and packed. Raises ``ConsensusMessageError``
         naming the array that does not fit."""
-        shape = np.shape(information) if information is not None else ()
+        shape: tuple[int, ...] = np.shape(information) if information is not None else ()
         if len(shape) != 3 or shape[1] != shape[2]:
             raise ConsensusMessageError(f"information has shape {shape!s:.60}, expected "
                                         f"(M, n, n)")
@@ -135,7 +135,8 @@ class ConsensusMessage:
     @property
     def has_states(self) -> bool:
         """Whether the message carries the consensus states (round 0)."""
-        return self.data.shape[0] > self.n_targets * self.n_state * (self.n_state + 1)
+        size: int = self.data.shape[0]
+        return size > self.n_targets * self.n_state * (self.n_state + 1)
 
     def array(self, name: str) -> Array | None:
         """The array ``name`` (one of ``ARRAY_NAMES``) as a view of ``data``, None for a state

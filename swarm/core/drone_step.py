@@ -710,7 +710,7 @@ class DroneAgent:
         if self._n_safety_rows:
             envelope_rows, envelope_lower = safety_rows(position, self.setup.safety)
         else:
-            envelope_rows = envelope_lower = []
+            envelope_rows, envelope_lower = [], []
         return kernels.qp_rows(terms, target_velocities, weight_sums, position, others,
                                envelope_rows, envelope_lower, self._row_constants)
 
@@ -752,7 +752,7 @@ _F64 = np.dtype(np.float64)  # native: what the agent and the decoder make
 
 
 def _consensus_operator(layout: ConsensusLayout, dt: float, gram: GramianParams,
-                        rate_gain: float) -> tuple[Array, Array]:
+                        rate_gain: float) -> tuple[NDArray[np.intp], Array]:
     """Gather index and coefficients of the consensus step on z = [x, D, u, 0] (SPEC §6),
     its parts where ``kernels.consensus_step`` takes them (``kernels.z_starts``).
 
@@ -797,7 +797,7 @@ def _consensus_operator(layout: ConsensusLayout, dt: float, gram: GramianParams,
     return index, coefficients
 
 
-def consensus_step(operator: tuple[Array, Array], x: Array, disagreement: Array,
+def consensus_step(operator: tuple[NDArray[np.intp], Array], x: Array, disagreement: Array,
                    local_input: list[float]) -> Array:
     """The packed consensus state after one step (SPEC §6, 3.29-3.30): each entry the sum of
     its precomputed terms over z = [x, Σ_j (x − x_j), u, 0], ``np.add.reduce(z[index] *

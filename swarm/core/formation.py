@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 from numpy.typing import NDArray
@@ -55,8 +55,8 @@ def bearing_error(
 
 
 def bearing_formation_scalars(
-    own_position: tuple[float, float, float],
-    neighbours: list[tuple[tuple[float, float, float], tuple[float, float, float]]],
+    own_position: Sequence[float],
+    neighbours: Sequence[tuple[Sequence[float], Sequence[float]]],
     gain: float,
 ) -> tuple[tuple[float, float, float], float]:
     """``bearing_formation_velocity`` and ``bearing_error`` on plain floats, in one pass.

@@ -79,8 +79,9 @@ def pseudo_inverse_psd(matrix: Array) -> Array:
     try:
         np.linalg.cholesky(matrix)
     except np.linalg.LinAlgError:
-        return np.linalg.pinv(matrix, hermitian=True)
-    return np.linalg.inv(matrix)
+        # numpy's stubs type pinv and inv of float64 as NDArray[floating]: float64 here.
+        return np.linalg.pinv(matrix, hermitian=True)  # type: ignore[return-value]
+    return np.linalg.inv(matrix)  # type: ignore[return-value]
 
 
 def posterior(information: Array, vector: Array, n_agents: int) -> tuple[Array, Array]:

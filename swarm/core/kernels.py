@@ -19,7 +19,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Final, NamedTuple
+from typing import Any, Final, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -138,8 +138,9 @@ def qp_row_constants(values: Mapping[str, float]) -> list[float]:
 
 
 def _fields_of(row: list[float], fields: tuple[Field, ...], names: tuple[str, ...]
-               ) -> dict[str, float | tuple[float, ...]]:
-    """The fields ``names`` of ``row``: a float each, a tuple for those of several."""
+               ) -> dict[str, Any]:
+    """The fields ``names`` of ``row``: a float each, a tuple for those of several (so the
+    value's type is the field's: ``Any``, for the named tuple's keyword arguments)."""
     return {name: row[start] if stop - start == 1 else tuple(row[start:stop])
             for name, start, stop in fields if name in names}
 

@@ -28,7 +28,8 @@ def bearing_from_image_point(image_point: NDArray[np.float64]) -> Vec3:
     coordinates is [x̄, ȳ, −1] and needs no rotation.
     """
     ray = np.array([image_point[0], image_point[1], -1.0])
-    return ray / np.sqrt(ray @ ray)
+    bearing: Vec3 = ray / np.sqrt(ray @ ray)
+    return bearing
 
 
 def projector(unit_bearing: Vec3) -> Mat3:

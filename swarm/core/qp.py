@@ -19,6 +19,7 @@ from __future__ import annotations
 import importlib
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -48,7 +49,8 @@ class LocalQp:
 
     @property
     def n_variables(self) -> int:
-        return self.cost_linear.shape[0]
+        n: int = self.cost_linear.shape[0]
+        return n
 
     def objective(self, z: NDArray[np.float64]) -> float:
         return float(0.5 * z @ self.cost_hessian @ z + self.cost_linear @ z)
@@ -401,7 +403,7 @@ class LocalQpWorkspace:
         return LocalQp(self.hessian.copy(), self.linear.copy(), self.rows.copy(),
                        self.lower.copy(), self.z_min.copy(), self.z_max.copy())
 
-    def _max_violation(self, z: list[float], u_columns: list[float],
+    def _max_violation(self, z: Sequence[float], u_columns: list[float],
                        lower: list[float]) -> float:
         """``LocalQp.max_violation`` of the QP of these inputs at z, on plain floats (a NaN in
         z or the inputs is returned as the violation); reads no matrix. Compiled

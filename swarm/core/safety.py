@@ -23,6 +23,7 @@ held u back (the conflict the drone counts: safety won).
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -134,7 +135,8 @@ def fence_edges(keep_in: tuple[Vec2, ...]) -> list[tuple[Vec2, Vec2]]:
     return edges
 
 
-def safety_rows(position: Vec3, params: SafetyParams) -> tuple[list[Vec3], list[float]]:
+def safety_rows(position: Sequence[float], params: SafetyParams
+                ) -> tuple[list[Vec3], list[float]]:
     """The envelope's CBF rows at p_i: (a, lower) with a·u_i ≥ lower, in the order floor,
     ceiling, keep-in edges, keep-out cylinders (module docstring)."""
     px, py, pz = position

@@ -86,7 +86,7 @@ def fail(reason: str, rule: str) -> None:
 def all_finite(raw: bytes | bytearray) -> bool:
     """Every float64 in the little-endian bytes ``raw`` (a multiple of 8 long) is finite."""
     values = np.frombuffer(raw, dtype=_LE_F64)
-    return np.count_nonzero(np.isfinite(values)) == values.size  # faster than .all()
+    return bool(np.count_nonzero(np.isfinite(values)) == values.size)  # faster than .all()
 
 
 def finite_floats(named: list[tuple[str, bytes]], native: bool) -> None:
@@ -234,8 +234,9 @@ class _Generator:
         if isinstance(t, msgspec.inspect.StructType) and t.cls is self._rules._array_type:
             if "shape" not in extra:
                 raise TypeError(f"{path}: an array field must declare its shape")
-            dims = tuple(d if isinstance(d, int) else size(d) for d in extra["shape"])
-            if any(d is None for d in dims):
+            sized = [d if isinstance(d, int) else size(d) for d in extra["shape"]]
+            dims = tuple(d for d in sized if d is not None)
+            if len(dims) != len(sized):
                 raise TypeError(f"{path}: shape {extra['shape']} names an unbounded size")
             nbytes = 8 * math.prod(dims)
             self._emit(f"if {var}.shape != {dims!r} or len({var}.data) != {nbytes}:")

@@ -125,11 +125,6 @@ Text = Annotated[str, msgspec.Meta(max_length=MAX_TEXT_CHARS)]
 Vector3 = tuple[Finite, Finite, Finite]
 
 
-def _shaped(*dims: str | int) -> Any:
-    """An ``F64Array`` field of this shape (dims: swarm size names or ints)."""
-    return Annotated[F64Array, msgspec.Meta(extra={"shape": dims})]
-
-
 # -- building blocks -------------------------------------------------------------------------
 
 
@@ -149,7 +144,7 @@ class F64Array(msgspec.Struct, frozen=True, array_like=True, forbid_unknown_fiel
         """A new, writable native float64 array (no validation: decoded messages are checked)."""
         return np.frombuffer(self.data, dtype=_LE_F64).reshape(self.shape).astype(np.float64)
 
-    def native(self) -> memoryview | Array:
+    def native(self) -> memoryview[float] | Array:
         """The values as a C-contiguous native float64 buffer, flat (no validation: decoded
         messages are checked): on a little-endian machine the bytes themselves, read-only."""
         if _NATIVE_LE:
@@ -159,9 +154,18 @@ class F64Array(msgspec.Struct, frozen=True, array_like=True, forbid_unknown_fiel
     def to_list(self) -> list[Any]:
         """The values as (nested) lists of floats, bit-exact (no validation: decoded messages
         are checked). On a little-endian machine the bytes are read in place, no array made."""
+        values: list[Any]
         if _NATIVE_LE and all(self.shape):  # memoryview cannot cast to an empty shape
-            return memoryview(self.data).cast("d", self.shape).tolist()
-        return self.to_array().tolist()
+            values = memoryview(self.data).cast("d", self.shape).tolist()
+        else:
+            values = self.to_array().tolist()
+        return values
+
+
+# ``F64Array`` fields of a declared shape (dims: swarm size names or ints), checked against
+# the swarm's sizes by the wire rules (``swarm.messages.rules``).
+DronesBy3 = Annotated[F64Array, msgspec.Meta(extra={"shape": ("drones", 3)})]  # (N, 3)
+TargetsBy3 = Annotated[F64Array, msgspec.Meta(extra={"shape": ("targets", 3)})]  # (M, 3)
 
 
 def _array_or_none(values: ArrayLike | None) -> F64Array | None:
@@ -193,7 +197,7 @@ class _Wire(msgspec.Struct, frozen=True, array_like=True, forbid_unknown_fields=
         return out
 
 
-class ConsensusWire(_Wire, tag="consensus", kw_only=True):
+class ConsensusWire(_Wire, tag="consensus", kw_only=True, frozen=True):
     """``ConsensusMessage`` on ``agent/<i>/consensus``: the sender's sizes and its ``data``
     as little-endian float64 bytes: [information (M, n, n) | information_vector (M, n)], and
     in round 0 also [projector_mean (M, 3, 3) | weight_mean (M,) | projector_integral
@@ -214,7 +218,7 @@ class ConsensusWire(_Wire, tag="consensus", kw_only=True):
         return consensus_from_wire(self).arrays()
 
 
-class BeaconWire(_Wire, tag="beacon", kw_only=True):
+class BeaconWire(_Wire, tag="beacon", kw_only=True, frozen=True):
     """A drone's position on ``agent/<i>/beacon`` (collision avoidance, formation bearings)."""
 
     sender: DroneId
@@ -247,7 +251,7 @@ class BeaconWire(_Wire, tag="beacon", kw_only=True):
 _LE_U16: Final = np.dtype("<u2")
 
 
-class BeaconRelayWire(_Wire, tag="beacons", kw_only=True):
+class BeaconRelayWire(_Wire, tag="beacons", kw_only=True, frozen=True):
     """Every drone's newest beacon as the world holds it, relayed on ``world/beacons`` at each
     realtime tick: one message per agent and tick instead of one per other drone, packed so
     that a receiver decodes it without a Python object per drone.
@@ -299,7 +303,7 @@ class DetectionWire(msgspec.Struct, frozen=True, array_like=True, forbid_unknown
     y: Finite
 
 
-class CameraFrameWire(_Wire, tag="camera", kw_only=True):
+class CameraFrameWire(_Wire, tag="camera", kw_only=True, frozen=True):
     """Drone ``drone``'s detections at ``step`` on ``world/camera/<i>``.
 
     ``vehicle_time_ms`` is the MAVLink ``time_boot_ms`` of the vehicle position sample that
@@ -317,8 +321,8 @@ class CameraFrameWire(_Wire, tag="camera", kw_only=True):
     detections: Annotated[tuple[DetectionWire, ...], msgspec.Meta(
         max_length=MAX_TARGETS, extra={"max_items": "targets", "distinct": "target"})] = ()
     # (M, 3), single-integrator model only
-    target_velocities: _shaped("targets", 3) | None = None
-    drone_positions: _shaped("drones", 3) | None = None  # (N, 3), lockstep only
+    target_velocities: TargetsBy3 | None = None
+    drone_positions: DronesBy3 | None = None  # (N, 3), lockstep only
 
     @classmethod
     def build(
@@ -363,14 +367,14 @@ class CameraFrameWire(_Wire, tag="camera", kw_only=True):
         return None if self.drone_positions is None else self.drone_positions.to_list()
 
 
-class TruthWire(_Wire, tag="truth", kw_only=True):
+class TruthWire(_Wire, tag="truth", kw_only=True, frozen=True):
     """Ground truth on ``world/truth`` (recorder only; agents never read it)."""
 
     step: NonNegativeInt
     time_s: NonNegativeFinite
-    drone_positions: _shaped("drones", 3)
-    target_positions: _shaped("targets", 3)
-    target_velocities: _shaped("targets", 3)
+    drone_positions: DronesBy3
+    target_positions: TargetsBy3
+    target_velocities: TargetsBy3
 
     @classmethod
     def build(cls, step: int, time_s: float, drone_positions: ArrayLike,
@@ -381,7 +385,7 @@ class TruthWire(_Wire, tag="truth", kw_only=True):
                    target_velocities=F64Array.from_array(target_velocities))
 
 
-class ClockWire(_Wire, tag="clock", kw_only=True):
+class ClockWire(_Wire, tag="clock", kw_only=True, frozen=True):
     """The world's clock and run state on ``world/clock``."""
 
     step: NonNegativeInt
@@ -472,7 +476,7 @@ def telemetry_layout(n_targets: int, n_state: int
     return tuple(layout)
 
 
-class TelemetryWire(_Wire, tag="telemetry", kw_only=True):
+class TelemetryWire(_Wire, tag="telemetry", kw_only=True, frozen=True):
     """One agent step on ``agent/<i>/telemetry``: every ``StepDiagnostics`` field (``drone_id``
     is ``drone``), the drone's position and the process's running ``counters``.
 
@@ -588,7 +592,7 @@ def _pack_telemetry(arrays: tuple[Any, ...]) -> tuple[int, int, bytes]:
     arrays (the agent's own: one compiled call, ``join_native``), converted otherwise. Raises
     ``WireError`` (shape)."""
     estimates = arrays[2]
-    shape = (estimates.shape if type(estimates) is _ndarray
+    shape: tuple[int, ...] = (estimates.shape if type(estimates) is _ndarray
              else np.shape(estimates) if estimates is not None else ())
     if len(shape) != 2:
         raise WireError(f"estimates has shape {shape!s:.60}, expected (M, n)", rule="shape")
@@ -607,7 +611,7 @@ def _pack_telemetry(arrays: tuple[Any, ...]) -> tuple[int, int, bytes]:
     return m, n, b"".join(chunks)
 
 
-class TelemetryBatchWire(_Wire, tag="telemetry_batch", kw_only=True):
+class TelemetryBatchWire(_Wire, tag="telemetry_batch", kw_only=True, frozen=True):
     """Consecutive steps of one agent's telemetry in one message on ``agent/<i>/telemetry``
     (a lockstep agent: ``Exchange.telemetry_steps``): each item is the bytes of one
     ``TelemetryWire``, checked as that message is on its own (``WireCodec.
@@ -1019,7 +1023,7 @@ class WireCodec:
         except UnicodeDecodeError:
             raise WireError("malformed telemetry message: a string is not valid UTF-8",
                             rule="malformed") from None
-        if type(message) is TelemetryWire:
+        if isinstance(message, TelemetryWire):
             self._rules[TelemetryWire](message)
             return (message,)
         items = []
@@ -1058,7 +1062,7 @@ class WireCodec:
         """msgspec's decode (types and constraints, in C), then this swarm's rules."""
         self._check_payload(payload, cls)
         try:
-            message = self._decoders[cls].decode(payload)
+            message: _W = self._decoders[cls].decode(payload)
         except msgspec.DecodeError as exc:  # includes msgspec.ValidationError
             raise self._explain(payload, cls, exc) from None
         except UnicodeDecodeError:  # msgspec raises this, not DecodeError, for bad UTF-8

@@ -75,8 +75,9 @@ def _vec3(v: ArrayLike, name: str) -> Array:
 def as_xyz(v: ArrayLike, name: str = "v") -> Xyz:
     """``v`` as three Python floats: a tuple of three floats as it is, anything else checked
     as the array functions check it (ValueError unless it is a 3-vector)."""
-    if type(v) is tuple and len(v) == 3 and all(type(c) is float for c in v):
-        return v  # type: ignore[return-value]
+    if isinstance(v, tuple) and type(v) is tuple and len(v) == 3 \
+            and all(type(c) is float for c in v):
+        return v
     x, y, z = _vec3(v, name).tolist()
     return x, y, z
 
@@ -93,7 +94,8 @@ def ned_to_enu_xyz(north: float, east: float, down: float) -> Xyz:
 
 def _link_float(value: float) -> float:
     try:
-        return _FLOAT32.unpack(_FLOAT32.pack(value))[0]
+        rounded: float = _FLOAT32.unpack(_FLOAT32.pack(value))[0]
+        return rounded
     except OverflowError:  # rounds beyond the float32 range: what the C cast gives, ±inf
         return math.copysign(math.inf, value)
 
@@ -103,7 +105,7 @@ def link_float_xyz(a: float, b: float, c: float) -> Xyz:
     to nearest, ties to even). Values beyond the float32 range become ±inf (``struct``, which
     pymavlink packs with, would raise OverflowError); NaN stays NaN."""
     try:
-        return _FLOAT32_XYZ.unpack(_FLOAT32_XYZ.pack(a, b, c))  # type: ignore[return-value]
+        return _FLOAT32_XYZ.unpack(_FLOAT32_XYZ.pack(a, b, c))
     except OverflowError:
         return _link_float(a), _link_float(b), _link_float(c)
 
