@@ -42,6 +42,7 @@ from swarm.messages.wire import (
     BeaconRelayWire,
     BeaconWire,
     CameraFrameWire,
+    ClockState,
     ClockWire,
     F64Array,
     TruthWire,
@@ -193,7 +194,7 @@ class World:
         elif timeout_s > 0:
             time.sleep(timeout_s)
 
-    def publish_clock(self, step: int, state: str, detail: str = "") -> None:
+    def publish_clock(self, step: int, state: ClockState, detail: str = "") -> None:
         self._last_clock_s = time.monotonic()
         self._pub_clock.put(self.codec.encode(ClockWire(
             step=step, time_s=step * self.dt_s, state=state, mode=self.options.mode,
@@ -247,9 +248,9 @@ class World:
         long the world has held it, so that an agent dates it from its arrival here."""
         if self._pub_relay is None:  # lockstep: the frames carry the positions
             return
-        held = self.beacons.fresh_with_ages(math.inf)
+        held = self.beacons.fresh_with_ages(math.inf)  # by drone id (the codec checked it)
         put_stamped(self.session, self._pub_relay, self.codec.encode(
-            BeaconRelayWire.build(step, (held[i] for i in sorted(held)))))
+            BeaconRelayWire.build(step, (held[i] for i in range(self.n) if i in held))))
 
     def _not_ready(self) -> list[int]:
         if self.fleet is None:
@@ -343,6 +344,7 @@ class World:
                                           f"within {timeout} s")
                 served = fleet.service(0.05)
             for vehicle, velocity in zip(fleet.vehicles, velocities, strict=True):
+                assert velocity is not None  # the loop above ends with none missing
                 vehicle.integrate(self.dt_s, velocity)
             self.positions[:] = fleet.positions_w
         self._sim_now = None

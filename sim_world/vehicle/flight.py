@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from typing import Final, Literal
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from pymavlink.dialects.v20 import ardupilotmega as mavlink2
 
 from sim_world.vehicle.flavours import (
@@ -94,7 +94,7 @@ class Flight:
     and ``origin_w`` are checked by the caller (finite, shape (3,)). Not thread-safe.
     """
 
-    def __init__(self, flavour: Flavour, position_w: Array, origin_w: Array, *,
+    def __init__(self, flavour: Flavour, position_w: ArrayLike, origin_w: ArrayLike, *,
                  u_max_m_s: float, setpoint_timeout_s: float | None, start: Start,
                  response: VelocityResponse, flight_model: FlightModel | None) -> None:
         if not (math.isfinite(u_max_m_s) and u_max_m_s > 0):

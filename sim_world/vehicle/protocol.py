@@ -465,10 +465,10 @@ class EmulatedVehicle:
         if command == _MSG.MAV_CMD_SET_MESSAGE_INTERVAL:
             return self._set_interval(p[0], p[1]), []
         if command == _MSG.MAV_CMD_GET_MESSAGE_INTERVAL:
-            name = _STREAM_IDS.get(int(p[0])) if _finite(p[0]) else None
-            if name is None:
+            stream = _STREAM_IDS.get(int(p[0])) if _finite(p[0]) else None
+            if stream is None:
                 return _MSG.MAV_RESULT_DENIED, []
-            interval = self._streams[name].interval_s
+            interval = self._streams[stream].interval_s
             interval_us = -1 if interval is None else round(interval * 1e6)
             return _MSG.MAV_RESULT_ACCEPTED, [
                 self._tx.message_interval_encode(int(p[0]), interval_us)]

@@ -39,10 +39,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from swarm.agent.nearby import carry, nearby
-from swarm.core.drone_step import ConsensusMessage, DroneAgent
+from swarm.core.consensus_message import ConsensusMessage
+from swarm.core.drone_step import DroneAgent
 from swarm.errors import UsageError
 from swarm.mavlink.link import AutopilotLink, LinkError, PositionSample
-from swarm.messages.wire import RELAY_HELD, RELAY_WIDTH, BeaconRelayWire, CameraFrameWire
+from swarm.messages.native import RELAY_HELD, RELAY_WIDTH
+from swarm.messages.wire import BeaconRelayWire, CameraFrameWire
 from swarm.net.rate import RateLimiter
 from swarm.net.stores import LatestValues, StepMailbox
 from swarm.net.subscriptions import BlockingReceives, DrainedSubscriber

@@ -32,16 +32,17 @@ import numpy as np
 
 from swarm.agent.exchange import Mode, Peers, exchange_for
 from swarm.agent.qp_failures import QpFailureLog
-from swarm.core.drone_step import ConsensusMessage, DroneAgent, StepDiagnostics
+from swarm.core.consensus_message import ConsensusMessage
+from swarm.core.drone_step import DroneAgent, StepDiagnostics
 from swarm.errors import EXIT_END_MISSION, EXIT_FAILED, EXIT_OK, VigilError
 from swarm.mavlink.link import AutopilotLink, LinkError, PositionSample
 from swarm.mavlink.udpin import BoundSocket
+from swarm.messages.rules import WireError
 from swarm.messages.wire import (
     BeaconRelayWire,
     BeaconWire,
     CameraFrameWire,
     ClockWire,
-    WireError,
 )
 from swarm.models.command_reference import CommandReference
 from swarm.net.faults import FaultyPublisher, LinkFaults
@@ -63,6 +64,14 @@ from swarm.watch.localization_watch import LocalizationWatch
 from swarm.watch.vehicle_watch import VehicleWatch
 
 ROUTER_RETRY_S = 0.05  # the world's router is not up yet: try again this soon
+
+
+def _drained(subscriber: object) -> DrainedSubscriber:
+    """A camera or consensus subscription, which the exchange's ``receiving`` makes a ring or a
+    FIFO (``keep_latest``, ``backlog``): the ``DrainedSubscriber`` it is."""
+    if not isinstance(subscriber, DrainedSubscriber):
+        raise TypeError(f"expected a ring or FIFO subscription, got {subscriber!r}")
+    return subscriber
 
 
 class VehicleNotAsAsked(VigilError):
@@ -167,7 +176,8 @@ class AgentProcess:
                                on_sent_time=exchange.consensus_sent if exchange.sent_times
                                else None, **receiving("consensus", rounds))
                      for j in sorted(self.neighbours)]
-        exchange.attach(subs[0], dict(zip(sorted(self.neighbours), consensus, strict=True)))
+        exchange.attach(_drained(subs[0]), {j: _drained(sub) for j, sub in
+                                            zip(sorted(self.neighbours), consensus, strict=True)})
         self._subscribers = subs = subs + relay + consensus
 
         def rings(group: list) -> list[DrainedSubscriber]:
@@ -320,8 +330,7 @@ class AgentProcess:
                    velocity_m_s=self._flying, sample_age_s=sample_age_s,
                    vehicle_time_ms=sample.time_boot_ms, stamped=exchange.sent_times)
         for rnd in range(agent.n_rounds):
-            msg = agent.consensus_round(exchange.inbox(step, rnd))
-            self._publish_consensus(msg)
+            self._publish_consensus(agent.consensus_round(exchange.inbox(step, rnd)))
         result = agent.finish_step(exchange.beacons(step, sample_age_s, self._flying,
                                                     around=position))
         self.steps_run += 1

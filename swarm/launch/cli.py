@@ -186,11 +186,11 @@ def sitl_firmware(value: str | None) -> Firmware | None:
     if value is None:
         return None
     if value in KINDS:
-        firmware = firmware_from_env(value)  # type: ignore[arg-type]
+        firmware = firmware_from_env(value)
         if firmware is None:
-            variable = ENV_VARIABLE[value]  # type: ignore[index]
+            variable = ENV_VARIABLE[value]
             raise FirmwareError(f"--sitl {value}: ${variable} is not set (give the path of the "
-                            f"build instead)")
+                                f"build instead)")
         return firmware
     return Firmware.at(value)
 

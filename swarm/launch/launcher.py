@@ -29,7 +29,7 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, ClassVar
+from typing import IO, ClassVar, TypedDict
 
 import numpy as np
 
@@ -146,7 +146,14 @@ class LaunchOptions:
                                      "those)")
 
 
-def _placement(drone: int | None) -> dict[str, int | bool]:
+class _Placement(TypedDict, total=False):
+    """``subprocess.Popen``'s scheduling arguments of a child (``_placement``)."""
+
+    process_group: int
+    start_new_session: bool
+
+
+def _placement(drone: int | None) -> _Placement:
     """Where a child is scheduled: every child leads a process group of its own (stopped as
     one); the world and sim-vehicles also get a session of their own, agents share the
     launcher's.
@@ -528,8 +535,10 @@ class SwarmLauncher(RunObserver):
         time_s = max(self.collector.last_truth_step, 0) * self.options.config.scenario.dt_s
         restart = self._restarts_done.get(drone, 0) < self.options.agent_restarts
         self.agent_losses.append(AgentLoss(drone, time_s, self._how(child), restart))
+        command = child.process.args  # the argv list _start gave it
         then = (f"restarting it in {self.options.agent_restart_delay_s:g} s" if restart else
-                "restart it by hand with: " + shlex.join(map(str, child.process.args)))
+                "restart it by hand with: " + (shlex.join(map(str, command))
+                                               if isinstance(command, list) else str(command)))
         self.log(f"launch-swarm: drone {drone} lost at t = {time_s:.2f} s: "
                  f"{self._ending(child)}\n  the mission goes on without it; {then}")
         if restart:
@@ -736,8 +745,9 @@ class SwarmLauncher(RunObserver):
                     self.log(f"launch-swarm: every drone armed and streaming after "
                              f"{time.monotonic() - started:.1f} s; mission running")
                 if state == "aborted":
-                    latest = self.clock.get(0)
-                    raise MissionError(f"the world aborted the mission: {latest[0].detail}")
+                    latest = self.clock.get(0)  # the clock that said "aborted"
+                    detail = latest[0].detail if latest is not None else "no detail"
+                    raise MissionError(f"the world aborted the mission: {detail}")
                 if state == "waiting" and time.monotonic() - world_started > (
                         cfg.runtime.start_timeout_s + 10.0):
                     raise MissionError("the mission never started")

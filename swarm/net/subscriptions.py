@@ -31,7 +31,7 @@ from typing import Any, TypeVar
 
 import zenoh
 
-from swarm.messages.wire import WireError
+from swarm.messages.rules import WireError
 from swarm.net.session import MAX_REASON_CHARS
 
 T = TypeVar("T")
@@ -100,7 +100,7 @@ def subscribe(
     session: zenoh.Session,
     key: str,
     decode: Callable[[bytes], T],
-    on_value: Callable[[str, T], None],
+    on_value: Callable[..., None],  # (key, value), or (key, value, arrived_s): see below
     rejections: RejectionCounter,
     kind: str,
     *,
@@ -193,6 +193,7 @@ def subscribe(
         return DrainedSubscriber(session.declare_subscriber(
             key, zenoh.handlers.FifoChannel(backlog), allowed_origin=origin), callback,
             arrival_times=False, max_per_drain=backlog)
+    assert keep_latest is not None  # both None returned the callback subscriber above
     return DrainedSubscriber(session.declare_subscriber(
         key, zenoh.handlers.RingChannel(keep_latest), allowed_origin=origin), callback)
 

@@ -134,7 +134,8 @@ class TelemetryCollector:
         true_min, measured_min = self._reference_lambdas(
             filled["positions"], filled["targets"], detected[:steps])
         return RunRecord(
-            config=self.config, seed=seed, times_s=np.arange(steps) * self.config.scenario.dt_s,
+            config=self.config, seed=seed,
+            times_s=np.arange(steps, dtype=np.float64) * self.config.scenario.dt_s,
             drone_positions_m=arrays["positions"], velocities_m_s=arrays["velocities"],
             target_positions_m=arrays["targets"], target_velocities_m_s=arrays["target_vel"],
             estimates=arrays["estimates"], lambda_bar=arrays["lambda_bar"],

@@ -168,7 +168,7 @@ def _lines(segments: list[Array], rgba: tuple[float, float, float, float],
                          color=_colour(rgba))
 
 
-def _entity(name: str, stamp: Timestamp, **primitives: list) -> SceneEntity:
+def _entity(name: str, stamp: Timestamp, **primitives: Any) -> SceneEntity:
     return SceneEntity(timestamp=stamp, frame_id=FRAME, id=name, frame_locked=False,
                        **primitives)
 
@@ -202,7 +202,7 @@ def _envelope_entity(config: ScenarioConfig, stamp: Timestamp) -> SceneEntity:
 def scene_update(config: ScenarioConfig, state: SceneState) -> SceneUpdate:
     """The scene of ``state`` (entities ``ENTITIES``, each replacing its previous self)."""
     stamp = _stamp(state.time_s)
-    present = np.isfinite(state.drones_m).all(axis=1)
+    present = np.all(np.isfinite(state.drones_m), axis=1)
     drones = [i for i in range(state.drones_m.shape[0]) if present[i]]
     sensing = state.sensing
     targets = [r for r in range(state.targets_m.shape[0])
@@ -215,7 +215,7 @@ def scene_update(config: ScenarioConfig, state: SceneState) -> SceneUpdate:
     edges = [state.drones_m[[i, j]] for i, j in config.swarm.graph.edges
              if present[i] and present[j]]
     estimates = state.estimates_m.reshape(-1, 3)
-    known = np.isfinite(estimates).all(axis=1)
+    known = np.all(np.isfinite(estimates), axis=1)
     ellipsoids = []
     if state.estimate_covariance_m2 is not None:
         covariances = state.estimate_covariance_m2.reshape(-1, 3, 3)

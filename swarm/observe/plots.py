@@ -22,6 +22,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from matplotlib.axes import Axes
@@ -29,6 +30,7 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.colors import to_rgba
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
+from mpl_toolkits.mplot3d import Axes3D
 from mpl_toolkits.mplot3d.art3d import Line3DCollection
 from numpy.typing import NDArray
 
@@ -85,7 +87,7 @@ def _drone_legend(figure: Figure, record: RunRecord,
         figure.legend(handles=handles, loc="outside right upper", fontsize="small")
 
 
-QP_START_STYLE = {"color": "tab:gray", "ls": "-.", "lw": 1.0}
+QP_START_STYLE: dict[str, Any] = {"color": "tab:gray", "ls": "-.", "lw": 1.0}
 TARGET_SPEED_STYLES = ("--", (0, (1, 1.5)), "-.", (0, (5, 1, 1, 1)))
 
 
@@ -298,7 +300,7 @@ def _final_step(record: RunRecord) -> int | None:
     return last_present(record.drone_positions_m)
 
 
-def _set_aspect_3d(ax: Axes, points: Array) -> float:
+def _set_aspect_3d(ax: Axes3D, points: Array) -> float:
     """Same scale on x and y; z stretched to at least MIN_Z_BOX of the horizontal box when the
     swarm is spread out (else the drones sit on a flat slab). Returns the z stretch factor."""
     points = points[np.isfinite(points).all(axis=1)]

@@ -128,14 +128,14 @@ _start_index = start_index  # the name this module used before
 
 def telemetry_missing(record: RunRecord) -> BoolArray:
     """(K, N): drone i's telemetry of step k never arrived (its command and λ̄ are all NaN)."""
-    return (np.isnan(record.velocities_m_s).all(axis=-1)
-            & np.isnan(record.lambda_bar).all(axis=-1))
+    return (np.all(np.isnan(record.velocities_m_s), axis=-1)
+            & np.all(np.isnan(record.lambda_bar), axis=-1))
 
 
 def truth_missing(record: RunRecord) -> BoolArray:
     """(K,): no ground truth for step k (every drone and target position is NaN)."""
-    return (np.isnan(record.drone_positions_m).all(axis=(1, 2))
-            & np.isnan(record.target_positions_m).all(axis=(1, 2)))
+    return (np.all(np.isnan(record.drone_positions_m), axis=(1, 2))
+            & np.all(np.isnan(record.target_positions_m), axis=(1, 2)))
 
 
 def coverage(record: RunRecord) -> Coverage:
@@ -292,6 +292,11 @@ def _crossing(values: FloatArray, limit: float, *, below: bool) -> _Crossing | N
                      int(np.argmax(beyond[first_step])), int(steps.sum()))
 
 
+def _by_drone(prefix: str) -> Callable[[int, int], str]:
+    """A violation's subject at (step, drone): "<prefix>, drone <i>"."""
+    return lambda _k, i: f"{prefix}, drone {i}"
+
+
 def _violation(invariant: str, crossing: _Crossing, limit: float, record: RunRecord,
                subject: Callable[[int, int], str], what: str, when: str = "") -> Violation:
     """A ``Violation`` of ``crossing`` (steps counted from the record's first); ``what`` is
@@ -363,7 +368,7 @@ def _check_lambda_bar(record: RunRecord) -> list[Violation]:
                                        first_step=crossing.first_step + k0)
         violations.append(_violation(
             "lambda_bar", crossing, floor, record,
-            lambda _k, i, r=r: f"target {r}, drone {i}",
+            _by_drone(f"target {r}"),
             f"target {r}: drone {crossing.worst_column} has λ̄ = {crossing.worst_value:.4f} "
             f"< ε − tol = {floor:.4f} (by {floor - crossing.worst_value:.4f})", "below"))
     return violations
@@ -424,7 +429,7 @@ def _check_envelope(record: RunRecord) -> list[Violation]:
             continue
         out.append(_violation(
             "envelope", crossing, -tolerance, record,
-            lambda _k, i, kind=kind: f"{kind}, drone {i}",
+            _by_drone(kind),
             f"drone {crossing.worst_column} went {-crossing.worst_value:.4f} m beyond the "
             f"{kind} (tolerance {tolerance} m)", "beyond"))
     return out

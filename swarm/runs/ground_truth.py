@@ -32,7 +32,9 @@ class ReferenceGramians:
 
     def lambda_min(self) -> tuple[Array, Array]:
         """λ_min of the true and of the measured Gramian of every target, at this step."""
-        return (np.linalg.eigvalsh(self.true)[:, 0], np.linalg.eigvalsh(self.measured)[:, 0])
+        # numpy's stubs type eigvalsh of float64 as NDArray[floating]: float64 here.
+        return (np.linalg.eigvalsh(self.true)[:, 0],  # type: ignore[return-value]
+                np.linalg.eigvalsh(self.measured)[:, 0])
 
     def advance(self, drone_positions: Array, target_positions: Array, detected: Array) -> None:
         """Euler step with the drones and targets of this step; ``detected`` is (N, M) bool."""

@@ -124,8 +124,9 @@ def _run(config: ScenarioConfig, seed: int, on_step: StepCallback | None,
                     for i in range(n)]
         for _ in range(agents[0].n_rounds):
             inboxes = [{j: messages[j] for j in graph.neighbours[i]} for i in range(n)]
-            messages = [agents[i].consensus_round(inboxes[i]) for i in range(n)]
-        beacons = dict(enumerate(seen))
+            replies = [agents[i].consensus_round(inboxes[i]) for i in range(n)]
+            messages = [m for m in replies if m is not None]  # the last round answers none
+        beacons = {i: p.tolist() for i, p in enumerate(seen)}  # as an agent's exchange has them
         results = [agents[i].finish_step(beacons) for i in range(n)]
         diags = [r.diagnostics for r in results]
         if recorder is not None:
@@ -157,7 +158,7 @@ def _run(config: ScenarioConfig, seed: int, on_step: StepCallback | None,
                 config.control.u_max_m_s, dt, response)
 
     return RunRecord(
-        config=config, seed=seed, times_s=np.arange(steps) * dt,
+        config=config, seed=seed, times_s=np.arange(steps, dtype=np.float64) * dt,
         drone_positions_m=rec["pos"], velocities_m_s=rec["vel"],
         target_positions_m=rec["tpos"], target_velocities_m_s=rec["tvel"],
         estimates=rec["est"], lambda_bar=rec["lam"], psi0=rec["psi0"], psi1=rec["psi1"],

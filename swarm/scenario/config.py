@@ -15,7 +15,7 @@ import typing
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar, Literal, overload
 
 import msgspec
 import numpy as np
@@ -222,7 +222,8 @@ class SafetySection:
         obstacles = []
         for k, obstacle in enumerate(self.keep_out):
             try:
-                obstacles.append(KeepOutCylinder(tuple(obstacle.center_m), obstacle.radius_m))
+                x_m, y_m = obstacle.center_m
+                obstacles.append(KeepOutCylinder((x_m, y_m), obstacle.radius_m))
             except ValueError as err:
                 raise ValueError(f"keep_out[{k}].{str(err).removeprefix('keep_out.')}") from None
         object.__setattr__(self, "_params", SafetyParams(
@@ -759,7 +760,12 @@ def _unset_keys(value: object, path: str = "") -> list[str]:
     return []
 
 
+@overload
+def _without_none(value: dict[str, object]) -> dict[str, object]: ...
+@overload
+def _without_none(value: object) -> object: ...
 def _without_none(value: object) -> object:
+    """``value`` without the None entries of its tables, at every depth (TOML has no null)."""
     if isinstance(value, dict):
         return {key: _without_none(item) for key, item in value.items() if item is not None}
     if isinstance(value, list):

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from swarm.messages.wire import TelemetryWire
 from swarm.observe.recording.reader import Recording, iter_messages
 from swarm.runs.checks import start_index
 
@@ -48,8 +49,9 @@ def recording_measures(recording: Recording, victims: Sequence[int]) -> dict[str
     fallback_steps: dict[int, list[int]] = {}
     last_step: dict[int, int] = {}
     for item in iter_messages(recording.path, ("telemetry",)):
-        tel = item.message
-        drone = item.drone
+        tel, drone = item.message, item.drone
+        if not isinstance(tel, TelemetryWire) or drone is None:
+            continue  # not asked for: telemetry comes from a drone's own topic
         last_step[drone] = max(last_step.get(drone, -1), tel.step)
         if tel.qp_fallback:
             fallback_steps.setdefault(drone, []).append(tel.step)

@@ -43,10 +43,12 @@ import itertools
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import TypeGuard
 
 import numpy as np
 
 from swarm.errors import UsageError
+from swarm.mavlink.sitl import KINDS, Kind
 from swarm.scenario.overrides import OverrideError, check_key
 
 MODES = ("inprocess", "lockstep", "realtime", "sitl:ardupilot", "sitl:px4")
@@ -116,9 +118,10 @@ class SweepSpec:
         return tuple(key for key, _values in self.axes)
 
     @property
-    def sitl(self) -> str | None:
+    def sitl(self) -> Kind | None:
         """"ardupilot" or "px4" for a SITL mode, else None."""
-        return self.mode.partition(":")[2] or None
+        kind = self.mode.partition(":")[2]
+        return kind if kind in KINDS else None
 
     @property
     def n_points(self) -> int:
@@ -140,7 +143,7 @@ class Point:
         """The ``kill.at_s`` of the point's cell: each drone lost in turn then (None: no
         such axis, or 0: none lost)."""
         value = dict(self.cell).get(KILL_AXIS)
-        return float(value) if value else None
+        return float(value) if _number(value) and value else None
 
     @property
     def params(self) -> dict[str, Value]:
@@ -187,9 +190,12 @@ def _parse(data: Mapping[str, object]) -> SweepSpec:
         raise SweepError(f"record: must be true or false (got {record!r})")
     kills = _kills(data.get("kill_agents", []))
     timeout = data.get("timeout_s")
-    if timeout is not None and (not _number(timeout) or not math.isfinite(timeout)
-                                or timeout <= 0):
-        raise SweepError(f"timeout_s: must be a finite number of seconds > 0 (got {timeout!r})")
+    timeout_s: float | None = None
+    if timeout is not None:
+        if not (_number(timeout) and math.isfinite(timeout) and timeout > 0):
+            raise SweepError(f"timeout_s: must be a finite number of seconds > 0 (got "
+                             f"{timeout!r})")
+        timeout_s = float(timeout)
     if kills and any(k == KILL_AXIS for k, _v in axes):
         raise SweepError(f"kill_agents: and axes.{KILL_AXIS!r}: give one of the two")
     keys = [k for k, _v in axes] + ([k for k, _lo, _hi in samples.ranges] if samples else [])
@@ -210,7 +216,7 @@ def _parse(data: Mapping[str, object]) -> SweepSpec:
                          "violations: keep \"violations\"")
     spec = SweepSpec(base=base, mode=mode, seeds=seeds, axes=axes, fixed=fixed,
                      samples=samples, record=record, kill_agents=kills,
-                     timeout_s=float(timeout) if timeout is not None else None,
+                     timeout_s=timeout_s,
                      heatmap=heatmap, keep=keep, gate=gate, columns=columns)
     if spec.n_points > MAX_POINTS:
         raise SweepError(f"{spec.n_points} points: more than {MAX_POINTS} missions in one "
@@ -237,7 +243,7 @@ def _table(data: Mapping[str, object], key: str) -> Mapping[str, object]:
     return value
 
 
-def _number(value: object) -> bool:
+def _number(value: object) -> TypeGuard[int | float]:
     return isinstance(value, int | float) and not isinstance(value, bool)
 
 
@@ -403,7 +409,7 @@ def expand(spec: SweepSpec) -> list[Point]:
         rng = np.random.default_rng(spec.samples.seed)
         samples = []
         for _ in range(spec.samples.count):
-            drawn = []
+            drawn: list[tuple[str, Value]] = []
             for key, low, high in spec.samples.ranges:
                 if isinstance(low, int) and isinstance(high, int):
                     drawn.append((key, int(rng.integers(low, high, endpoint=True))))

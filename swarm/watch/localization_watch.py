@@ -16,7 +16,7 @@ that is not a finite number is below the floor: it guarantees nothing.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Collection
 from dataclasses import dataclass
 
 STATUS_MAX_CHARS = 64  # the telemetry label's bound
@@ -75,7 +75,7 @@ class LocalizationWatch:
         parts = ", ".join(f"{j} since {self._since[j]:.1f} s" for j in self.below)
         return f"λ̄ < ε − tol: target {parts}"[:STATUS_MAX_CHARS]
 
-    def update(self, time_s: float, lambda_bar: Sequence[float], *, control_active: bool,
+    def update(self, time_s: float, lambda_bar: Collection[float], *, control_active: bool,
                swarm_size: int = 0) -> list[LocalizationEvent]:
         """This step's copies; an event per target that went below the floor or came back."""
         if len(lambda_bar) != self.n_targets:

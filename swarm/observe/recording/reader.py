@@ -11,14 +11,15 @@ from __future__ import annotations
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Final
+from typing import IO, Final, TypeVar
 
 import msgspec
 from mcap.exceptions import EndOfFile, InvalidMagic, McapError
 from mcap.records import Channel, DataEnd, Message, Metadata
 from mcap.stream_reader import StreamReader
 
-from swarm.messages.wire import TelemetryCounters, WireCodec, WireError
+from swarm.messages.rules import WireError
+from swarm.messages.wire import TelemetryCounters, TelemetryWire, TruthWire, WireCodec
 from swarm.observe.collector import TelemetryCollector
 from swarm.observe.recording.schema import (
     KIND_NAMED,
@@ -33,6 +34,8 @@ from swarm.observe.recording.schema import (
 )
 from swarm.runs.record import RunRecord
 from swarm.scenario.config import ScenarioConfig
+
+_R = TypeVar("_R", bound=Recordable)
 
 # msgspec's JSON is ~10x faster than the json module, with the same exact shortest-repr floats.
 _JSON_DECODER: Final = msgspec.json.Decoder()
@@ -73,7 +76,9 @@ class _RecordStream:
 
     def __iter__(self) -> Iterator[Metadata | Channel | Message]:
         with self.path.open("rb") as handle:
-            reader = StreamReader(_WholeReads(handle), record_size_limit=1 << 30)
+            # mcap annotates the input as IO[bytes]; the reader only calls read(n) on it.
+            reader = StreamReader(_WholeReads(handle),  # type: ignore[arg-type]
+                                  record_size_limit=1 << 30)
             try:
                 for record in reader.records:
                     if isinstance(record, DataEnd):
@@ -98,7 +103,7 @@ def locate(path: Path) -> Path:
         path = path / RECORDING_FILE
         if not path.is_file():
             raise RecordingFileError(f"{path.parent}: no {RECORDING_FILE} in this directory "
-                                 "(not a recording made with --record?)")
+                                     "(not a recording made with --record?)")
         return path
     if not path.exists():
         raise RecordingFileError(f"{path}: no such file or directory")
@@ -117,7 +122,16 @@ def _decode(kind: str, data: bytes, codec: WireCodec | None, where: str) -> Reco
     except (msgspec.DecodeError, msgspec.ValidationError, ValueError, KeyError,
             TypeError) as err:
         raise RecordingFileError(f"{where}: malformed {kind} message: "
-                             f"{type(err).__name__}: {err}") from None
+                                 f"{type(err).__name__}: {err}") from None
+
+
+def _decode_as(cls: type[_R], kind: str, data: bytes, codec: WireCodec | None,
+               where: str) -> _R:
+    """``_decode`` of a channel of ``kind``, whose messages are ``cls`` (``KIND_NAMED``)."""
+    message = _decode(kind, data, codec, where)
+    if not isinstance(message, cls):
+        raise RecordingFileError(f"{where}: a {kind} channel holds a {type(message).__name__}")
+    return message
 
 
 def _codec(config: ScenarioConfig) -> WireCodec:
@@ -196,16 +210,19 @@ def read_recording(path: Path, *, fill_gaps: bool = False) -> Recording:
             last_publish = max(last_publish, record.publish_time)
             last_log = max(last_log, record.log_time)
             if kind == "telemetry":
-                collector.on_telemetry(name, _decode(kind, record.data, codec, f"{file}: {name}"))
+                collector.on_telemetry(name, _decode_as(TelemetryWire, kind, record.data, codec,
+                                                        f"{file}: {name}"))
             elif kind == "truth":
-                collector.on_truth(name, _decode(kind, record.data, codec, f"{file}: {name}"))
+                collector.on_truth(name, _decode_as(TruthWire, kind, record.data, codec,
+                                                    f"{file}: {name}"))
     if metadata is None or collector is None:
-        raise RecordingFileError(f"{file}: no Vigil metadata (an MCAP file, but not a recording "
-                             "made by launch-swarm --record)")
+        raise RecordingFileError(f"{file}: no Vigil metadata (an MCAP file, but not a "
+                                 "recording made by launch-swarm --record)")
     wall_s = max(last_publish - metadata.start_time_ns, 0) / 1e9 if last_publish else 0.0
-    record = collector.record(metadata.seed, wall_s, fill=fill_gaps)
+    run_record = collector.record(metadata.seed, wall_s, fill=fill_gaps)
     return Recording(
-        path=file, metadata=metadata, record=record, drone_counters=collector.drone_counters(),
+        path=file, metadata=metadata, record=run_record,
+        drone_counters=collector.drone_counters(),
         message_counts=counts, truncated=stream.truncated,
         missing_samples=collector.missing_samples, last_publish_time_ns=last_publish,
         sim_time_s=last_log / 1e9)
