@@ -7,6 +7,13 @@ UNKNOWN_<id>; those are counted by reason and dropped. Over UDP a frame never sp
 datagrams, so bytes left in the parser after a datagram are a truncated frame: counted and
 dropped, or they would swallow the start of the next valid frame.
 
+Console text is not a bad frame: ArduPilot's console is also its first MAVLink port
+(SERIAL0), and it prints there while it boots (its gyro calibration: "Init Gyro", a "*" per
+round, a newline). pymavlink returns such a run of printable ASCII between frames as one
+BAD_DATA ("Bad prefix"); ``console_text`` tells it from junk and broken frames (every
+frame's header holds bytes outside printable ASCII: its magic byte and flags), and a caller
+that expects console text hands ``parse_bytes`` a buffer for it instead of having it counted.
+
 Fast path for the two messages of every control step, LOCAL_POSITION_NED (vehicle → agent)
 and SET_POSITION_TARGET_LOCAL_NED (agent → vehicle): ``FastFrame`` packs and unpacks their
 payloads with pymavlink's own struct formats and CRC extras and its sequence counter, and
@@ -48,6 +55,17 @@ except ImportError as exc:  # pragma: no cover - a source tree that was never in
 check_built_from_current_source(Path(_frame.__file__), Path(__file__).with_name("_frame.c"))
 
 _MAGIC_V2 = mavlink2.PROTOCOL_MARKER_V2
+# What a console prints: printable ASCII, tab, newline, carriage return.
+_CONSOLE_BYTES = bytes(range(0x20, 0x7F)) + b"\t\n\r"
+
+
+def console_text(msg: Any) -> bytes | None:
+    """The text of ``msg`` if it is a run of console text between frames (a BAD_DATA of
+    printable ASCII that pymavlink skipped looking for a frame's first byte), else None."""
+    if msg.get_type() != "BAD_DATA" or msg.reason != "Bad prefix":
+        return None
+    data = bytes(msg.data)
+    return data if data and not data.translate(None, _CONSOLE_BYTES) else None
 
 
 def reset_parser(parser: mavlink2.MAVLink) -> None:
@@ -58,14 +76,17 @@ def reset_parser(parser: mavlink2.MAVLink) -> None:
 
 
 def parse_bytes(parser: mavlink2.MAVLink, data: bytes, rejections: Counter[str], *,
-                datagram: bool, known_undecoded: Collection[int] = ()) -> list[Any]:
+                datagram: bool, known_undecoded: Collection[int] = (),
+                console: bytearray | None = None) -> list[Any]:
     """The complete, known messages in ``data``; everything else counted in ``rejections``
     (``bad_data``, ``unknown_message``, ``truncated``, ``parser_error:<type>``; with signing
     also ``unsigned``, ``bad_signature``, ``stale_signature``).
     ``datagram``: ``data`` is one whole UDP datagram (a leftover is a truncated frame).
     ``known_undecoded``: ids of messages outside the dialect that the caller decodes itself
     (e.g. PX4's EVENT, ``swarm.mavlink.px4_events``): returned as pymavlink's UNKNOWN_<id> objects,
-    their checksum unchecked (the caller checks it), not counted."""
+    their checksum unchecked (the caller checks it), not counted.
+    ``console``: console text between frames (``console_text``) is appended here instead of
+    being counted as ``bad_data`` (None: it is counted)."""
     try:
         if parser.signing.secret_key is None:
             messages = parser.parse_buffer(bytes(data)) or []
@@ -79,7 +100,11 @@ def parse_bytes(parser: mavlink2.MAVLink, data: bytes, rejections: Counter[str],
     for msg in messages:
         kind = msg.get_type()
         if kind == "BAD_DATA":
-            rejections["bad_data"] += 1
+            text = console_text(msg)
+            if console is not None and text is not None:
+                console += text
+            else:
+                rejections["bad_data"] += 1
         elif kind.startswith("UNKNOWN"):
             if known_undecoded and int(kind[len("UNKNOWN_"):]) in known_undecoded:
                 out.append(msg)

@@ -83,6 +83,61 @@ def test_any_bytes_never_raise_and_a_following_frame_still_parses(junk: bytes) -
     assert [m.get_seq() for m in msgs] == [7]
 
 
+
+# -- console text between frames (ArduPilot prints its console on its first MAVLink port) ----
+
+# What ArduCopter SITL sent to the agent's port while booting, one datagram each (captured on
+# the build of ../shared/autopilots/ardupilot): its gyro calibration, a "*" per round.
+ARDUPILOT_BOOT_TEXT = [b"Init Gyro", b"*", b"*", b"\n"]
+
+
+def test_console_text_goes_to_the_console_buffer_and_is_not_counted() -> None:
+    rx, rejections, console = parser(), Counter(), bytearray()
+    msgs = []
+    for datagram in [frame(0), *ARDUPILOT_BOOT_TEXT, frame(1) + b"gyro[0] ok\r\n" + frame(2)]:
+        msgs += parse_bytes(rx, datagram, rejections, datagram=True, console=console)
+    assert [m.get_seq() for m in msgs] == [0, 1, 2]
+    assert rejections == Counter()
+    assert console == b"Init Gyro**\ngyro[0] ok\r\n"
+
+
+def test_without_a_console_buffer_console_text_is_counted_as_bad_data() -> None:
+    rx, rejections = parser(), Counter()
+    for datagram in ARDUPILOT_BOOT_TEXT:
+        assert parse_bytes(rx, datagram, rejections, datagram=True) == []
+    assert rejections == Counter({"bad_data": len(ARDUPILOT_BOOT_TEXT)})
+
+
+def _bad_crc() -> bytes:
+    bad = bytearray(frame(0))
+    bad[-1] ^= 0xFF
+    return bytes(bad)
+
+
+@pytest.mark.parametrize("junk", [
+    pytest.param(_bad_crc(), id="bad CRC"),
+    pytest.param(b"A" + frame(0)[1:], id="frame with its magic byte hit"),
+    pytest.param(b"Init\xb0Gyro", id="text with a byte outside ASCII"),
+    pytest.param(b"Init\x00Gyro", id="text with a control byte"),
+    pytest.param(bytes(range(0xFD)), id="binary junk"),  # no magic byte to swallow the frame
+])
+def test_junk_and_broken_frames_are_still_counted_with_a_console_buffer(junk: bytes) -> None:
+    rx, rejections, console = parser(), Counter(), bytearray()
+    msgs = parse_bytes(rx, junk + frame(5), rejections, datagram=True, console=console)
+    assert [m.get_seq() for m in msgs] == [5]
+    assert rejections["bad_data"] >= 1
+    assert b"Gyro" not in console  # no part of a rejected run passes as console text
+
+
+@given(st.lists(st.text(st.characters(min_codepoint=0x20, max_codepoint=0x7E)
+                        | st.sampled_from("\t\r\n"), min_size=1), max_size=5))
+def test_any_console_text_between_frames_is_kept_whole(lines: list[str]) -> None:
+    rx, rejections, console = parser(), Counter(), bytearray()
+    data = b"".join(line.encode() + frame(i) for i, line in enumerate(lines))
+    msgs = parse_bytes(rx, data, rejections, datagram=False, console=console)
+    assert [m.get_seq() for m in msgs] == list(range(len(lines)))
+    assert console == "".join(lines).encode() and rejections == Counter()
+
 # -- the fast path of the per-step messages --------------------------------------------------
 
 _FLOATS = st.one_of(st.floats(width=32), st.sampled_from([0.0, -0.0]))
