@@ -36,6 +36,7 @@ from swarm.mavlink.parse import (
     SET_POSITION_TARGET_LOCAL_NED,
     TRACKED_TYPE_MASK,
     VELOCITY_ONLY_TYPE_MASK,
+    console_text,
     parse_bytes,
 )
 from swarm.mavlink.signing import KEY_BYTES, refresh_signing_timestamp
@@ -99,6 +100,10 @@ _MAX_DATAGRAM = 65535
 _MAX_HEARTBEAT_DATAGRAM = 400  # a datagram from elsewhere larger than this is not parsed
 _SIGNING_LINK_ID = 1  # any constant: the receiver's stream key also holds our system id
 _SIGNATURE_REJECTIONS = ("unsigned", "bad_signature", "stale_signature")
+# ArduPilot's console text on its MAVLink port (swarm.mavlink.parse): logged a line at a time,
+# this many lines at most, each cut to this many characters.
+_CONSOLE_LINES_LOGGED = 20
+_CONSOLE_LINE_CHARS = 200
 _AUTOPILOT_NAMES = {mavlink2.MAV_AUTOPILOT_PX4: "PX4",
                     mavlink2.MAV_AUTOPILOT_ARDUPILOTMEGA: "ArduPilot"}
 _EXPECTED_AUTOPILOT = {"px4": mavlink2.MAV_AUTOPILOT_PX4,
@@ -279,6 +284,11 @@ class AutopilotLink:
         self._last_companion_hb_s: float | None = None
         self.rejections: Counter[str] = Counter()
         self.foreign_frames = 0
+        # ArduPilot's console text between frames: not MAVLink, not a rejected frame.
+        self.console_text_bytes = 0
+        self._console_in = bytearray()  # what parse_bytes found in the datagram at hand
+        self._console_line = bytearray()  # the console line not yet logged
+        self._console_lines_logged = 0
 
     # ---------------------------------------------------------------- properties
     @property
@@ -724,6 +734,9 @@ class AutopilotLink:
         if not self._closed:
             self._closed = True
             self._conn.close()
+            if self._console_line:
+                self._log_console_line(bytes(self._console_line))
+                self._console_line.clear()
 
     def __enter__(self) -> AutopilotLink:
         return self
@@ -1049,8 +1062,13 @@ class AutopilotLink:
             return
         before = self.rejected_frames
         messages = parse_bytes(self._conn.mav, data, self.rejections, datagram=True,
-                               known_undecoded=px4_events.UNDECODED_MESSAGES)
-        clean = self.rejected_frames == before
+                               known_undecoded=px4_events.UNDECODED_MESSAGES,
+                               console=self._console_in if self._flavour == "ardupilot"
+                               else None)
+        clean = self.rejected_frames == before  # console text is not a rejection
+        if self._console_in:
+            self._on_console_text(bytes(self._console_in))
+            self._console_in.clear()
         for msg in messages:
             self._handle(msg, sender if clean else False)
 
@@ -1066,8 +1084,12 @@ class AutopilotLink:
 
     def _process(self, msg: Any, sender: tuple[str, int] | Literal[False] | None) -> None:
         kind = msg.get_type()
-        if kind == "BAD_DATA":
-            self.rejections["bad_data"] += 1  # junk, bad CRC, bad length
+        if kind == "BAD_DATA":  # from a stream link (parse_bytes takes a datagram's)
+            text = console_text(msg) if self._flavour == "ardupilot" else None
+            if text is not None:
+                self._on_console_text(text)
+            else:
+                self.rejections["bad_data"] += 1  # junk, bad CRC, bad length
             return
         system, component = px4_events.message_source(msg)  # UNKNOWN_<id>: from its header
         if system != self._sysid:
@@ -1105,6 +1127,30 @@ class AutopilotLink:
             self._landed_state = int(msg.landed_state)
         elif kind == "STATUSTEXT" and msg.severity <= mavlink2.MAV_SEVERITY_WARNING:
             self._said.append((self._clock(), _one_line(msg.text)))
+
+    def _on_console_text(self, text: bytes) -> None:
+        """Count ArduPilot's console text and log it a whole line at a time."""
+        self.console_text_bytes += len(text)
+        self._console_line += text
+        *lines, rest = self._console_line.split(b"\n")
+        if len(rest) > _CONSOLE_LINE_CHARS:  # no newline coming: log what there is
+            lines.append(rest)
+            rest = bytearray()
+        self._console_line = bytearray(rest)
+        for line in lines:
+            self._log_console_line(bytes(line))
+
+    def _log_console_line(self, line: bytes) -> None:
+        text = _one_line(line.decode("ascii"))[:_CONSOLE_LINE_CHARS]
+        if not text or self._console_lines_logged > _CONSOLE_LINES_LOGGED:
+            return
+        self._console_lines_logged += 1
+        if self._console_lines_logged > _CONSOLE_LINES_LOGGED:
+            self._log(f"{self._me}: more autopilot console text, not logged (counted in "
+                      f"console_text_bytes)")
+            return
+        self._log(f"{self._me}: autopilot console (text on its MAVLink port, not MAVLink; "
+                  f"not a rejected frame): {text}")
 
     def _on_local_position(self, time_boot_ms: int, x: float, y: float, z: float,
                            vx: float, vy: float, vz: float) -> None:

@@ -35,6 +35,7 @@ from swarm.mavlink.parse import LOCAL_POSITION_NED, parse_bytes
 from swarm.mavlink.sitl import free_udp_port
 from swarm.mavlink.udpin import bind_udpin
 from swarm.models import frames
+from tests.mavlink.test_parse import ARDUPILOT_BOOT_TEXT
 
 DT = 0.02
 DRONE = 2
@@ -533,6 +534,96 @@ def test_garbage_at_the_agent_port_is_counted_never_raised(pair: Any) -> None:
     assert link.rejections["truncated"] >= 1 and link.rejections["bad_data"] >= 1
     assert not any(k.startswith(("handler_error", "receive_error")) for k in link.rejections)
 
+
+
+# ---------------------------------------------------------------- console text
+def _sample(stamp: int) -> bytes:
+    """A LOCAL_POSITION_NED of the vehicle (ArduPilot streams one only once asked)."""
+    return LOCAL_POSITION_NED.pack(mav.MAVLink(None, srcSystem=SYS, srcComponent=1), stamp,
+                                   *[0.0] * 6)
+
+
+@pytest.mark.parametrize("flavour", ["ardupilot", "px4"])
+def test_ardupilots_console_text_is_logged_not_rejected(flavour: str, logs: list[str]) -> None:
+    """ArduPilot's console is its first MAVLink port: while it boots it prints its gyro
+    calibration there, a datagram per print, between its frames. Not a rejected frame from
+    ArduPilot (its lines are logged); from PX4, which prints nothing there, junk. A broken
+    frame or junk from ArduPilot is still a rejection."""
+    link = make_link(flavour, logs)
+    vehicle = EmulatedVehicle(DRONE, flavour, START, ORIGIN)  # type: ignore[arg-type]
+    assert link.local_address is not None
+    bad_crc = bytearray(vehicle.heartbeat())
+    bad_crc[-1] ^= 0xFF
+    try:
+        with VehicleEndpoint(("127.0.0.1", link.local_address[1])) as autopilot:
+            autopilot.send([vehicle.heartbeat(), *ARDUPILOT_BOOT_TEXT])
+            autopilot.send([_sample(40)])
+            assert link.wait_position(40, 2.0).time_boot_ms == 40
+            if flavour == "ardupilot":
+                assert link.rejected_frames == 0 and link.rejections == Counter()
+                assert link.console_text_bytes == len(b"".join(ARDUPILOT_BOOT_TEXT))
+                assert link.peer == autopilot.local_address  # pinned at its heartbeat
+                assert f"drone {DRONE}: autopilot console (text on its MAVLink port, not " \
+                       f"MAVLink; not a rejected frame): Init Gyro**" in logs
+            else:
+                assert link.rejections == Counter({"bad_data": len(ARDUPILOT_BOOT_TEXT)})
+                assert link.console_text_bytes == 0
+                assert not any("console" in line for line in logs)
+            rejected = link.rejected_frames
+            autopilot.send([bytes(bad_crc), bytes(range(0xFD))])
+            autopilot.send([_sample(60)])
+            assert link.wait_position(60, 2.0).time_boot_ms == 60
+            assert link.rejections["bad_data"] == rejected + 2 == link.rejected_frames
+    finally:
+        link.close()
+
+
+def test_console_text_before_the_first_frame_of_a_stream_is_not_rejected(
+        logs: list[str]) -> None:
+    """ArduPilot SITL's first port is a TCP server: a link that connects while it boots reads
+    its console text in the stream, before and between frames (pymavlink cuts it where it
+    reads). A frame broken in the stream is still a rejection."""
+    vehicle = EmulatedVehicle(DRONE, "ardupilot", START, ORIGIN)
+    bad_crc = bytearray(vehicle.heartbeat())
+    bad_crc[-1] ^= 0xFF
+    with socket.create_server(("127.0.0.1", 0)) as server:
+        port = server.getsockname()[1]
+        link = AutopilotLink(f"tcp:127.0.0.1:{port}", DRONE, "ardupilot", ORIGIN,
+                             log=logs.append)
+        try:
+            autopilot, _ = server.accept()
+            with autopilot:
+                autopilot.sendall(b"".join(ARDUPILOT_BOOT_TEXT[:-1]))
+                autopilot.sendall(vehicle.heartbeat() + b"***" + vehicle.heartbeat())
+                autopilot.sendall(ARDUPILOT_BOOT_TEXT[-1] + _sample(40))
+                assert link.wait_position(40, 2.0).time_boot_ms == 40
+                assert link.rejected_frames == 0
+                assert link.console_text_bytes == len(b"".join(ARDUPILOT_BOOT_TEXT)) + 3
+                assert any(line.endswith(": Init Gyro*****") for line in logs), logs
+                autopilot.sendall(bytes(bad_crc) + _sample(60))
+                assert link.wait_position(60, 2.0).time_boot_ms == 60
+                assert link.rejections == Counter({"bad_data": 1})
+        finally:
+            link.close()
+
+
+def test_console_text_is_logged_a_line_at_a_time_up_to_a_limit(logs: list[str]) -> None:
+    link = make_link("ardupilot", logs)
+    vehicle = EmulatedVehicle(DRONE, "ardupilot", START, ORIGIN)
+    assert link.local_address is not None
+    try:
+        with VehicleEndpoint(("127.0.0.1", link.local_address[1])) as autopilot:
+            autopilot.send([vehicle.heartbeat()])
+            autopilot.send([f"line {i}\n".encode() for i in range(30)] + [b"no newline"])
+            autopilot.send([_sample(40)])
+            assert link.wait_position(40, 2.0).time_boot_ms == 40
+            console = [line for line in logs if "console" in line]
+            assert console[0].endswith(": line 0") and console[19].endswith(": line 19")
+            assert len(console) == 21 and "not logged" in console[20]
+            assert link.console_text_bytes == sum(len(f"line {i}\n") for i in range(30)) + 10
+            assert link.rejected_frames == 0
+    finally:
+        link.close()
 
 # ---------------------------------------------------------------- udpin peer pinning
 def _datagrams(sock: socket.socket, timeout: float = 0.3) -> list[bytes]:
