@@ -1,6 +1,6 @@
 """A sweep's ``[gate]`` (swarm.sweep.gate): its file form, its judgement on rows, its exit
 code through the real sweep command; and the CI gate itself (``sweeps/gate/``): Cases 1-3 and
-the envelope case over seeds 1-100 in-process, no hard invariant broken in any mission, no
+the envelope case over seeds 1-50 in-process, no hard invariant broken in any mission, no
 FAILED mission, the localization pass rate per case at least its measured floor."""
 
 from __future__ import annotations
@@ -23,6 +23,8 @@ from tests.helpers.cli_tools import ROOT, cli_env
 SWEEP = [sys.executable, "-m", "swarm.sweep.cli"]
 GATES = ROOT / "sweeps" / "gate"
 CASE1 = ROOT / "configs" / "case1.toml"
+# Seeds 1-50 (not 0: the scenario tests fly seed 0), ≥ 20 per case as issue 42 asks.
+GATE_SEEDS = tuple(range(1, 51))
 
 
 def row(seed: int, verdict: str = "OK", invariants: tuple[str, ...] = (),
@@ -137,19 +139,19 @@ GATE_TIMEOUT_S = 1500.0
 @pytest.mark.parametrize("case", CASES)
 def test_ci_gate(case: str, tmp_path: Path) -> None:
     """``swarm-sweep sweeps/gate/CASE.toml`` on one worker (the other xdist worker has the
-    other core): exit 0, and the same read back from the rows: 100 missions, none FAILED, no
+    other core): exit 0, and the same read back from the rows: 50 missions, none FAILED, no
     collision, envelope, velocity or finiteness breach in any, the pass rate at its floor."""
     path = GATES / f"{case}.toml"
     document = tomllib.loads(path.read_text())
     spec = parse_spec(document, str(path))
-    assert spec.seeds == tuple(range(1, 101)) and spec.mode == "inprocess"
+    assert spec.seeds == GATE_SEEDS and spec.mode == "inprocess"
     assert spec.gate is not None and set(spec.gate.hard) == set(SAFETY_INVARIANTS)
     result = run_sweep(path, tmp_path, GATE_TIMEOUT_S)
     lines = [line for line in result.stdout.splitlines() if line.startswith("gate: ")]
     print("\n".join(lines))
     assert result.returncode == 0, "\n".join(lines) + result.stderr[-2000:]
     rows = read_rows(tmp_path / RESULTS_FILE)
-    assert sorted(r["seed"] for r in rows) == list(range(1, 101))
+    assert tuple(sorted(r["seed"] for r in rows)) == GATE_SEEDS
     assert [r for r in rows if r["verdict"] == "FAILED"] == []
     config = load_config((path.parent / spec.base).resolve())
     floor_m = config.control.collision_distance_m - config.checks.collision_tolerance_m
@@ -162,4 +164,5 @@ def test_ci_gate(case: str, tmp_path: Path) -> None:
                                           >= -config.checks.lambda_tolerance)
     ok = sum(r["verdict"] == "OK" for r in rows)
     assert ok / len(rows) >= spec.gate.min_pass_rate
-    assert re.search(rf"pass rate {ok / 100:.3f} \({ok}/100, 95 % Wilson", result.stdout)
+    count = len(GATE_SEEDS)
+    assert re.search(rf"pass rate {ok / count:.3f} \({ok}/{count}, 95 % Wilson", result.stdout)
