@@ -1,4 +1,4 @@
-"""The safety envelope as control barrier rows of the local QP (issue 18).
+"""The safety envelope as control barrier rows of the local QP.
 
 A drone is a single integrator, ṗ_i = u_i, so each barrier h(p_i) ≥ 0 of the envelope gives
 one first-order CBF row ∇h(p_i)ᵀ u_i ≥ −α h(p_i): if every step's u meets it, h stays

@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from swarm.core.safety import envelope_margins
 from swarm.runs.record import RunRecord
 
-SENSING_WEIGHT = 0.1  # a drone "senses" a target when w > this (issue 4's definition)
+SENSING_WEIGHT = 0.1  # a drone "senses" a target when its perception weight w > this
 
 BoolArray = NDArray[np.bool_]
 FloatArray = NDArray[np.float64]

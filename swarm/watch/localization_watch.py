@@ -1,5 +1,5 @@
-"""Whether a drone's own λ̄ copies hold the localization guarantee, watched every step
-(issue 14, point 5). Pure: no I/O, no clock.
+"""Whether a drone's own λ̄ copies hold the localization guarantee, watched every step.
+Pure: no I/O, no clock.
 
 The guarantee the run is checked against (SPEC §7, ``[checks]``): from ``control.start_s`` on,
 every drone's consensus copy of λ̄_j (the smallest eigenvalue of target j's weighted Gramian)

@@ -1,4 +1,4 @@
-"""The vehicle watched every step of the mission (issue 14, point 4). Pure: no I/O, no clock.
+"""The vehicle watched every step of the mission. Pure: no I/O, no clock.
 
 During the mission an agent asked its autopilot for exactly one state: armed, in the mode
 that takes setpoints (ArduPilot GUIDED, PX4 OFFBOARD), with a position estimate that keeps
