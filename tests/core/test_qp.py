@@ -12,6 +12,8 @@ objective among candidates is the global optimum of the (strictly convex) proble
 from __future__ import annotations
 
 import itertools
+import math
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -850,3 +852,246 @@ def test_estimate_free_rows_refuses_a_count_or_layout_that_does_not_fit() -> Non
         qp_module.estimate_free_rows([0.0] * 5, [0.0, 0.0], 1)
     with pytest.raises(ValueError, match="3 estimate rows of 2 rows"):
         qp_module.estimate_free_rows([0.0] * 6, [0.0, 0.0], 3)
+
+
+# -- what a solve reports, and what reaches the solver ------------------------------------------
+
+
+def _one_active_row_qp(u_max: float = U_MAX) -> LocalQp:
+    """u_d = (2, 0, 0) held back by the row −u_x ≥ −1: the optimum u = (1, 0, 0) needs the
+    solver (one row active), hard (3 variables)."""
+    return LocalQp(2.0 * np.eye(3), np.array([-4.0, 0.0, 0.0]), np.array([[-1.0, 0.0, 0.0]]),
+                   np.array([-1.0]), np.full(3, -u_max), np.full(3, u_max))
+
+
+def _one_active_row_inputs() -> tuple[tuple[float, float, float], list[float], list[float],
+                                      list[float]]:
+    """The same QP as ``LocalQpWorkspace.solve`` takes it for M = 1 (the localization row,
+    then a weight-sum row 0·u ≥ −1), hard."""
+    return (2.0, 0.0, 0.0), [-1.0, 0.0, 0.0, 0.0, 0.0, 0.0], [-1.0, INACTIVE_ROW_LOWER], [1.0]
+
+
+def hard_workspace(solver_name: str, **kwargs) -> qp_module.LocalQpWorkspace:
+    return qp_module.LocalQpWorkspace(1, 0, relaxed=False, slack_weight=SLACK_WEIGHT,
+                                      weight_floor=WEIGHT_FLOOR, u_max=U_MAX,
+                                      solver=solver_name, **kwargs)
+
+
+def test_the_violation_of_a_qp_without_rows_is_the_one_of_its_box() -> None:
+    """A LocalQp may be a box alone (no rows): its violation is then the box's, 0 inside it."""
+    qp = LocalQp(2.0 * np.eye(3), np.zeros(3), np.zeros((0, 3)), np.zeros(0),
+                 np.full(3, -1.0), np.full(3, 1.0))
+    assert qp.max_violation(np.array([0.5, -1.0, 1.0])) == 0.0
+    assert qp.max_violation(np.array([1.5, 0.0, -3.0])) == 2.0
+
+
+@pytest.mark.parametrize("solver_name", SOLVERS)
+def test_a_solve_reports_its_duration_and_the_solvers_iterations(solver_name: str) -> None:
+    """``solve_time_s`` is the time of the call (between 0 and the wall time around it) on
+    both paths, the workspace's shortcut too; ``iterations`` is the solver's count, at least
+    1 when it had to move u_d onto a row, 0 when u_d is the optimum and no solver ran."""
+    workspace = hard_workspace(solver_name)
+    nominal, columns, lower, weights = _one_active_row_inputs()
+    for solve in (lambda: QpSolver(solver=solver_name).solve(_one_active_row_qp()),
+                  lambda: workspace.solve(nominal, columns, lower, weights),
+                  lambda: workspace.solve((0.5, 0.0, 0.0), columns, lower, weights)):
+        start = time.perf_counter()
+        solution = solve()
+        wall_s = time.perf_counter() - start
+        assert 0.0 <= solution.solve_time_s <= wall_s
+        assert solution.found
+        if solution.status == qp_module.NOMINAL_FEASIBLE:
+            assert solution.iterations == 0
+        else:
+            np.testing.assert_allclose(solution.velocity, [1.0, 0.0, 0.0], atol=1e-8)
+            assert isinstance(solution.iterations, int) and solution.iterations >= 1
+
+
+@pytest.mark.parametrize("solver_name", SOLVERS)
+def test_found_is_a_solution_within_the_feasibility_tolerance_inclusive(
+        solver_name: str) -> None:
+    """``found``: the solver's optimum, finite, off no row or bound by more than the
+    feasibility tolerance. At exactly the tolerance it counts; with a tolerance one float
+    below its violation the same solution (same z, same status) is not found. Both paths."""
+    instance = random_instance(np.random.default_rng(12), 2, hard_feasible=True)
+    qp = instance.build(relaxed=False)
+    first = QpSolver(solver=solver_name).solve(qp)
+    assert first.found and first.status == qp_module.solved_status(solver_name)
+    violation = first.max_violation
+    for tolerance, found in ((violation, True), (float(np.nextafter(violation, -np.inf)), False)):
+        solution = QpSolver(tolerance, solver=solver_name).solve(qp)
+        assert solution.found is found, tolerance
+        assert solution.status == first.status and solution.max_violation == violation
+        np.testing.assert_array_equal(solution.z, first.z)
+    workspace_inputs = _workspace_inputs(instance)
+    first = new_workspace(2, solver_name, relaxed=False).solve(*workspace_inputs)
+    assert first.found and first.status == qp_module.solved_status(solver_name)
+    violation = first.max_violation
+    for tolerance, found in ((violation, True), (float(np.nextafter(violation, -np.inf)), False)):
+        workspace = qp_module.LocalQpWorkspace(
+            2, N_DRONES - 1, relaxed=False, slack_weight=SLACK_WEIGHT, weight_floor=WEIGHT_FLOOR,
+            u_max=U_MAX, feasibility_tolerance=tolerance, solver=solver_name)
+        solution = workspace.solve(*workspace_inputs)
+        assert solution.found is found, tolerance
+        assert solution.status == first.status and solution.max_violation == violation
+        np.testing.assert_array_equal(solution.z, first.z)
+
+
+@pytest.mark.parametrize("solver_name", SOLVERS)
+def test_a_finite_answer_the_solver_does_not_call_optimal_is_not_solved(solver_name: str) -> None:
+    """u_x ≥ 1 and −u_x ≥ 1, hard: the solver stops with a finite z that it does not call its
+    optimum. Neither path counts it as solved: not found, and its violation is not measured
+    (inf), whatever that z happens to violate."""
+    qp = LocalQp(2.0 * np.eye(3), np.zeros(3), np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0]]),
+                 np.array([1.0, 1.0]), np.full(3, -U_MAX), np.full(3, U_MAX))
+    columns = [1.0, -1.0, 0.0, 0.0, 0.0, 0.0]
+    for solution in (QpSolver(solver=solver_name).solve(qp),
+                     hard_workspace(solver_name).solve((0.0, 0.0, 0.0), columns, [1.0, 1.0],
+                                                       [1.0])):
+        assert solution.status == INFEASIBLE[solver_name]
+        assert np.all(np.isfinite(solution.z))
+        assert not solution.found and solution.max_violation == math.inf
+
+
+@pytest.mark.parametrize("solver_name", SOLVERS)
+def test_a_local_qp_of_float32_or_integer_arrays_is_solved_as_float64(solver_name: str) -> None:
+    """``QpSolver`` takes a LocalQp of any real dtype (one written by hand, e.g. a FailedQp's
+    QP edited to try it again) and solves it as its float64 copy: the same z to the bit."""
+    qp = LocalQp(np.diag([2, 2, 2, 8]), np.array([-6, 2, 0, 0]),
+                 np.array([[-1, 0, 0, 1], [0, 1, 1, 0]]), np.array([-1, -2]),
+                 np.array([-3, -3, -3, 0]), np.array([3, 3, 3, 100]))
+    as_float64 = LocalQp(*(np.asarray(a, dtype=np.float64) for a in vars(qp).values()))
+    reference = QpSolver(solver=solver_name).solve(as_float64)
+    assert reference.found
+    for dtype in (np.float32, np.int32):
+        typed = LocalQp(*(np.asarray(a, dtype=dtype) for a in vars(qp).values()))
+        solution = QpSolver(solver=solver_name).solve(typed)
+        assert solution.found and solution.status == reference.status, dtype
+        np.testing.assert_array_equal(solution.z, reference.z)
+
+
+@pytest.mark.parametrize("solver_name", SOLVERS)
+def test_each_solve_gives_the_reused_solver_its_own_box(solver_name: str) -> None:
+    """A solver instance reused for QPs of one shape is given each QP's bounds of z, upper and
+    lower: u_d = (5, −5, 0) ends on the corner (u_max, −u_max, 0) of each box in turn."""
+    solver = QpSolver(solver=solver_name)
+    for u_max in (3.0, 1.0, 2.0):
+        qp = LocalQp(2.0 * np.eye(3), np.array([-10.0, 10.0, 0.0]), np.array([[0.0, 0.0, 1.0]]),
+                     np.array([-5.0]), np.full(3, -u_max), np.full(3, u_max))
+        solution = solver.solve(qp)
+        assert solution.found, (u_max, solution.status, solution.z)
+        np.testing.assert_allclose(solution.z, [u_max, -u_max, 0.0], atol=1e-8)
+
+
+_INDEFINITE_REFUSAL = {"daqp": ("DAQP_NONCONVEX", 0),
+                       "piqp": ("PIQP_MAX_ITER_REACHED", qp_piqp.ITERATION_LIMIT)}
+
+
+@pytest.mark.parametrize("solver_name", SOLVERS)
+def test_a_backend_does_not_call_a_refused_qp_optimal(solver_name: str) -> None:
+    """The backend's own answer for an indefinite P, at set-up and at an update: not optimal
+    (whatever z is: the callers' finiteness check is a second line, not the first), the
+    solver's status, and its iteration count (DAQP refuses P before iterating; PIQP runs to
+    its limit). The next proper QP is optimal again."""
+    backend = qp_module.backend_class(solver_name)()
+    rows, bounds_lower = np.array([[1.0, 0.0]]), np.array([-3.0, -3.0, -5.0])
+    bounds_upper = np.array([3.0, 3.0, np.inf])
+    linear = np.array([-2.0, 0.0])
+    status, iterations = _INDEFINITE_REFUSAL[solver_name]
+    for when in ("set-up", "update"):
+        refused = backend.solve(np.diag([1.0, -1.0]), linear, rows, bounds_lower, bounds_upper)
+        assert refused[1:] == (False, status, iterations), when
+        z, optimal, _, _ = backend.solve(2.0 * np.eye(2), linear, rows, bounds_lower,
+                                         bounds_upper)
+        assert optimal, when
+        np.testing.assert_allclose(z, [1.0, 0.0], atol=1e-12)
+
+
+@pytest.mark.parametrize("solver_name", SOLVERS)
+def test_a_backend_gives_the_solver_p_only_when_told_it_changed(solver_name: str) -> None:
+    """``hessian_changed=False`` is the caller's word that P is the one of the last solve: the
+    backend does not pass P again (the solver keeps the factorization it has), so a different
+    P given with it is not read; with True it is. Unconstrained optimum z = −P⁻¹q."""
+    backend = qp_module.backend_class(solver_name)()
+    linear, rows = np.array([-2.0, -4.0, 2.0]), np.zeros((1, 3))
+    bounds_lower = np.array([-3.0, -3.0, -3.0, INACTIVE_ROW_LOWER])
+    bounds_upper = np.array([3.0, 3.0, 3.0, np.inf])
+    for hessian, changed, expected in ((2.0 * np.eye(3), True, [1.0, 2.0, -1.0]),
+                                       (np.diag([4.0, 8.0, 2.0]), False, [1.0, 2.0, -1.0]),
+                                       (np.diag([4.0, 8.0, 2.0]), True, [0.5, 0.5, -1.0])):
+        z, optimal, _, _ = backend.solve(hessian, linear, rows, bounds_lower, bounds_upper,
+                                         hessian_changed=changed)
+        assert optimal
+        np.testing.assert_allclose(z, expected, atol=1e-8)
+
+
+@pytest.mark.parametrize("solver_name", SOLVERS)
+def test_the_workspace_gives_the_solver_p_only_after_the_penalties_changed(
+        monkeypatch: pytest.MonkeyPatch, solver_name: str) -> None:
+    """Each row block's solver is told P changed exactly when the slack penalties changed since
+    that block's last solve (its first solve included), however the blocks alternate: 2 rows
+    (M = 1), then 3 (one collision row), and back."""
+    backend = qp_module.backend_class(solver_name)
+    told: list[bool] = []
+    original = backend.solve
+
+    def recording(self, *args, hessian_changed: bool = True):
+        told.append(hessian_changed)
+        return original(self, *args, hessian_changed=hessian_changed)
+
+    monkeypatch.setattr(backend, "solve", recording)
+    workspace = qp_module.LocalQpWorkspace(1, 0, relaxed=True, slack_weight=SLACK_WEIGHT,
+                                           weight_floor=WEIGHT_FLOOR, u_max=U_MAX,
+                                           solver=solver_name)
+    # u_d = 0 against the localization row u_x ≥ 1: every solve reaches the solver.
+    two_rows = ([1.0, 0.0, 0.0, 0.0, 0.0, 0.0], [1.0, INACTIVE_ROW_LOWER])
+    three_rows = ([1.0, 0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0],
+                  [1.0, INACTIVE_ROW_LOWER, -5.0])
+    steps = [(two_rows, 0.5, True), (two_rows, 0.5, False), (two_rows, 0.25, True),
+             (three_rows, 0.25, True), (two_rows, 0.25, False), (three_rows, 0.75, True),
+             (two_rows, 0.75, True), (two_rows, 0.75, False)]
+    for (columns, lower), weight, _ in steps:
+        solution = workspace.solve((0.0, 0.0, 0.0), list(columns), list(lower), [weight])
+        assert solution.found and solution.status == qp_module.solved_status(solver_name)
+    assert told == [changed for _, _, changed in steps]
+
+
+@pytest.mark.parametrize("relaxed", [True, False], ids=["relaxed", "hard"])
+def test_a_new_workspace_holds_the_rows_of_its_first_block_and_the_fixed_box(
+        relaxed: bool) -> None:
+    """Before any solve the workspace holds its first block, 2M + n_collision rows (none by
+    default), all zero but each slack's 1 in its row, and the fixed box |u_k| ≤ u_max (δ ≥ 0);
+    fewer rows than 2M are refused, at construction and at a solve."""
+    n = 3 + 4 * relaxed
+    for n_collision, n_rows in ((None, 4), (3, 7)):
+        extra = {} if n_collision is None else {"n_collision": n_collision}
+        workspace = qp_module.LocalQpWorkspace(2, relaxed=relaxed, slack_weight=SLACK_WEIGHT,
+                                               weight_floor=WEIGHT_FLOOR, u_max=U_MAX, **extra)
+        held = workspace.current_qp()
+        expected_rows = np.zeros((n_rows, n))
+        if relaxed:
+            expected_rows[np.arange(4), 3 + np.arange(4)] = 1.0
+        np.testing.assert_array_equal(held.rows, expected_rows)
+        np.testing.assert_array_equal(held.z_min, [-U_MAX] * 3 + [0.0] * (n - 3))
+        np.testing.assert_array_equal(held.z_max, [U_MAX] * 3 + [np.inf] * (n - 3))
+    refusal = r"^the local QP has at least 2M = 4 rows, got 3$"
+    with pytest.raises(ValueError, match=refusal):
+        qp_module.LocalQpWorkspace(2, -1, relaxed=relaxed, slack_weight=SLACK_WEIGHT,
+                                   weight_floor=WEIGHT_FLOOR, u_max=U_MAX)
+    workspace = qp_module.LocalQpWorkspace(2, relaxed=relaxed, slack_weight=SLACK_WEIGHT,
+                                           weight_floor=WEIGHT_FLOOR, u_max=U_MAX)
+    with pytest.raises(ValueError, match=refusal):  # u_d = 0 violates the first row
+        workspace.solve((0.0, 0.0, 0.0), [1.0, 0.0, 0.0] + [0.0] * 6, [1.0, -1.0, -1.0],
+                        [1.0, 1.0])
+
+
+@pytest.mark.parametrize("solver_name", SOLVERS)
+def test_a_workspace_keeps_its_solver_name_and_qp_solvers_default_tolerance(
+        solver_name: str) -> None:
+    """The workspace is ``QpSolver`` on preallocated matrices: the same default feasibility
+    tolerance, and the backend it was given by name."""
+    workspace = qp_module.LocalQpWorkspace(1, relaxed=True, slack_weight=SLACK_WEIGHT,
+                                           weight_floor=WEIGHT_FLOOR, u_max=U_MAX,
+                                           solver=solver_name)
+    assert workspace.solver == solver_name
+    assert workspace.feasibility_tolerance == QpSolver().feasibility_tolerance == 1e-6
