@@ -90,7 +90,7 @@ def build_parser() -> OneLineParser:
                         help="change one config value by its dotted key, checked as if the "
                              "file said so (repeatable; e.g. gramian.epsilon=0.06, "
                              "targets.0.velocity_m_s=[0.4,0,0], swarm.n_drones=12: the graph "
-                             "and start box fitted; the README's 'Sweeps')")
+                             "and start box fitted; docs/sweeps.md, 'A sweep file')")
     parser.add_argument("--headless", action="store_true",
                         help="no live display: a one-line log every few simulated seconds")
     parser.add_argument("--mavlink-base", type=port, default=0, metavar="PORT",

@@ -400,7 +400,8 @@ def _param_text(value: float) -> str:
 
 
 def default_params(kind: Kind, setpoint_timeout_s: float) -> tuple[tuple[str, float], ...]:
-    """What the swarm needs set on each autopilot (README, "What each autopilot needs set").
+    """What the swarm needs set on each autopilot (docs/real_autopilots.md,
+    "What each autopilot needs set").
 
     ArduPilot: ``GUID_TIMEOUT`` = the setpoint-loss timeout. PX4: ``COM_OF_LOSS_T`` = the same,
     ``COM_OBL_RC_ACT`` = 5 (Hold on offboard loss: the default, Position mode, sinks without a

@@ -88,7 +88,7 @@ class VelocityResponse:
 # 50 Hz (steps 0.5-3 m/s, reversals, vertical ±1 m/s, a smooth swarm-like stretch), the last
 # 86 s held out; both runs gave τ = 0.568 s, a_max = 1.65 m/s² (3-D fit), RMS velocity error
 # 0.136 m/s horizontal on the fit (0.188 held out) against 0.735 (0.932) for the ideal
-# v = u. README, "How the vehicles move".
+# v = u. docs/guarantee_real_vehicles.md, "The fit".
 ARDUCOPTER_SITL_RESPONSE = VelocityResponse(time_constant_s=0.57, accel_limit_m_s2=1.65)
 # Fitted to PX4 v1.15.4 SIH the same way (one run): τ = 0.95 s, a_max = 4.5 m/s², RMS 0.243
 # m/s horizontal (0.270 held out) against 0.617 (0.738) ideal. Only roughly: PX4's horizontal

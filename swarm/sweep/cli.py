@@ -1,4 +1,4 @@
-"""``swarm-sweep``: thousands of missions from one file, on Dask (README, "Sweeps").
+"""``swarm-sweep``: thousands of missions from one file, on Dask (docs/sweeps.md).
 
     swarm-sweep SWEEP.toml --out DIR [--scheduler tcp://HOST:8786] [--workers N]
     swarm-sweep report DIR [--heatmap AXIS [AXIS]] [--columns KEY ...]
@@ -60,7 +60,7 @@ def build_parser() -> OneLineParser:
     parser = OneLineParser(
         prog=PROG, description="Run a sweep of Vigil missions on Dask (local by default); "
                                "'swarm-sweep report DIR' redraws a sweep's summary.")
-    parser.add_argument("sweep", help="the sweep file (README, 'Sweeps')")
+    parser.add_argument("sweep", help="the sweep file (docs/sweeps.md, 'A sweep file')")
     parser.add_argument("--out", required=True, type=Path, metavar="DIR",
                         help="where results.jsonl, the summary and the figures go; a DIR "
                              "holding results of this sweep is resumed")

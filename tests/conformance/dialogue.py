@@ -405,7 +405,7 @@ def px4_dialogue(pilot: Pilot, record: Record) -> None:
 
     # --- velocity following (measured: 63 % of the speed reached after 0.51-0.77 s, idle or
     # beside four busy loops; 0.68-0.87 m/s after 3 s: PX4 SIH plateaus at ~0.76 of the
-    # command for seconds, README "How the vehicles move")
+    # command for seconds, docs/guarantee_real_vehicles.md, "The fit")
     _log_where(pilot, record, ground, "before the velocity step")
     _velocity_step(pilot, record, 1.0, 3.0, PX4_STILL_M_S, (0.6, 1.1), (0.2, 1.2))
     _log_where(pilot, record, ground, "after the velocity step")

@@ -7,8 +7,8 @@ Zenoh client of it over TCP and listens for its vehicle's MAVLink on its own hos
 the world's emulated vehicles send there (``sim-world --mavlink-host``, one address per
 drone). An observer on the world's host records the run, and the recording must reproduce the
 in-process reference and hold every SPEC invariant — what the same run on one host does
-(tests/launch/test_process_swarm.py). This is also the executable reference of the README's "Across
-machines" section.
+(tests/launch/test_process_swarm.py). This is also the executable reference of
+docs/across_machines.md, "Across machines".
 
 Skipped, with the reason, where namespaces cannot be created (not root, no CAP_NET_ADMIN, no
 ``ip``).
@@ -39,7 +39,7 @@ CASE1 = ROOT / "configs" / "case1.toml"
 DURATION_S = 20.0
 SEED = 0
 ZENOH_PORT = 7447
-MAVLINK_BASE = 24540  # the emulated runs' default (README, "Across machines")
+MAVLINK_BASE = 24540  # the emulated runs' default (docs/across_machines.md, "Across machines")
 RUN_TIMEOUT_S = 240.0
 
 

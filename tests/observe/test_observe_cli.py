@@ -1,9 +1,10 @@
 """``swarm-observe`` (swarm.observe.observe_cli): a swarm started elsewhere gets launch-swarm's
 end-of-mission tables, verdict and recording (issue 41, point 7).
 
-Against real swarms: one started by hand (sim-world and swarm-agent processes, as the README's
-"Across machines" runs them, on loopback), and one started by ``launch-swarm`` in realtime; and
-against stand-in worlds (a Zenoh router publishing the clock) for how watching ends.
+Against real swarms: one started by hand (sim-world and swarm-agent processes, as
+docs/across_machines.md, "By hand on one host", runs them, on loopback), and one started by
+``launch-swarm`` in realtime; and against stand-in worlds (a Zenoh router publishing the clock)
+for how watching ends.
 """
 
 from __future__ import annotations

@@ -4,7 +4,8 @@
 With the equal shares of SPEC §8 (k = 1/N) a λ̄ copy of target 1 falls below ε − tol: drones
 that do not see the target hold a share they can only meet with a slack. With the weighted
 shares (k_ir = w_ir / max(S_wr, w_ir)) the same mission holds every invariant of its config.
-README, "Choices the thesis leaves open", has the sweep over seeds 0-99.
+docs/method.md, "Each drone's share of the localization condition", has the sweep over seeds
+0-99.
 """
 
 from __future__ import annotations
