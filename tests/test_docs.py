@@ -4,6 +4,7 @@ every page of docs/. No network: links with a scheme (https:, mailto:) are not f
 
 from __future__ import annotations
 
+import os
 import re
 import sys
 import unicodedata
@@ -139,3 +140,119 @@ def test_the_checker_finds_a_missing_file_a_missing_anchor_and_skips_code(
         "README.md:2: docs/a.md#three-words: no heading with anchor #three-words in "
         "docs/a.md",
     ]
+
+
+# A section named by its heading in a comment, docstring, help text or page: README "X",
+# README, "X", README's "X", README section "X", docs/PAGE.md, "X", docs/PAGE.md "X" (or
+# ../docs/PAGE.md from a directory beside docs/); the quotes "…", '…' or “…”; the heading may run
+# onto the next line (behind a '#' in a comment).
+SECTION_REFERENCE = re.compile(
+    r"(?<![\w/.-])(?:\.\./)*(?P<page>README(?:\.md)?|docs/[\w-]+\.md)(?:'s)?(?=[,\s])"
+    r",?[ \t]*(?:\n[ \t]*(?:#+[ \t]*)?)?(?:section[ \t]+)?"
+    r"(?:\"(?P<double>[^\"\n]*(?:\n[^\"\n]*)?)\""
+    r"|'(?P<single>(?:[^'\n]|'(?=[a-z]))*)'"
+    r"|“(?P<curly>[^”]*)”)")
+SOURCE_SUFFIXES = {".py", ".toml", ".md"}
+# Not the project's text: environments, caches, build output, runs; and this file, whose
+# checker test writes broken references on purpose.
+PRUNED_DIRECTORIES = {"__pycache__", "node_modules"}
+PRUNED_PATHS = {"runs", "out", "build", "benchmarks/results"}
+
+
+def one_line(text: str) -> str:
+    """``text`` on one line: the comment markers of a wrapped line dropped, white space single."""
+    return " ".join(re.sub(r"\n[ \t]*#*", " ", text).split())
+
+
+def section_key(text: str) -> str:
+    """A heading or a quoted reference to it as compared: its rendered text on one line, trailing
+    punctuation dropped, lower case."""
+    return one_line(heading_text(text)).rstrip(".,;:!?").lower()
+
+
+def section_keys(page: Path) -> set[str]:
+    """The headings of ``page`` outside fenced code, as ``section_key`` compares them."""
+    keys, fenced = set(), False
+    for line in page.read_text(encoding="utf-8").splitlines():
+        if FENCE.match(line):
+            fenced = not fenced
+            continue
+        match = None if fenced else HEADING.match(line)
+        if match:
+            keys.add(section_key(match.group(2)))
+    return keys
+
+
+def project_files() -> list[Path]:
+    """Every .py, .toml and .md file of the project but this one."""
+    found = []
+    for directory, subdirectories, names in os.walk(ROOT):
+        subdirectories[:] = sorted(
+            name for name in subdirectories
+            if not name.startswith(".") and not name.endswith(".egg-info")
+            and name not in PRUNED_DIRECTORIES
+            and (Path(directory) / name).relative_to(ROOT).as_posix() not in PRUNED_PATHS)
+        found.extend(Path(directory) / name for name in sorted(names)
+                     if Path(name).suffix in SOURCE_SUFFIXES)
+    return [path for path in found if path != ROOT / "tests" / "test_docs.py"]
+
+
+def section_reference_problems(path: Path, keys: dict[str, set[str] | None]) -> list[str]:
+    """One line per reference in ``path`` to a section its page does not have; ``keys`` caches
+    each page's headings (None: no such page)."""
+    text = path.read_text(encoding="utf-8", errors="replace")
+    if "README" not in text and "docs/" not in text:
+        return []
+    problems = []
+    for match in SECTION_REFERENCE.finditer(text):
+        page = "README.md" if match["page"].startswith("README") else match["page"]
+        if page not in keys:
+            keys[page] = section_keys(ROOT / page) if (ROOT / page).is_file() else None
+        section = next(group for group in match.group("double", "single", "curly")
+                       if group is not None)
+        where = f"{path.relative_to(ROOT)}:{text.count(chr(10), 0, match.start()) + 1}"
+        if keys[page] is None:
+            problems.append(f"{where}: {page} does not exist")
+        elif section_key(section) not in keys[page]:
+            problems.append(f"{where}: {page} has no heading {one_line(section)!r}")
+    return problems
+
+
+def test_every_section_named_in_the_project_is_a_heading_of_its_page() -> None:
+    keys: dict[str, set[str] | None] = {}
+    problems = [problem for path in project_files()
+                for problem in section_reference_problems(path, keys)]
+    assert not problems, ("sections named that their page does not have (the README's sections "
+                          "moved to docs/: name the page and its heading):\n" + "\n".join(problems))
+
+
+def test_the_section_checker_finds_a_missing_heading_and_a_missing_page(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(sys.modules[__name__], "ROOT", tmp_path)
+    (tmp_path / "docs").mkdir()
+    (tmp_path / "README.md").write_text("# Vigil\n\n## Try it\n\n```\n# In a block\n```\n")
+    (tmp_path / "docs" / "sweeps.md").write_text(
+        "# Sweeps\n\n## The gate in CI\n\n## An example: how fast may a target move?\n")
+    source = tmp_path / "cli.py"
+    source.write_text(
+        '"""As the README\'s "Try it." says; README, "try it"; README section \'Try it\'."""\n'
+        '# (docs/sweeps.md, "The gate in CI"; docs/sweeps.md "An example: how fast may a\n'
+        '# target move?"; docs/sweeps.md,\n#   “Sweeps”); the README\'s picture, README.md.\n'
+        'HELP = "the sweep file (README, \'Sweeps\'), docs/sweeps.md \'The gate\'"\n'
+        '# README "In a block"; README\'s "Across\n# machines"; docs/gone.md, "Sweeps"\n'
+        '[Sweeps](../docs/sweeps.md); ../docs/sweeps.md, "Gone"\n')
+    assert section_reference_problems(source, {}) == [
+        "cli.py:5: README.md has no heading 'Sweeps'",
+        "cli.py:5: docs/sweeps.md has no heading 'The gate'",
+        "cli.py:6: README.md has no heading 'In a block'",
+        "cli.py:6: README.md has no heading 'Across machines'",
+        "cli.py:7: docs/gone.md does not exist",
+        "cli.py:8: docs/sweeps.md has no heading 'Gone'",
+    ]
+    for skipped in (".venv/lib/a.py", "runs/case2/notes.md", "tests/test_docs.py"):
+        (tmp_path / skipped).parent.mkdir(parents=True, exist_ok=True)
+        (tmp_path / skipped).write_text('README "Gone"\n')
+    (tmp_path / "tests" / "runs").mkdir()
+    (tmp_path / "tests" / "runs" / "test_a.py").write_text("")
+    assert project_files() == [tmp_path / "README.md", source, tmp_path / "docs" / "sweeps.md",
+                               tmp_path / "tests" / "runs" / "test_a.py"]
