@@ -14,10 +14,14 @@ from hypothesis import strategies as st
 
 from swarm.core.qp import LocalQp, QpSolver
 from swarm.core.safety import (
+    ACTIVE_ROW_TOLERANCE,
+    SLACK_USED,
     KeepOutCylinder,
     SafetyParams,
     convex_counter_clockwise,
     envelope_margins,
+    fence_edges,
+    safety_conflict,
     safety_rows,
 )
 
@@ -168,3 +172,109 @@ def test_a_non_finite_obstacle_centre_is_refused_with_its_key() -> None:
     with pytest.raises(ValueError,
                        match=r"^keep_out\.center_m must be a finite number \(got inf\)$"):
         KeepOutCylinder((0.0, math.inf), 1.0)
+
+
+def test_a_floor_not_below_the_ceiling_is_refused_with_its_value() -> None:
+    with pytest.raises(ValueError,
+                       match=r"^floor_m must be below ceiling_m = 5\.0 \(got 6\.0\)$"):
+        SafetyParams(floor_m=6.0, ceiling_m=5.0)
+
+
+def test_a_clockwise_keep_in_is_the_same_envelope_as_its_counter_clockwise_listing() -> None:
+    """The envelope keeps the polygon counter-clockwise (as floats) however it was listed, so
+    its fence rows and margins are the same (inward normals) either way round."""
+    listed = ((-5, -4), (-5, 7), (6, 7), (6, -4))  # SQUARE clockwise, integers
+    clockwise = SafetyParams(keep_in=listed, fence_gain=1.3)
+    counter_clockwise = SafetyParams(keep_in=SQUARE, fence_gain=1.3)
+    assert clockwise.keep_in == ((6.0, -4.0), (6.0, 7.0), (-5.0, 7.0), (-5.0, -4.0))
+    assert all(isinstance(c, float) for vertex in clockwise.keep_in for c in vertex)
+    for position in ((0.0, 0.0, 2.0), (5.5, -3.0, 2.0), (8.0, 1.0, 2.0)):
+        rows, lower = safety_rows(position, clockwise)
+        ccw_rows, ccw_lower = safety_rows(position, counter_clockwise)
+        assert sorted(zip(rows, lower, strict=True)) == sorted(zip(ccw_rows, ccw_lower,
+                                                                   strict=True))
+        assert envelope_margins(position, clockwise) == envelope_margins(position,
+                                                                         counter_clockwise)
+
+
+def test_the_fence_edges_are_unit_inward_normals_and_the_margin_the_distance_to_the_nearest(
+        ) -> None:
+    """Each keep-in edge's normal is the unit vector pointing inside, at the edge's first
+    vertex; the fence margin is the signed distance to the nearest edge's line."""
+    assert fence_edges(SQUARE) == [((0.0, 1.0), (-5.0, -4.0)), ((-1.0, 0.0), (6.0, -4.0)),
+                                   ((0.0, -1.0), (6.0, 7.0)), ((1.0, 0.0), (-5.0, 7.0))]
+    triangle = ((0.0, 0.0), (4.0, 0.0), (0.0, 3.0))  # its long edge has normal (−3, −4)/5
+    (normal, vertex), = fence_edges(triangle)[1:2]
+    assert normal == pytest.approx((-0.6, -0.8), abs=1e-15) and vertex == (4.0, 0.0)
+    envelope = SafetyParams(keep_in=SQUARE)
+    for (x, y), margin in (((0.0, 0.0), 4.0),  # nearest: the bottom edge y = −4
+                           ((-3.5, 2.0), 1.5),  # the left edge x = −5
+                           ((5.0, 6.5), 0.5),  # the top edge y = 7
+                           ((5.75, 1.0), 0.25),  # the right edge x = 6
+                           ((9.0, 2.0), -3.0)):  # outside, beyond the right edge
+        assert envelope_margins((x, y, 2.0), envelope)["fence"] == pytest.approx(margin,
+                                                                                 abs=1e-12)
+
+
+def test_the_rows_lower_bounds_are_minus_gain_times_each_barrier() -> None:
+    """lower = −α h at a point whose barriers are worked out by hand: z = 2 (floor 1,
+    ceiling 5), (1, 3) in the square, 2 m from the first cylinder's centre (h = 4 − 1.5²) and
+    4 m from the second's (h = 16 − 0.5²)."""
+    rows, lower = safety_rows((1.0, 3.0, 2.0), ENVELOPE)
+    assert rows == [(0.0, 0.0, 1.0), (0.0, 0.0, -1.0), (0.0, 1.0, 0.0), (-1.0, 0.0, 0.0),
+                    (0.0, -1.0, 0.0), (1.0, 0.0, 0.0), (0.0, 4.0, 0.0), (8.0, -4.0, 0.0)]
+    hand = [2.0 - 1.0, 5.0 - 2.0, 3.0 + 4.0, 6.0 - 1.0, 7.0 - 3.0, 1.0 + 5.0,
+            4.0 - 1.5 ** 2, 16.0 + 4.0 - 0.5 ** 2]
+    assert lower == pytest.approx([-gain * h for gain, h in zip(GAINS, hand, strict=True)],
+                                  rel=1e-15)
+
+
+def _conflict_reference(rows: np.ndarray, lower: np.ndarray, n_safety: int, u: np.ndarray,
+                        slacks: np.ndarray) -> bool:
+    """safety_conflict in matrix form: a slack above SLACK_USED and one of the last n_safety
+    rows within ACTIVE_ROW_TOLERANCE·max(1, |lower|) of its bound (or past it)."""
+    if not np.any(slacks > SLACK_USED):
+        return False
+    first = len(lower) - n_safety
+    residual = rows[first:] @ u - lower[first:]
+    return bool(np.any(residual <= ACTIVE_ROW_TOLERANCE * np.maximum(1.0, np.abs(lower[first:]))))
+
+
+def test_the_conflict_is_a_used_slack_while_an_envelope_row_is_active() -> None:
+    """Against its matrix form on random QP answers: rows of any coefficients in the
+    column-major layout, each active (a·u = lower), violated or slack by 0.01-1, the
+    envelope's rows last; slacks used or not."""
+    rng = np.random.default_rng(46)
+    outcomes = set()
+    for _ in range(400):
+        n_rows = int(rng.integers(1, 7))
+        n_safety = int(rng.integers(0, n_rows + 1))
+        rows, u = rng.normal(size=(n_rows, 3)) * 3.0, rng.normal(size=3)
+        gap = np.where(rng.random(n_rows) < 0.3, 0.0,
+                       rng.choice([-1.0, 1.0], n_rows) * rng.uniform(0.01, 1.0, n_rows))
+        lower = rows @ u - gap
+        slacks = np.where(rng.random(3) < 0.5, rng.uniform(0.0, 1e-9, 3), rng.uniform(0, 2, 3))
+        expected = _conflict_reference(rows, lower, n_safety, u, slacks)
+        outcomes.add((expected, bool(np.any(slacks > SLACK_USED))))
+        assert safety_conflict(rows.T.reshape(-1).tolist(), lower.tolist(), n_safety,
+                               u.tolist(), slacks.tolist()) is expected
+    assert outcomes == {(True, True), (False, True), (False, False)}
+
+
+def test_an_envelope_row_is_active_within_its_tolerance_inclusive() -> None:
+    """Active: a·u − lower ≤ ACTIVE_ROW_TOLERANCE·max(1, |lower|), at exactly that and not a
+    float above; the bound scales with |lower| above 1 only. One localization row (not the
+    envelope's: never counted), then one envelope row u_x ≥ lower."""
+    def conflict(residual: float, lower: float) -> bool:
+        return safety_conflict([0.0, 1.0, 0.0, 0.0, 0.0, 0.0], [-5.0, lower], 1,
+                               [lower + residual, 0.0, 0.0], [0.5])
+
+    tolerance = ACTIVE_ROW_TOLERANCE
+    assert conflict(0.0, 0.0) and conflict(tolerance, 0.0)
+    assert not conflict(math.nextafter(tolerance, 1.0), 0.0)
+    assert not conflict(1.5 * tolerance, 0.5)  # |lower| < 1: the bound stays ACTIVE_ROW_TOL.
+    assert conflict(100.0 * tolerance, 1000.0)  # |lower| = 1000: within 1e-6
+    assert not conflict(2000.0 * tolerance, 1000.0)
+    # The localization row is active and a slack is used: not the envelope's doing.
+    assert not safety_conflict([1.0, 1.0, 0.0, 0.0, 0.0, 0.0], [2.0, -5.0], 1,
+                               [2.0, 0.0, 0.0], [0.5])
