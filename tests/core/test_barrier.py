@@ -16,6 +16,7 @@ from swarm.core.barrier import (
     collision_row,
     gramian_rate_model,
     localization_barrier,
+    localization_share,
     robust_lower_bound,
     weight_sum_row,
 )
@@ -448,3 +449,16 @@ def test_tightened_collision_and_weight_rows_hold_on_the_flown_velocity(seed: in
     shortfall = bound * sum(float(np.linalg.norm(a)) for a, _ in active)
     assert rate_of_weight_sum(loose) == pytest.approx(
         -(weight_sum - gamma) - inactive - shortfall, abs=1e-7)
+
+
+def test_a_drone_that_does_not_see_the_target_has_no_weighted_share_whatever_the_estimate(
+        ) -> None:
+    """k_ir = 0 when w_ir = 0 (or NaN), also when the estimate S_wr is 0 or negative (a
+    consensus estimate is not bound to stay positive): no division by zero. A positive weight
+    takes its part w/S_w, and all of it (1) when the estimate is not above its own weight."""
+    for estimate in (1.0, 0.0, -0.5):
+        assert localization_share("weighted", 0.0, estimate, 3) == 0.0
+        assert localization_share("weighted", float("nan"), estimate, 3) == 0.0
+    assert localization_share("weighted", 0.4, 1.6, 3) == 0.25
+    for estimate in (0.4, 0.2, 0.0, -1.0):
+        assert localization_share("weighted", 0.4, estimate, 3) == 1.0
