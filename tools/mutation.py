@@ -90,7 +90,8 @@ PYTHON_GROUPS = (
                           "swarm/watch/localization_watch.py", "swarm/watch/vehicle_watch.py"),
                 ("tests/watch", "tests/models/test_command_reference.py", *FAST)),
     PythonGroup("core", tuple(f"swarm/core/{m}.py" for m in
-                              ("barrier", "safety", "qp", "smooth_min", "perception")),
+                              ("barrier", "safety", "qp", "qp_daqp", "qp_piqp",
+                               "smooth_min", "perception")),
                 ("tests/core", *FAST)),
 )
 
@@ -130,7 +131,9 @@ EXTENSIONS = (("swarm/core/_kernels.c", True), ("swarm/messages/_wire.c", False)
               ("swarm/agent/_exchange.c", False), ("swarm/mavlink/_frame.c", False))
 C_FLAGS = ("-O2", "-std=c11", "-shared", "-fPIC")
 
-KILLED = {"killed", "timeout", "segfault"}  # the tests failed, hung or crashed on the mutant
+KILLED = {"killed", "timeout", "segfault", "crashed"}  # the tests failed, hung or crashed
+# on the mutant; "crashed": the test process died of a signal mutmut has no name for (it
+# says "suspicious"), e.g. SIGABRT when a solver fed a mutated argument corrupts its heap.
 SURVIVED = {"survived", "no tests"}  # "no tests": no selected test runs that function
 
 
@@ -283,6 +286,8 @@ def run_python_group(group: PythonGroup, base: Path, workdir: Path, max_children
             continue
         module, function = function_of(name)
         result = by_module[module]
+        if status == "suspicious" and (exit_code(tree, module, name) or 0) < 0:
+            status = "crashed"
         result.statuses[status] += 1
         if status in SURVIVED:
             original, mutant = changed_lines(mutmut(tree, "show", name))
@@ -292,6 +297,17 @@ def run_python_group(group: PythonGroup, base: Path, workdir: Path, max_children
     for result in results.values():
         result.test_time_s = module_test_time(tree, result.module)
     return list(results.values()), wall_s
+
+
+def exit_code(tree: Path, module: str, name: str) -> int | None:
+    """The exit code mutmut recorded for a mutant's test run (negative: killed by that signal)."""
+    import json
+
+    meta = tree / "mutants" / (module.replace(".", "/") + ".py.meta")
+    if not meta.exists():
+        return None
+    code = json.loads(meta.read_text())["exit_code_by_key"].get(name)
+    return code if isinstance(code, int) else None
 
 
 def module_test_time(tree: Path, module: str) -> float:
