@@ -31,6 +31,7 @@ from swarm.core.fast_dataclass import record
 from swarm.core.formation import bearing_formation_scalars
 from swarm.core.gramian import initial_gramian
 from swarm.core.kernels import ROW
+from swarm.core.network import NetworkParams, ReachTracker, keep_row
 from swarm.core.params import ControlParams, EstimationParams, GramianParams, PerceptionParams
 from swarm.core.perception import perception_terms
 from swarm.core.qp import (
@@ -69,6 +70,11 @@ class AgentSetup:
     control: ControlParams
     desired_bearings: Mapping[int, Array] = field(default_factory=dict)  # g*_ij per neighbour
     safety: SafetyParams = field(default_factory=SafetyParams)  # the envelope's hard rows
+    # The radio (``swarm.core.network``): with topology "range" the neighbours of a step are
+    # the drones heard in its round 0 (``neighbour_weights`` then names every other drone,
+    # each with the weight 1/N), and the drone tracks how far its news reaches.
+    network: NetworkParams = field(default_factory=NetworkParams)
+    kept_links: tuple[int, ...] = ()  # drones kept within R_keep by barrier rows (keep rows)
 
     @property
     def neighbours(self) -> tuple[int, ...]:
@@ -105,6 +111,15 @@ class StepDiagnostics:
     bearing_error: float | None
     missing_neighbour_messages: int  # consensus sums that ran without a neighbour this step
     rejected_inputs: int  # non-finite detections or messages dropped this step
+    # The radio (topology "range"; with "fixed": the configured neighbours and N): the
+    # neighbours heard in round 0, the drones this one's news reaches (itself included:
+    # fewer than N means the swarm has split), the smallest R_keep − ‖p_i − p_j‖ of its kept
+    # links [m, +inf without keep rows] and whether a keep row held u back while
+    # localization slack was used.
+    neighbours_heard: tuple[int, ...] = ()
+    reached: int = 0
+    keep_margin_m: float = math.inf
+    link_conflict: bool = False
 
 
 @dataclass(frozen=True)
@@ -240,6 +255,17 @@ class DroneAgent:
         self._operator = _consensus_operator(layout, setup.dt_s, gram,
                                              est.info_gain * setup.n_drones)
         self._message_size = message_size(m, n, with_states=True)
+        # The radio (``swarm.core.network``): with topology "range", round 0 also carries the
+        # reach stamps (N floats after the consensus states) and N follows the component.
+        net = setup.network
+        self._reach = (ReachTracker(setup.drone_id, setup.n_drones, net.reach_slack_steps)
+                       if net.ranged else None)
+        self._message_size += setup.n_drones if net.ranged else 0
+        self._reached = setup.n_drones
+        self._kept = tuple(sorted(setup.kept_links))
+        self._keep_range_m, self._keep_gain = net.kept_range_m, net.keep_gain
+        self._n_keep_rows = 0
+        self._keep_margin_m = math.inf
         # g*_ij of the formation task as float triples (SPEC §10), made once.
         self._desired_bearings = {j: tuple(np.asarray(g, dtype=float).reshape(3).tolist())
                                   for j, g in setup.desired_bearings.items()}
@@ -268,6 +294,7 @@ class DroneAgent:
         self._phase = "idle"
         self._step = -1
         self._round = 0
+        self._heard: tuple[int, ...] = ()
         self._position = np.zeros(3)
         self._own = [0.0, 0.0, 0.0]
         self._detected = np.zeros(m, dtype=bool)
@@ -279,6 +306,7 @@ class DroneAgent:
         self.qp_fallbacks = 0
         self.rate_limit_releases = 0
         self.safety_conflicts = 0
+        self.link_conflicts = 0
         # The QPs of the last step that got no acceptable solution (``FailedQp``), in the
         # order they were tried; emptied when a step begins.
         self.qp_failures: list[FailedQp] = []
@@ -342,6 +370,8 @@ class DroneAgent:
         """
         if self._phase != "idle":
             raise AgentStateError(f"begin_step({step}) called while in phase {self._phase!r}")
+        if self._reach is not None:
+            self._follow_component(step)
         clock = self._clock
         clock.reset()
         clock.begin()
@@ -389,6 +419,17 @@ class DroneAgent:
         message = self._message(0, with_states=True)
         clock.lap(OTHER)
         return message
+
+    def _follow_component(self, step: int) -> None:
+        """Topology "range": stamp this step and take N = the drones the stamps still reach
+        (``ReachTracker``): a component of the split swarm sums its own information only."""
+        reach = self._reach
+        assert reach is not None
+        reach.stamp(step)
+        reached = int(np.count_nonzero(reach.reached(step)))
+        self._reached = reached
+        if reached != self._swarm_size:
+            self.set_swarm_size(reached)
 
     def consensus_round(self, inbox: Mapping[int, ConsensusMessage]) -> ConsensusMessage | None:
         """Apply one ICF consensus iteration (2.6-2.7) with the neighbours' current-round data.
@@ -463,9 +504,12 @@ class DroneAgent:
         found_slacks = solution.found and solution.z.shape[0] > 3
         slacks = solution.z[3:3 + m].copy() if found_slacks else np.zeros(m)
         weight_slacks = solution.z[3 + m:].copy() if found_slacks else np.zeros(m)
+        n_keep = self._n_keep_rows
         conflict = found_slacks and self._n_safety_rows > 0 and safety_conflict(
             u_rows, lower, self._n_safety_rows, solution.z[:3].tolist(),
-            solution.z[3:].tolist())
+            solution.z[3:].tolist(), skip_last=n_keep)
+        link_conflict = found_slacks and n_keep > 0 and safety_conflict(
+            u_rows, lower, n_keep, solution.z[:3].tolist(), solution.z[3:].tolist())
         qp_status, qp_iterations = solution.status, solution.iterations
         qp_us = solution.solve_time_s * 1e6
         self._last_command = tuple(velocity.tolist())
@@ -479,6 +523,7 @@ class DroneAgent:
         self.qp_fallbacks += int(fallback)
         self.rate_limit_releases += int(released)
         self.safety_conflicts += int(conflict)
+        self.link_conflicts += int(link_conflict)
         self.missing_neighbour_messages += self._missing
         self.rejected_inputs += self._rejected
         self._phase = "idle"
@@ -500,6 +545,8 @@ class DroneAgent:
             step_us=clock.running_s() * 1e6,
             bearing_error=formation_error, missing_neighbour_messages=self._missing,
             rejected_inputs=self._rejected,
+            neighbours_heard=self._heard, reached=self._reached,
+            keep_margin_m=self._keep_margin_m, link_conflict=link_conflict,
         ))
         clock.lap(OTHER)
         return record(StepResult, {"velocity": velocity, "diagnostics": diagnostics})
@@ -589,8 +636,12 @@ class DroneAgent:
     def _message(self, rnd: int, *, with_states: bool) -> ConsensusMessage:
         """The message of round ``rnd``: the ICF pair and, in round 0, the consensus states,
         one concatenation of the packed vectors (``swarm.core.consensus_message``)."""
-        data = (np.concatenate((self._icf, self._cons_array)) if with_states
-                else self._icf.copy())
+        if not with_states:
+            data = self._icf.copy()
+        elif self._reach is None:
+            data = np.concatenate((self._icf, self._cons_array))
+        else:
+            data = np.concatenate((self._icf, self._cons_array, self._reach.stamps))
         return record(ConsensusMessage, {
             "sender": self.setup.drone_id, "step": self._step, "round": rnd,
             "n_targets": self.setup.n_targets, "n_state": self._n_state, "data": data})
@@ -610,12 +661,14 @@ class DroneAgent:
         pair = self._icf.shape[0]
         full = self._message_size
         weight_of = self.setup.neighbour_weights
+        reach = self._reach
         blocks: list[Array] = []
         weights: list[float] = []
+        heard: list[int] = []
         for j in self._neighbours:
             msg = inbox.get(j)
             if msg is None:
-                self._missing += 1
+                self._missing += reach is None  # on a range graph: not heard, not linked
                 continue
             data = msg.data
             if (msg.sender != j or msg.round != self._round or msg.n_targets != m
@@ -625,6 +678,11 @@ class DroneAgent:
                 continue
             size = data.shape[0]
             if size == full:
+                if reach is not None and first:
+                    if not np.isfinite(data).all():  # the kernel sees the rest of no other
+                        self._rejected += 1
+                        continue
+                    reach.merge(data[full - self.setup.n_drones:])
                 blocks.append(data if first else data[:pair])
             elif size == pair and not first:
                 blocks.append(data)
@@ -632,6 +690,9 @@ class DroneAgent:
                 self._rejected += 1
                 continue
             weights.append(weight_of[j])
+            heard.append(j)
+        if first:
+            self._heard = tuple(heard)
         return blocks, weights
 
     def _clean_beacons(self, beacons: Mapping[int, Sequence[float]]
@@ -671,7 +732,14 @@ class DroneAgent:
         local_input = [w * x for w, row in zip(weights, rows, strict=True)
                        for x in row[ROW.PROJECTOR]]
         local_input += weights  # u_i = [w Π̂ (9M), w (M)]
-        self._cons_array = consensus_step(self._operator, self._cons_array, self._disagreement,
+        disagreement = self._disagreement
+        if self._reach is not None:
+            # A range graph: the integral enters s as it is, K_i η_i, where (3.30) has
+            # K_i Σ_j (η_i − η_j) over the neighbours (docs/network.md, "The consensus on a
+            # changing graph"): the operator's η-difference entries get η itself.
+            disagreement = disagreement.copy()
+            disagreement[self._layout.integrals] = self._cons_array[self._layout.integrals]
+        self._cons_array = consensus_step(self._operator, self._cons_array, disagreement,
                                           local_input)
 
     def _initialise_consensus_states(self) -> None:
@@ -711,8 +779,31 @@ class DroneAgent:
             envelope_rows, envelope_lower = safety_rows(position, self.setup.safety)
         else:
             envelope_rows, envelope_lower = [], []
+        if self._kept:
+            keep_rows, keep_lower = self._keep_rows(position, beacons)
+            envelope_rows, envelope_lower = envelope_rows + keep_rows, envelope_lower + keep_lower
         return kernels.qp_rows(terms, target_velocities, weight_sums, position, others,
                                envelope_rows, envelope_lower, self._row_constants)
+
+    def _keep_rows(self, position: list[float], beacons: Mapping[int, list[float]]
+                   ) -> tuple[list[tuple[float, float, float]], list[float]]:
+        """Drone i's halves of the keep-link barriers (``network.keep_row``), one per kept
+        drone whose position this step has, in id order: the last rows of the QP. Sets
+        ``_n_keep_rows`` and ``_keep_margin_m`` (R_keep − the longest kept distance)."""
+        rows: list[tuple[float, float, float]] = []
+        lower: list[float] = []
+        longest_m = 0.0
+        for j in self._kept:
+            other = beacons.get(j)
+            if other is None:
+                continue
+            a, bound, h = keep_row(position, other, self._keep_range_m, self._keep_gain)
+            rows.append(a)
+            lower.append(bound)
+            longest_m = max(longest_m, math.sqrt(max(self._keep_range_m ** 2 - h, 0.0)))
+        self._n_keep_rows = len(rows)
+        self._keep_margin_m = self._keep_range_m - longest_m if rows else math.inf
+        return rows, lower
 
     def _solve(self, nominal: tuple[float, float, float], u_columns: list[float],
                lower: list[float], weights: list[float],

@@ -186,15 +186,16 @@ SLACK_USED = 1e-9
 
 
 def safety_conflict(u_columns: list[float], lower: list[float], n_safety: int,
-                    velocity: list[float], slacks: list[float]) -> bool:
+                    velocity: list[float], slacks: list[float], *, skip_last: int = 0) -> bool:
     """Whether the QP solution (u, slacks) used some localization or weight slack while one
-    of the last ``n_safety`` rows (the envelope's, in the column-major layout of the QP's
-    rows) was active: the drone gave up some localization because the envelope stopped it."""
+    of the ``n_safety`` rows before the last ``skip_last`` (the envelope's, in the
+    column-major layout of the QP's rows; the keep rows of ``swarm.core.network`` follow
+    them) was active: the drone gave up some localization because those rows stopped it."""
     if not any(slack > SLACK_USED for slack in slacks):
         return False
     n_rows = len(lower)
     u0, u1, u2 = velocity
-    for r in range(n_rows - n_safety, n_rows):
+    for r in range(n_rows - skip_last - n_safety, n_rows - skip_last):
         residual = (u_columns[r] * u0 + u_columns[n_rows + r] * u1
                     + u_columns[2 * n_rows + r] * u2 - lower[r])
         if residual <= ACTIVE_ROW_TOLERANCE * max(1.0, abs(lower[r])):

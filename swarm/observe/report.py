@@ -37,6 +37,7 @@ from swarm.runs.checks import (
     summarize_drones,
     summarize_targets,
 )
+from swarm.runs.network import NetworkSummary, network_summary
 from swarm.runs.record import RunRecord
 
 Mode = Literal["lockstep", "realtime", "inprocess"]
@@ -139,6 +140,9 @@ class RunReport:
     envelope_margins_m: dict[str, float | None] = field(default_factory=dict)
     envelope_tolerance_m: float = 0.0
     safety_conflicts: int | None = None
+    # The radio ([network] with a range; None for the fixed graph): components, λ₂, splits,
+    # kept links (swarm.runs.network).
+    network: NetworkSummary | None = None
 
     @property
     def ok(self) -> bool:
@@ -253,6 +257,13 @@ def _warnings(record: RunRecord, mode: str, cov: Coverage, drones: Sequence[Dron
                            f"breach(es) by target; the agent log has each)"
                            + (f"; at the end: {d.localization_status}"
                               if d.localization_status else ""))
+    network = network_summary(record)
+    if network is not None and network.first_split_s is not None:
+        parts = " and ".join(str(list(part)) for part in network.split_parts)
+        said = ("said by a drone at t = " + _fmt(network.first_said_s, ".2f") + " s"
+                if network.first_said_s is not None else "no drone said it")
+        out.append(f"the swarm split at t = {network.first_split_s:.2f} s: its radios no longer "
+                   f"connect {parts} ({said})")
     return tuple(out)
 
 
@@ -299,6 +310,7 @@ def build_report(record: RunRecord, mode: str = "inprocess",
         envelope_tolerance_m=cfg.checks.envelope_tolerance_m,
         safety_conflicts=(None if record.safety_conflict is None
                           else int(record.safety_conflict.sum())),
+        network=network_summary(record),
     )
 
 
@@ -379,11 +391,23 @@ def report_to_json(report: RunReport) -> dict[str, Any]:
         "envelope_margins_m": report.envelope_margins_m,
         "envelope_tolerance_m": report.envelope_tolerance_m,
         "safety_conflicts": report.safety_conflicts,
+        "network": None if report.network is None else _network_json(report.network),
         "planned_steps": cov.planned_steps,
         "complete": not report.incomplete,
         "violations": [_violation_json(v) for v in report.violations],
         "warnings": list(report.warnings),
         "verdict": report.verdict,
+    }
+
+
+def _network_json(n: NetworkSummary) -> dict[str, Any]:
+    return {
+        "topology": n.topology, "keep": n.keep, "range_m": n.range_m,
+        "max_components": n.max_components,
+        "min_algebraic_connectivity": finite_or_none(n.min_algebraic_connectivity),
+        "first_split_s": n.first_split_s, "split_parts": [list(p) for p in n.split_parts],
+        "first_said_s": n.first_said_s, "min_kept_margin_m": finite_or_none(n.min_kept_margin_m),
+        "link_conflicts": n.link_conflicts,
     }
 
 
@@ -540,6 +564,22 @@ def _envelope_figures(report: RunReport) -> list[str]:
             f"steps the envelope overruled localization {_count(report.safety_conflicts)}"]
 
 
+def _network_figures(report: RunReport) -> list[str]:
+    """The radio's figures, when the run had a range."""
+    n = report.network
+    if n is None:
+        return []
+    keep = "" if n.keep == "none" else f", keeping {n.keep}"
+    split = ("connected throughout" if n.first_split_s is None
+             else f"SPLIT at t = {n.first_split_s:.2f} s")
+    figures = [f"radio range {n.range_m:g} m{keep}: {split} (components ≤ "
+               f"{_count(n.max_components)}, min λ₂ {_fmt(n.min_algebraic_connectivity, '.3f')})"]
+    if n.keep != "none":
+        figures.append(f"kept links ≥ {_fmt(n.min_kept_margin_m, '.3f')} m inside R; steps a "
+                       f"keep row overruled localization {_count(n.link_conflicts)}")
+    return figures
+
+
 def run_lines(report: RunReport) -> tuple[str, str]:
     """Two lines: the swarm-wide figures, then where the run came from."""
     figures = "; ".join([
@@ -551,6 +591,7 @@ def run_lines(report: RunReport) -> tuple[str, str]:
         f"late steps {_count(report.late_steps)}",
         f"rejected messages {_count(report.rejected_messages)}",
         *_envelope_figures(report),
+        *_network_figures(report),
     ])
     origin = (f"mode {report.mode}; seed {report.seed}; {report.steps} steps "
               f"({report.duration_s:g} s simulated")

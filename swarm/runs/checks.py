@@ -19,34 +19,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from swarm.core.safety import envelope_margins
+from swarm.runs.network import check_network
 from swarm.runs.record import RunRecord
+from swarm.runs.violation import Violation
 
 SENSING_WEIGHT = 0.1  # a drone "senses" a target when its perception weight w > this
 
 BoolArray = NDArray[np.bool_]
 FloatArray = NDArray[np.float64]
-
-
-@dataclass(frozen=True)
-class Violation:
-    """One invariant not held: which (``subject``: the pair, drone, target or boundary), when
-    (the worst point, and the first step past the limit) and by how much, as one line
-    (``detail``) and as fields. An invariant that could not be checked at all has only
-    ``detail``."""
-
-    invariant: str
-    detail: str
-    subject: str = ""  # e.g. "drones 1 and 3", "target 0, drone 5", "ceiling, drone 2"
-    worst_value: float | None = None  # the checked quantity at its worst point
-    limit: float | None = None  # the bound it must respect (tolerance included)
-    excess: float | None = None  # how far the worst point is past the limit (> 0)
-    worst_time_s: float | None = None
-    first_time_s: float | None = None  # the first step past the limit
-    first_subject: str = ""  # who crossed first
-    time_beyond_s: float | None = None  # steps past the limit × ΔT
-
-    def __str__(self) -> str:
-        return f"{self.invariant}: {self.detail}"
 
 
 @dataclass(frozen=True)
@@ -464,4 +444,4 @@ def check_invariants(record: RunRecord) -> list[Violation]:
     Checked on the samples present; an invariant with nothing to check is a violation.
     """
     return [*_check_finite(record), *_check_lambda_bar(record), *_check_collision(record),
-            *_check_envelope(record), *_check_velocity_bound(record)]
+            *_check_envelope(record), *_check_velocity_bound(record), *check_network(record)]

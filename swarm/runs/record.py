@@ -42,6 +42,13 @@ class RunRecord:
     # (K, N) bool: the step's QP used localization slack while a safety-envelope row held
     # u back (swarm.core.safety.safety_conflict); None: not recorded (older recordings).
     safety_conflict: Array | None = None
+    # The radio (network.topology = "range", swarm.core.network; None otherwise or not
+    # recorded): (K, N, N) bool the links of each step as the simulated radio made them,
+    # (K, N) how many drones each drone's news reached (itself included: < N, it said the
+    # swarm had split), (K, N) bool a keep row held u back while localization slack was used.
+    links: NDArray[np.bool_] | None = None
+    reached: NDArray[np.int64] | None = None
+    link_conflict: NDArray[np.bool_] | None = None
 
     @property
     def n_steps(self) -> int:

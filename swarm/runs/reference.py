@@ -14,12 +14,13 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 from swarm.core.drone_step import Detection, DroneAgent, StepDiagnostics
+from swarm.core.network import RadioRange
 from swarm.messages.wire import (
     BeaconWire,
     CameraFrameWire,
@@ -102,8 +103,12 @@ def _run(config: ScenarioConfig, seed: int, on_step: StepCallback | None,
     flying = np.zeros((n, 3))  # the setpoint each drone flies (its beacon's velocity)
     response = config.vehicles.velocity_response
     vehicle_velocities = np.zeros((n, 3))  # every drone starts hovering
+    # The simulated radio (network.topology = "range"): each step's links from the true
+    # positions, as the world process makes them; else the configured graph.
+    radio = RadioRange(config.network) if config.network.ranged else None
+    neighbours = graph.neighbours
 
-    rec = {
+    rec: dict[str, Any] = {
         "pos": np.zeros((steps, n, 3)), "vel": np.zeros((steps, n, 3)),
         "tpos": np.zeros((steps, m, 3)), "tvel": np.zeros((steps, m, 3)),
         "est": np.zeros((steps, n, m, n_state)), "lam": np.zeros((steps, n, m)),
@@ -113,6 +118,9 @@ def _run(config: ScenarioConfig, seed: int, on_step: StepCallback | None,
         "true": np.zeros((steps, m)), "meas": np.zeros((steps, m)),
         "berr": np.full((steps, n), np.nan), "fb": np.zeros((steps, n), dtype=bool),
         "us": np.zeros((steps, n)), "conflict": np.zeros((steps, n), dtype=bool),
+        "links": np.zeros((steps, n, n), dtype=bool) if radio is not None else None,
+        "reached": np.zeros((steps, n), dtype=np.int64),
+        "link_conflict": np.zeros((steps, n), dtype=bool),
     }
     for k in range(steps):
         view = scene.at(k, positions)
@@ -122,8 +130,12 @@ def _run(config: ScenarioConfig, seed: int, on_step: StepCallback | None,
         seen = [position_over_link(positions[i], origins[i]) for i in range(n)]
         messages = [agents[i].begin_step(k, seen[i], detections[i], communicated)
                     for i in range(n)]
+        if radio is not None:
+            links = radio.step(positions)
+            rec["links"][k] = links
+            neighbours = tuple(tuple(np.flatnonzero(row).tolist()) for row in links)
         for _ in range(agents[0].n_rounds):
-            inboxes = [{j: messages[j] for j in graph.neighbours[i]} for i in range(n)]
+            inboxes = [{j: messages[j] for j in neighbours[i]} for i in range(n)]
             replies = [agents[i].consensus_round(inboxes[i]) for i in range(n)]
             messages = [m for m in replies if m is not None]  # the last round answers none
         beacons = {i: p.tolist() for i, p in enumerate(seen)}  # as an agent's exchange has them
@@ -144,6 +156,7 @@ def _run(config: ScenarioConfig, seed: int, on_step: StepCallback | None,
             rec["det"][k, i], rec["fb"][k, i], rec["us"][k, i] = (
                 d.detected, d.qp_fallback, d.step_us)
             rec["conflict"][k, i] = d.safety_conflict
+            rec["reached"][k, i], rec["link_conflict"][k, i] = d.reached, d.link_conflict
             if d.bearing_error is not None:
                 rec["berr"][k, i] = d.bearing_error
         rec["true"][k], rec["meas"][k] = truth.lambda_min()
@@ -166,4 +179,6 @@ def _run(config: ScenarioConfig, seed: int, on_step: StepCallback | None,
         detected=rec["det"], true_lambda_min=rec["true"], measured_lambda_min=rec["meas"],
         bearing_errors=rec["berr"], qp_fallback=rec["fb"], step_us=rec["us"],
         wall_time_s=time.perf_counter() - started, safety_conflict=rec["conflict"],
+        links=rec["links"], reached=rec["reached"] if radio is not None else None,
+        link_conflict=rec["link_conflict"] if radio is not None else None,
     )

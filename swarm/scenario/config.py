@@ -22,7 +22,12 @@ import numpy as np
 import tomlkit
 
 from swarm.core import icf
-from swarm.core.graph import CommunicationGraph, pi_consensus_is_stable
+from swarm.core.graph import (
+    CommunicationGraph,
+    pi_consensus_is_stable,
+    switching_pi_consensus_is_stable,
+)
+from swarm.core.network import NetworkParams
 from swarm.core.params import (
     ControlParams,
     EstimationParams,
@@ -423,6 +428,8 @@ class ScenarioConfig:
     control: ControlParams = field(default_factory=ControlParams)
     checks: ChecksSection = field(default_factory=ChecksSection)
     safety: SafetySection = field(default_factory=SafetySection)
+    # the radios: the fixed graph of swarm.edges (the default) or a range (swarm.core.network)
+    network: NetworkParams = field(default_factory=NetworkParams)
     vehicles: VehiclesSection = field(default_factory=VehiclesSection)
     runtime: RuntimeSection = field(default_factory=RuntimeSection)
     security: SecuritySection = field(default_factory=SecuritySection)
@@ -489,6 +496,16 @@ def realtime_only_reason(vehicles: VehiclesSection, *, mode: str, inprocess: boo
     return None
 
 
+def process_swarm_problem(config: ScenarioConfig) -> str | None:
+    """Why this scenario cannot run as a process swarm (one line), else None: what only the
+    in-process runner does so far."""
+    if config.network.ranged:
+        return ("network.topology = 'range' runs in-process only so far (launch-swarm "
+                "--inprocess; a sweep's mode = 'inprocess'): the process swarm's radio is not "
+                "built yet")
+    return None
+
+
 def _cross_check(config: ScenarioConfig) -> None:
     """Rules that involve more than one section; each names its key."""
     dt_ms = config.scenario.dt_s * 1000.0
@@ -514,16 +531,26 @@ def _cross_check(config: ScenarioConfig) -> None:
             f"estimation.laplacian_step must be < 1/Δ_max = {1.0 / max_degree:.4g} for this "
             f"graph (got {est.laplacian_step})")
     lam_max = graph.laplacian_max_eigenvalue
+    if config.network.ranged:
+        # Any graph of N drones may come up: check the consensus on the worst, the complete
+        # graph (λ_max(L) = N, the largest of any graph of N nodes).
+        graph = CommunicationGraph(graph.n_nodes, tuple(
+            (a, b) for a in range(graph.n_nodes) for b in range(a + 1, graph.n_nodes)))
+        lam_max = graph.laplacian_max_eigenvalue
+        _check_kept_links_at_start(config)
     for name, gains in (("projector_consensus", gram.projector_consensus),
                         ("weight_consensus", gram.weight_consensus)):
         if not gains.kp * lam_max * dt < 2.0:
             raise ConfigError(
                 f"gramian.{name}.kp: K_p·λ_max(L)·ΔT = {gains.kp * lam_max * dt:.3g} must be "
                 f"< 2 for a stable Euler step on this graph (λ_max(L) = {lam_max:.3g})")
-        stable, radius = pi_consensus_is_stable(graph, gains, dt)
+        stable, radius = (switching_pi_consensus_is_stable(graph.n_nodes, gains, dt)
+                          if config.network.ranged else pi_consensus_is_stable(graph, gains, dt))
         if not stable:
+            where = ("some graph of swarm.n_drones (a range graph may become any)"
+                     if config.network.ranged else "this graph")
             raise ConfigError(
-                f"gramian.{name}: the Euler-discretized PI consensus is unstable on this graph "
+                f"gramian.{name}: the Euler-discretized PI consensus is unstable on {where} "
                 f"(spectral radius {radius:.4f} >= 1); lower zeta/kp/ki or dt_s")
     gramian_mode = 1.0 - dt * (gram.forgetting + gram.consensus_gain * lam_max)
     if not abs(gramian_mode) < 1.0:
@@ -568,6 +595,19 @@ def _cross_check(config: ScenarioConfig) -> None:
 
 
 # -- loading -------------------------------------------------------------------------------
+
+
+def _check_kept_links_at_start(config: ScenarioConfig) -> None:
+    """With a network.keep rule, the start box fits within R_keep (every kept pair starts
+    inside its barrier: the box's diagonal is the farthest two drones can start apart)."""
+    net = config.network
+    if not net.keeps_links:
+        return
+    diagonal_m = float(np.linalg.norm(config.swarm.initial_box_size_m))
+    if diagonal_m > net.kept_range_m:
+        raise ConfigError(
+            f"network.keep_range_m: R_keep = {net.kept_range_m:g} m is shorter than the start "
+            f"box's diagonal ({diagonal_m:.3g} m): kept drones may start out of it")
 
 
 def _check_start_inside_envelope(config: ScenarioConfig) -> None:

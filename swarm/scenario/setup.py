@@ -60,19 +60,30 @@ def agent_setup(config: ScenarioConfig, drone_id: int) -> AgentSetup:
     if config.control.task == "bearing_formation":
         bearings = circle_bearings(graph.n_nodes)
         desired = {j: bearings[drone_id, j] for j in graph.neighbours[drone_id]}
+    net = config.network
+    if net.ranged:
+        # Whoever the radio brings: every other drone may be a neighbour, each with the
+        # weight 1/N, the largest that keeps every graph of N drones' update convex and
+        # symmetric (docs/network.md).
+        weights = {j: 1.0 / graph.n_nodes for j in range(graph.n_nodes) if j != drone_id}
+    else:
+        weights = graph.consensus_weights(drone_id, est.consensus_weights, est.laplacian_step)
     return AgentSetup(
         drone_id=drone_id,
         n_drones=graph.n_nodes,
         n_targets=len(config.targets),
         dt_s=config.scenario.dt_s,
-        neighbour_weights=graph.consensus_weights(drone_id, est.consensus_weights,
-                                                  est.laplacian_step),
+        neighbour_weights=weights,
         perception=config.perception,
         estimation=est,
         gramian=config.gramian,
         control=config.control,
         desired_bearings=desired,
         safety=config.safety.params,
+        network=net,
+        kept_links=tuple(b if a == drone_id else a
+                         for a, b in net.kept_edges(graph.n_nodes, graph.edges)
+                         if drone_id in (a, b)),
     )
 
 

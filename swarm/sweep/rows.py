@@ -112,6 +112,9 @@ def report_row(task: MissionTask, report: RunReport, *, exit_code: int | None, w
     }
     for kind, margin in report.envelope_margins_m.items():
         margins[f"envelope_{kind}_m"] = margin
+    network = report.network
+    if network is not None and network.keep != "none":
+        margins["kept_link_m"] = network.min_kept_margin_m
     extra: dict[str, Any] = {
         "margins": margins,
         "violations": [{"invariant": v.invariant, "subject": v.subject or None,
@@ -127,6 +130,10 @@ def report_row(task: MissionTask, report: RunReport, *, exit_code: int | None, w
         "late_steps": report.late_steps,
         "rejected_messages": report.rejected_messages,
         "safety_conflicts": report.safety_conflicts,
+        "split_s": None if network is None else network.first_split_s,
+        "split_said_s": None if network is None else network.first_said_s,
+        "min_lambda2": None if network is None else network.min_algebraic_connectivity,
+        "link_conflicts": None if network is None else network.link_conflicts,
         "steps": report.steps,
         "planned_steps": report.coverage.planned_steps,
         "recording": recording,

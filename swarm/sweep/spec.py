@@ -56,7 +56,8 @@ MODES = ("inprocess", "lockstep", "realtime", "sitl:ardupilot", "sitl:px4")
 OPTIONAL_KEYS = ("margins", "violations", "min_true_lambda_margin", "final_error_m",
                  "rms_error_m", "max_abs_velocity_m_s", "qp_fallbacks", "late_steps",
                  "rejected_messages", "safety_conflicts", "steps", "planned_steps",
-                 "recording", "tracking", "rate_limit_releases", "reference_resets", "loss")
+                 "recording", "tracking", "rate_limit_releases", "reference_resets", "loss",
+                 "split_s", "split_said_s", "min_lambda2", "link_conflicts")
 TOP_KEYS = ("base", "mode", "seeds", "record", "kill_agents", "timeout_s", "heatmap", "keep",
             "columns", "set", "axes", "samples", "gate")
 # Row keys every row has that a summary column may show (swarm.sweep.rows.REQUIRED_KEYS).
@@ -65,8 +66,9 @@ SAMPLE_KEYS = ("count", "seed", "ranges")
 GATE_KEYS = ("hard", "min_pass_rate")
 # The invariants a report names (swarm.runs.checks.check_invariants); those needing no
 # estimate are hard rows of every QP from the first step (SPEC §9), the gate's default.
-INVARIANTS = ("finite", "lambda_bar", "collision", "envelope", "velocity_bound")
-SAFETY_INVARIANTS = ("collision", "envelope", "velocity_bound", "finite")
+INVARIANTS = ("finite", "lambda_bar", "collision", "envelope", "velocity_bound", "kept_link",
+              "split_said")
+SAFETY_INVARIANTS = ("collision", "envelope", "velocity_bound", "finite", "kept_link")
 # The grid axis of drone losses: each drone's agent killed in turn at that mission time (one
 # mission per drone, its id in the row's params as KILL_DRONE); 0: none lost.
 KILL_AXIS = "kill.at_s"

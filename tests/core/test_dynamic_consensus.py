@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 from collections.abc import Callable
 
 import numpy as np
@@ -9,8 +10,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from swarm.core.dynamic_consensus import pi_consensus_step
-from swarm.core.graph import CommunicationGraph, pi_consensus_is_stable
+from swarm.core.dynamic_consensus import pi_consensus_step, switching_pi_consensus_step
+from swarm.core.graph import (
+    CommunicationGraph,
+    pi_consensus_is_stable,
+    switching_pi_consensus_is_stable,
+)
 from swarm.core.icf import consensus_iteration
 from swarm.core.params import ConsensusGains, GramianParams
 
@@ -222,3 +227,76 @@ def test_metropolis_consensus_converges_to_the_average_and_keeps_the_sum(
                            for i in range(n)])
         assert np.abs(values.sum(axis=0) - total).max() < 1e-12
     np.testing.assert_allclose(values, np.broadcast_to(total / n, values.shape), atol=1e-9)
+
+
+# -- the PI consensus of a changing graph (docs/network.md) ---------------------------------
+
+
+def test_switching_pi_step_follows_its_equation() -> None:
+    """One step equals s + ΔT(−ζs − K_pΣ(s − s_j) + K_iη + ζu), η − ΔT K_iΣ(s − s_j)."""
+    gains = ConsensusGains(zeta=2.0, kp=3.0, ki=5.0)
+    s, eta, u = np.array([1.0, -1.0]), np.array([0.5, 0.0]), np.array([2.0, 2.0])
+    s_n = [np.array([0.0, 1.0]), np.array([3.0, -2.0])]
+    s_new, eta_new = switching_pi_consensus_step(s, eta, u, s_n, gains, 0.1)
+    disagreement = sum(s - x for x in s_n)
+    np.testing.assert_allclose(
+        s_new, s + 0.1 * (-2.0 * s - 3.0 * disagreement + 5.0 * eta + 2.0 * u))
+    np.testing.assert_allclose(eta_new, eta - 0.1 * 5.0 * disagreement)
+
+
+def _complete(n: int) -> CommunicationGraph:
+    return CommunicationGraph(n, tuple((a, b) for a in range(n) for b in range(a + 1, n)))
+
+
+def _switching_map_radius(graph: CommunicationGraph, gains: ConsensusGains) -> float:
+    """The spectral radius of the network's one-step map of (s, η) under
+    ``switching_pi_consensus_step`` with zero input, restricted to Σ η = 0."""
+    n = graph.n_nodes
+    columns = []
+    for k in range(2 * n):
+        state = np.zeros(2 * n)
+        state[k] = 1.0
+        stepped = [switching_pi_consensus_step(
+            state[i], state[n + i], 0.0, [state[j] for j in graph.neighbours[i]], gains, DT)
+            for i in range(n)]
+        columns.append([x for x, _ in stepped] + [eta for _, eta in stepped])
+    network_map = np.array(columns).T
+    basis_eta = np.linalg.svd(np.ones((1, n)))[2][1:].T
+    basis = np.block([[np.eye(n), np.zeros((n, n - 1))], [np.zeros((n, n)), basis_eta]])
+    return float(np.max(np.abs(np.linalg.eigvals(basis.T @ network_map @ basis))))
+
+
+@pytest.mark.parametrize("gains", [PROJECTOR_GAINS, WEIGHT_GAINS, ConsensusGains(4.0, 30.0, 3.0),
+                                   ConsensusGains(8.0, 12.0, 40.0)])
+def test_the_switching_stability_check_bounds_every_graph_of_n(gains) -> None:
+    """Its radius is at least the network map's on the graphs of 6 drones tried (the complete
+    one's λ = N is the largest of any graph's), so a graph that diverges is never passed."""
+    stable, radius = switching_pi_consensus_is_stable(6, gains, DT)
+    radii = [_switching_map_radius(graph, gains) for graph in (RING, PATH, SCENARIO,
+                                                                _complete(6))]
+    assert radius >= max(radii) - 1e-9
+    if max(radii) >= 1.0:
+        assert not stable
+    assert stable == (radius < 1.0)
+
+
+@settings(deadline=None, max_examples=20, derandomize=True)
+@given(st.integers(2, 7), st.integers(0, 2**31 - 1))
+def test_on_a_graph_drawn_anew_every_step_the_switching_form_reaches_the_average(n, seed):
+    """Connected graphs drawn anew every step, constant inputs: every s ends at the inputs'
+    average (3.30's η differences never settle there, docs/network.md), and Σ η stays 0."""
+    rng = np.random.default_rng(seed)
+    inputs = rng.uniform(-1, 1, n)
+    estimate, integral = inputs.copy(), np.zeros(n)
+    for _ in range(1500):
+        order = rng.permutation(n)
+        edges = {(min(a, b), max(a, b)) for a, b in itertools.pairwise(order)}
+        edges |= {(a, b) for a in range(n) for b in range(a + 1, n) if rng.random() < 0.2}
+        graph = CommunicationGraph(n, tuple(edges))
+        stepped = [switching_pi_consensus_step(
+            estimate[i], integral[i], inputs[i], [estimate[j] for j in graph.neighbours[i]],
+            WEIGHT_GAINS, DT) for i in range(n)]
+        estimate = np.array([x for x, _ in stepped])
+        integral = np.array([eta for _, eta in stepped])
+        assert abs(integral.sum()) < 1e-9
+    np.testing.assert_allclose(estimate, inputs.mean(), rtol=0, atol=1e-6)
