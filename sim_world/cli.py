@@ -23,7 +23,7 @@ from swarm.scenario.cli_common import (
     run_main,
     terminate_on_sigterm,
 )
-from swarm.scenario.config import process_swarm_problem, realtime_only_reason
+from swarm.scenario.config import realtime_only_reason
 
 PROG = "sim-world"
 
@@ -70,9 +70,8 @@ def _run(args: argparse.Namespace) -> int:
     if gcs is not None and args.vehicles == "external":
         raise UsageError("--gcs: with --vehicles external the world serves no vehicles; "
                          "connect the ground station to the autopilots")
-    reason = (realtime_only_reason(config.vehicles, mode=args.mode,
-                                   external=args.vehicles == "external")
-              or process_swarm_problem(config))
+    reason = realtime_only_reason(config.vehicles, mode=args.mode,
+                                  external=args.vehicles == "external")
     if reason is not None:
         raise UsageError(reason)
     check_tls_endpoints([*(args.listen or []), *args.connect], tls=config.security.enabled)

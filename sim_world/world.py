@@ -218,13 +218,14 @@ class World:
                 drone=i, step=step, time_s=view.time_s, vehicle_time_ms=vehicle_times_ms[i],
                 detections=view.detections[i],
                 target_velocities=view.communicated_velocities_m_s,
-                drone_positions=positions))
+                drone_positions=positions,
+                radio_links=None if view.links is None else view.links[i]))
             # Stamped: a realtime agent sets the phase of its loop from when frames leave.
             put_stamped(self.session, self._pub_camera[i], frame)
         self._pub_truth.put(self.codec.encode(TruthWire.build(
             step=step, time_s=view.time_s, drone_positions=self.positions,
             target_positions=view.target_positions_m,
-            target_velocities=view.target_velocities_m_s)))
+            target_velocities=view.target_velocities_m_s, radio_links=view.links)))
 
     def _from_its_drone(self, key: str, beacon: BeaconWire) -> bool:
         """Whether ``beacon`` came on its sender's key; drone j's position on another's key is

@@ -89,7 +89,7 @@ def _main(argv: list[str], early: BoundSocket | None) -> int:
         load_scenario,
         terminate_on_sigterm,
     )
-    from swarm.scenario.config import process_swarm_problem, realtime_only_reason
+    from swarm.scenario.config import realtime_only_reason
 
     args = build_parser().parse_args(argv)
     config = load_scenario(args.config, args.duration)
@@ -102,9 +102,8 @@ def _main(argv: list[str], early: BoundSocket | None) -> int:
     check_tls_endpoints([*args.listen, *(args.connect or [])], tls=config.security.enabled)
     faults = LinkFaults(drop_rate=args.drop_consensus, delay_steps=args.delay_consensus,
                         seed=(args.seed or 0) * 1000 + args.id)
-    reason = (realtime_only_reason(config.vehicles, mode=args.mode,
-                                   faulty_consensus=faults.active)
-              or process_swarm_problem(config))
+    reason = realtime_only_reason(config.vehicles, mode=args.mode,
+                                  faulty_consensus=faults.active)
     if reason is not None:
         raise UsageError(reason)
     terminate_on_sigterm()

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal, Protocol
 
@@ -225,9 +225,19 @@ class LockstepExchange:
 
     def inbox(self, step: int, rnd: int) -> dict[int, ConsensusMessage]:
         """Every neighbour's message of (step, round), taken from its FIFO in arrival order
-        (a message of a later round or step is kept for its own inbox)."""
-        return self._take(self.consensus_steps, step, rnd, self._consensus_from,
-                          self._neighbour_order, f"round-{rnd} consensus")
+        (a message of a later round or step is kept for its own inbox). With radios of limited
+        range the neighbours are those the step's camera frame says this drone hears; what the
+        others sent is taken from their FIFOs and left to be pruned."""
+        heard = self._frame(step).radio_neighbours()
+        if heard is None:
+            return self._take(self.consensus_steps, step, rnd, self._consensus_from,
+                              self._neighbour_order, f"round-{rnd} consensus")
+        for j, fifo in self._consensus_from.items():
+            if j not in heard:
+                fifo.drain()
+        got = self._take(self.consensus_steps, step, rnd, self._consensus_from, heard,
+                         f"round-{rnd} consensus")
+        return {j: got[j] for j in heard}
 
     def _frame(self, step: int) -> CameraFrameWire:
         return self._take(self.camera_steps, step, 0, self._camera_from, (0,),
@@ -389,6 +399,8 @@ class RealtimeExchange:
         first beacon goes out: a drone not heard at all yet counts as present until
         ``member_timeout_s`` after our first step."""
         peers = self.peers
+        if peers.config.network.ranged:
+            return  # the drone's reach stamps say who is in its part (docs/network.md)
         timeout = peers.config.runtime.member_timeout_s
         now = self._clock()
         if self._first_step_s is None:
@@ -428,7 +440,12 @@ class RealtimeExchange:
         inbox: dict[int, ConsensusMessage] = {}
         ages = []
         now_unix = time.time()
-        for j in self.peers.neighbours:
+        candidates: Collection[int] = self.peers.neighbours
+        if self.peers.config.network.ranged:  # whom the newest frame says the radio hears
+            newest = self.peers.camera_latest.get(0)
+            heard = None if newest is None else newest[0].radio_neighbours()
+            candidates = () if heard is None else heard
+        for j in candidates:
             latest = self.consensus_latest.get((j, rnd))
             if latest is None:
                 continue

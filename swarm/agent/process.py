@@ -115,8 +115,12 @@ class AgentProcess:
         cfg = options.config
         self.id = options.drone_id
         self.n = cfg.swarm.n_drones
-        self.neighbours = set(cfg.swarm.graph.neighbours[self.id])
         self.others = set(range(self.n)) - {self.id}
+        self._reached = self.n  # drones this one's news reaches (``_watch_reach``)
+        # Whom this drone may hear: its graph neighbours, or with radios of limited range
+        # anyone (each step's neighbours are then those its radio hears: the exchange).
+        self.neighbours = (set(self.others) if cfg.network.ranged
+                           else set(cfg.swarm.graph.neighbours[self.id]))
         self.agent: DroneAgent = build_agent(cfg, options.seed, self.id)
         self.codec = cfg.wire_codec()
         self.keys = Keys(options.run_id)
@@ -340,6 +344,7 @@ class AgentProcess:
         self._send_command(result.velocity, position, vehicle_velocity, stamp)
         self._flying = result.velocity
         self._watch_localization(result.diagnostics)
+        self._watch_reach(result.diagnostics)
         self._queue_telemetry(
             result.diagnostics, position, qp_fallbacks=agent.qp_fallbacks,
             rejected_messages=agent.rejected_inputs + self.rejections.total()
@@ -350,7 +355,8 @@ class AgentProcess:
             neighbour_age_ms=exchange.neighbour_age_ms, swarm_size=agent.swarm_size,
             mavlink_state=f"{'armed' if self.link.armed else 'disarmed'} {self.link.mode}",
             rate_limit_releases=agent.rate_limit_releases,
-            safety_conflicts=agent.safety_conflicts,
+            safety_conflicts=agent.safety_conflicts, link_conflicts=agent.link_conflicts,
+            splits_said=agent.splits_said,
             reference_resets=self.reference.resets if self.reference is not None else 0,
             tracking_error_m=self.tracking_error_m,
             velocity_error_m_s=self.velocity_error_m_s,
@@ -384,6 +390,20 @@ class AgentProcess:
         if not problem:
             return ""
         return f"{self.options.config.vehicles.on_vehicle_event}: {problem}"[:64]
+
+    def _watch_reach(self, diag: StepDiagnostics) -> None:
+        """Say at once when this drone's news stops reaching some drones (the swarm has split,
+        docs/network.md) or reaches them again: a log line at each change."""
+        if not self.options.config.network.ranged or diag.reached == self._reached:
+            return
+        previous, self._reached = self._reached, diag.reached
+        if diag.reached < self.n:
+            self.options.log(f"drone {self.id}: step {diag.step}: the swarm has split: this "
+                             f"drone's part has {diag.reached} of {self.n} drones (N = "
+                             f"{diag.reached} in its formulas)")
+        elif previous < self.n:
+            self.options.log(f"drone {self.id}: step {diag.step}: the swarm is whole again "
+                             f"({self.n} drones)")
 
     def _watch_localization(self, diag: StepDiagnostics) -> None:
         """Say at once when an own λ̄ copy goes below ε − tol, or comes back

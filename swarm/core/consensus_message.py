@@ -5,6 +5,9 @@ packed in one float64 vector ``data``, each array in C order:
 
     data = [ V (M·n·n) | v (M·n) ]                                    every round
          + [ s wΠ̂ (9M) | s w (M) | η wΠ̂ (9M) | η w (M) | G (9M) ]    round 0 only
+         + [ reach stamps (N) ]                  round 0, on a range graph only
+
+(the reach stamps: ``swarm.core.network.ReachTracker``, docs/network.md.)
 
 The second part is the agent's own packed consensus state (``ConsensusLayout``) and the first
 its packed ICF pair, so the agent makes a message by one concatenation, the wire sends

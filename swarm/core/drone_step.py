@@ -307,6 +307,7 @@ class DroneAgent:
         self.rate_limit_releases = 0
         self.safety_conflicts = 0
         self.link_conflicts = 0
+        self.splits_said = 0  # times this drone found its part of the swarm smaller than N
         # The QPs of the last step that got no acceptable solution (``FailedQp``), in the
         # order they were tried; emptied when a step begins.
         self.qp_failures: list[FailedQp] = []
@@ -427,6 +428,8 @@ class DroneAgent:
         assert reach is not None
         reach.stamp(step)
         reached = int(np.count_nonzero(reach.reached(step)))
+        if reached < self.setup.n_drones <= self._reached:
+            self.splits_said += 1
         self._reached = reached
         if reached != self._swarm_size:
             self.set_swarm_size(reached)

@@ -50,8 +50,8 @@ class NetworkParams:
     keep_range_m: float | None = None  # R_keep [m]; None: R − hysteresis_m
     keep_gain: float = 1.0  # α_keep of the keep rows [1/s]
     # A drone not reached for N − 1 + this many steps is counted outside the component
-    # (ReachTracker): room for lost or late messages on a real radio [steps].
-    reach_slack_steps: int = 5
+    # (ReachTracker): room for lost or late messages (realtime, a real radio) [steps].
+    reach_slack_steps: int = 25
 
     def __post_init__(self) -> None:
         require(self.topology in ("fixed", "range"), "topology", "must be 'fixed' or 'range'",
@@ -195,14 +195,19 @@ def keep_row(own: list[float], other: list[float], keep_range_m: float,
 class ReachTracker:
     """How far a drone's news reaches (module docstring): ``stamps[j]`` is the newest step
     whose stamp of drone j reached this drone (its own: the current step). Every drone
-    starts reached at step 0 (the swarm starts connected, as the thesis' does)."""
+    counts as reached at this drone's first step (the swarm starts connected, as the
+    thesis' does; a realtime agent's first step need not be step 0)."""
 
     def __init__(self, drone_id: int, n_drones: int, slack_steps: int) -> None:
         self.drone_id = drone_id
         self.window = n_drones - 1 + slack_steps
         self.stamps = np.zeros(n_drones)
+        self._started = False
 
     def stamp(self, step: int) -> None:
+        if not self._started:
+            self.stamps[:] = float(step)
+            self._started = True
         self.stamps[self.drone_id] = float(step)
 
     def merge(self, heard: Array) -> None:

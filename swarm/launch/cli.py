@@ -62,7 +62,6 @@ from swarm.scenario.cli_common import (
 from swarm.scenario.config import (
     ScenarioConfig,
     config_to_toml,
-    process_swarm_problem,
     realtime_only_reason,
     write_resolved_config,
 )
@@ -247,8 +246,6 @@ def _run(args: argparse.Namespace) -> int:
     reason = realtime_only_reason(config.vehicles, mode=args.mode, inprocess=args.inprocess,
                                   external=real, restarts_agents=bool(args.agent_restarts),
                                   kills_agents=bool(args.kill_agents))
-    if reason is None and not args.inprocess:
-        reason = process_swarm_problem(config)
     if reason is not None:
         raise UsageError(reason)
     if args.sitl_params and sitl is None:

@@ -49,7 +49,7 @@ NonNegativeInt = Annotated[int, msgspec.Meta(ge=0)]
 Finite = Annotated[float, msgspec.Meta(ge=-_FLOAT_MAX, le=_FLOAT_MAX)]
 NonNegativeFinite = Annotated[float, msgspec.Meta(ge=0.0, le=_FLOAT_MAX)]
 
-SIZES: Final = ("drones", "targets", "state", "rounds")
+SIZES: Final = ("drones", "targets", "state", "rounds", "reach")
 
 Check = Callable[[Any], None]
 

@@ -88,7 +88,9 @@ _W = TypeVar("_W")
 # 8: the beacon relay is packed (BeaconRelayWire.senders, .data): no struct per drone.
 # 9: a lockstep agent sends its telemetry a few steps at a time (TelemetryBatchWire): an
 #    observer of an older build would reject the batches.
-WIRE_VERSION: Final = 9
+# 10: radios with a range (docs/network.md): a frame's radio links, the truth's link matrix,
+#    telemetry's neighbours heard, reach and keep figures, round 0's reach stamps.
+WIRE_VERSION: Final = 10
 
 MAX_DRONES: Final = 1024  # codec limits: a swarm larger than this is a configuration error
 MAX_TARGETS: Final = 1024
@@ -312,6 +314,9 @@ class CameraFrameWire(_Wire, tag="camera", kw_only=True, frozen=True):
     reports it, i.e. what that drone's agent reads from LOCAL_POSITION_NED, in W (N, 3): the
     positions the drones' beacons of this step would carry, in this one message instead of a
     relay that waits for all of them (``sim_world.world``).
+    ``radio_links`` (network.topology = "range"): one byte per drone, 1 where this drone's
+    radio hears that drone at this step, as the world's simulated radio decides
+    (``swarm.scenario.world_step.Scene``); the agent takes its neighbours of the step from it.
     """
 
     drone: DroneId
@@ -323,6 +328,7 @@ class CameraFrameWire(_Wire, tag="camera", kw_only=True, frozen=True):
     # (M, 3), single-integrator model only
     target_velocities: TargetsBy3 | None = None
     drone_positions: DronesBy3 | None = None  # (N, 3), lockstep only
+    radio_links: Annotated[bytes, msgspec.Meta(extra={"packed": "radio_links"})] | None = None
 
     @classmethod
     def build(
@@ -334,6 +340,7 @@ class CameraFrameWire(_Wire, tag="camera", kw_only=True, frozen=True):
         detections: Sequence[Detection],
         target_velocities: ArrayLike | None = None,
         drone_positions: ArrayLike | F64Array | None = None,
+        radio_links: ArrayLike | None = None,
     ) -> CameraFrameWire:
         """The frame; ``drone_positions`` may come as an ``F64Array`` already (the world
         converts a step's positions once for all N frames)."""
@@ -343,10 +350,20 @@ class CameraFrameWire(_Wire, tag="camera", kw_only=True, frozen=True):
             dets.append(DetectionWire(int(d.target), float(point[0]), float(point[1])))
         positions = (drone_positions if isinstance(drone_positions, F64Array)
                      else _array_or_none(drone_positions))
+        links = (None if radio_links is None
+                 else np.asarray(radio_links, dtype=bool).astype(np.uint8).tobytes())
         return cls(drone=int(drone), step=int(step), time_s=float(time_s),
                    vehicle_time_ms=int(vehicle_time_ms), detections=tuple(dets),
                    target_velocities=_array_or_none(target_velocities),
-                   drone_positions=positions)
+                   drone_positions=positions, radio_links=links)
+
+    def radio_neighbours(self) -> tuple[int, ...] | None:
+        """The drones this frame's drone hears at its step (``radio_links``; itself never),
+        None when the frame has no radio links (the fixed graph)."""
+        if self.radio_links is None:
+            return None
+        return tuple(j for j, linked in enumerate(self.radio_links)
+                     if linked and j != self.drone)
 
     def detection_list(self) -> list[Detection]:
         out = []
@@ -375,14 +392,25 @@ class TruthWire(_Wire, tag="truth", kw_only=True, frozen=True):
     drone_positions: DronesBy3
     target_positions: TargetsBy3
     target_velocities: TargetsBy3
+    # network.topology = "range": which drones' radios hear each other at this step, (N, N),
+    # 1.0 or 0.0 (the world's simulated radio); None for the fixed graph.
+    radio_links: Annotated[F64Array, msgspec.Meta(extra={"shape": ("drones", "drones")})] \
+        | None = None
 
     @classmethod
     def build(cls, step: int, time_s: float, drone_positions: ArrayLike,
-              target_positions: ArrayLike, target_velocities: ArrayLike) -> TruthWire:
+              target_positions: ArrayLike, target_velocities: ArrayLike,
+              radio_links: ArrayLike | None = None) -> TruthWire:
         return cls(step=int(step), time_s=float(time_s),
                    drone_positions=F64Array.from_array(drone_positions),
                    target_positions=F64Array.from_array(target_positions),
-                   target_velocities=F64Array.from_array(target_velocities))
+                   target_velocities=F64Array.from_array(target_velocities),
+                   radio_links=(None if radio_links is None else F64Array.from_array(
+                       np.asarray(radio_links, dtype=bool).astype(np.float64))))
+
+    def radio_link_matrix(self) -> NDArray[np.bool_] | None:
+        """``radio_links`` as an (N, N) bool array (None for the fixed graph)."""
+        return None if self.radio_links is None else self.radio_links.to_array() != 0.0
 
 
 class ClockWire(_Wire, tag="clock", kw_only=True, frozen=True):
@@ -437,6 +465,10 @@ class TelemetryCounters(msgspec.Struct, frozen=True, array_like=True,
     # Steps whose QP used localization slack while a safety-envelope row held u back (safety
     # won; swarm.core.safety.safety_conflict).
     safety_conflicts: NonNegativeInt = 0
+    # The same for a keep row of the radio (network.keep; docs/network.md), and the times
+    # this drone found the swarm split (its news reaching fewer than N drones).
+    link_conflicts: NonNegativeInt = 0
+    splits_said: NonNegativeInt = 0
 
 
 
@@ -507,6 +539,15 @@ class TelemetryWire(_Wire, tag="telemetry", kw_only=True, frozen=True):
     counters: TelemetryCounters = TelemetryCounters()
     rate_limit_released: bool = False  # this step's QP was solved without the rate box
     safety_conflict: bool = False  # localization slack used while an envelope row was active
+    # The radio (docs/network.md): one byte per drone, 1 for the neighbours heard this step
+    # (None: not sent, older agents); the drones this one's news reaches (itself included; 0:
+    # not sent); R_keep − the longest kept link [m] (None: no keep rows); a keep row held u
+    # back while localization slack was used.
+    neighbours_heard: Annotated[bytes, msgspec.Meta(extra={"packed": "neighbours_heard"})] \
+        | None = None
+    reached: NonNegativeInt = 0
+    keep_margin_m: Finite | None = None
+    link_conflict: bool = False
 
     @classmethod
     def build(cls, **fields: Any) -> TelemetryWire:
@@ -577,6 +618,11 @@ class TelemetryWire(_Wire, tag="telemetry", kw_only=True, frozen=True):
             rejected_inputs=self.rejected_inputs,
             rate_limit_released=self.rate_limit_released,
             safety_conflict=self.safety_conflict,
+            neighbours_heard=(() if self.neighbours_heard is None else tuple(
+                j for j, heard in enumerate(self.neighbours_heard) if heard)),
+            reached=self.reached,
+            keep_margin_m=math.inf if self.keep_margin_m is None else self.keep_margin_m,
+            link_conflict=self.link_conflict,
         )
 
 
@@ -643,7 +689,8 @@ class _Header(msgspec.Struct, array_like=True):
 def consensus_to_wire(message: ConsensusMessage) -> ConsensusWire:
     """The wire form of ``message`` (not validated for a swarm: ``WireCodec.encode`` does
     that). Raises ``WireError`` if it is not a ``ConsensusMessage`` whose ``data`` is a 1-D
-    float64 array of one of the two sizes its M and n give."""
+    float64 array of a size its M and n give (without the round-0 states, with them, or with
+    them and reach stamps after, whose count the codec checks)."""
     if not isinstance(message, ConsensusMessage):
         raise WireError(f"not a consensus message: {type(message).__name__}", rule="type")
     data = message.data
@@ -652,7 +699,8 @@ def consensus_to_wire(message: ConsensusMessage) -> ConsensusWire:
         raise WireError(f"consensus sizes must be integers >= 0, got M = {M!r:.20}, "
                         f"n = {n!r:.20}", rule="type")
     if (not isinstance(data, np.ndarray) or data.ndim != 1
-            or data.shape[0] not in (message_size(M, n, False), message_size(M, n, True))):
+            or not (data.shape[0] == message_size(M, n, False)
+                    or data.shape[0] >= message_size(M, n, True))):
         shape = np.shape(data) if isinstance(data, np.ndarray) else type(data).__name__
         raise WireError(f"consensus data {shape!s:.40} does not fit M = {M}, n = {n}",
                         rule="shape")
@@ -679,7 +727,7 @@ def consensus_from_wire(wire: ConsensusWire) -> ConsensusMessage:
     array, bit-exact."""
     M, n = wire.n_targets, wire.n_state
     floats, odd = divmod(len(wire.data), 8)
-    if odd or floats not in (message_size(M, n, False), message_size(M, n, True)):
+    if odd or not (floats == message_size(M, n, False) or floats >= message_size(M, n, True)):
         raise WireError(f"consensus data of {len(wire.data)} bytes does not fit M = {M}, "
                         f"n = {n}", rule="shape")
     block = np.frombuffer(wire.data, dtype=_LE_F64).astype(np.float64)
@@ -700,15 +748,18 @@ def telemetry_from_diagnostics(
     diag: StepDiagnostics,
     position: ArrayLike,
     counters: TelemetryCounters | None = None,
+    *,
+    n_drones: int | None = None,
     **counter_fields: Any,
 ) -> TelemetryWire:
     """Telemetry for one step: ``diag`` as it is, the drone's ``position`` and the totals.
 
     The totals come either as ``counters`` or as ``TelemetryCounters`` keyword fields
     (``qp_fallbacks=…, late_steps=…, neighbour_age_ms=…, mavlink_state=…``). A NaN
-    ``neighbour_age_ms`` means "no neighbour message yet" and is sent as None.
+    ``neighbour_age_ms`` means "no neighbour message yet" and is sent as None. ``n_drones``
+    (the swarm's N) sends the neighbours heard as one byte per drone; without it, not at all.
     """
-    return _telemetry(diag, position, _counters(counters, counter_fields))
+    return _telemetry(diag, position, _counters(counters, counter_fields), n_drones)
 
 
 def _counters(counters: TelemetryCounters | None,
@@ -743,7 +794,8 @@ def _beacon_fields(sender: int, step: int, time_s: float, position_m: ArrayLike,
 
 
 def _telemetry_fields(diag: StepDiagnostics, position: ArrayLike,
-                      counters: TelemetryCounters) -> tuple[Any, ...]:
+                      counters: TelemetryCounters, n_drones: int | None = None
+                      ) -> tuple[Any, ...]:
     """``TelemetryWire``'s fields after ``version``, in order, the arrays packed: the one
     conversion of a step's diagnostics that ``telemetry_from_diagnostics`` and
     ``WireCodec.encode_telemetry`` share."""
@@ -759,13 +811,27 @@ def _telemetry_fields(diag: StepDiagnostics, position: ArrayLike,
             int(diag.qp_iterations), bool(diag.qp_fallback), float(diag.qp_solve_us),
             float(diag.step_us), None if bearing is None else float(bearing),
             int(diag.missing_neighbour_messages), int(diag.rejected_inputs), counters,
-            bool(diag.rate_limit_released), bool(diag.safety_conflict))
+            bool(diag.rate_limit_released), bool(diag.safety_conflict),
+            None if n_drones is None else _id_mask(diag.neighbours_heard, n_drones),
+            int(diag.reached),
+            None if math.isinf(margin := float(diag.keep_margin_m)) else margin,
+            bool(diag.link_conflict))
+
+
+def _id_mask(ids: Sequence[int], n_drones: int) -> bytes:
+    """One byte per drone, 1 for each of ``ids``."""
+    mask = bytearray(n_drones)
+    for j in ids:
+        if 0 <= j < n_drones:
+            mask[j] = 1
+    return bytes(mask)
 
 
 def _telemetry(diag: StepDiagnostics, position: ArrayLike,
-               counters: TelemetryCounters) -> TelemetryWire:
+               counters: TelemetryCounters, n_drones: int | None = None) -> TelemetryWire:
     return TelemetryWire(**dict(zip(_TELEMETRY_FIELDS,
-                                    _telemetry_fields(diag, position, counters), strict=True)))
+                                    _telemetry_fields(diag, position, counters, n_drones),
+                                    strict=True)))
 
 
 _BEACON_FIELDS: Final = BeaconWire.__struct_fields__[1:]
@@ -776,7 +842,8 @@ assert TelemetryWire.__struct_fields__[1:] == (
     "drone", "step", "time_s", "position_m", "n_targets", "n_state", "data", "detected",
     "control_active", "qp_status", "qp_iterations", "qp_fallback", "qp_solve_us", "step_us",
     "bearing_error", "missing_neighbour_messages", "rejected_inputs", "counters",
-    "rate_limit_released", "safety_conflict")
+    "rate_limit_released", "safety_conflict", "neighbours_heard", "reached", "keep_margin_m",
+    "link_conflict")
 
 
 def _finite_block(data: bytes, layout: tuple[tuple[str, Any, int, int], ...]) -> None:
@@ -802,6 +869,25 @@ def _telemetry_block(sizes: Mapping[str, int | None]) -> Check:
                  f"n = {n}", "shape")
         _finite_block(data, layout)
     return check
+
+
+def _drone_mask(field: str) -> Callable[[Mapping[str, int | None]], Check]:
+    """The rule of a per-drone mask (its ``"packed"`` marker): one byte per drone of this
+    swarm, each 0 or 1."""
+    def rule(sizes: Mapping[str, int | None]) -> Check:
+        n = sizes["drones"]
+
+        def check(m: Any) -> None:
+            mask = getattr(m, field)
+            if mask is None:
+                return
+            if len(mask) != n:
+                fail(f"{field} carries {len(mask)} bytes, expected one per drone ({n})",
+                     "shape")
+            if mask.translate(None, b"\x00\x01"):
+                fail(f"{field} holds a byte that is neither 0 nor 1", "range")
+        return check
+    return rule
 
 
 def _relay_block(sizes: Mapping[str, int | None]) -> Check:
@@ -841,9 +927,12 @@ def _consensus_block(sizes: Mapping[str, int | None]) -> Check:
     """The rule of ``ConsensusWire.data`` (its ``"packed"`` marker): the block of one round
     for this swarm's M and n — round 0 with the consensus states, later rounds without —
     every float finite."""
-    M, n = sizes["targets"], sizes["state"]
+    M, n, reach = sizes["targets"], sizes["state"], sizes.get("reach") or 0
     assert M is not None and n is not None
     layouts = (message_layout(M, n, False), message_layout(M, n, True))
+    if reach:  # a range graph's round 0 ends with the N reach stamps
+        stop = layouts[1][-1][3]
+        layouts = (layouts[0], (*layouts[1], ("reach_stamps", (reach,), stop, stop + reach)))
     later, first = (8 * layout[-1][3] for layout in layouts)
 
     def check(m: ConsensusWire) -> None:
@@ -856,7 +945,8 @@ def _consensus_block(sizes: Mapping[str, int | None]) -> Check:
                 fail("round 0 without the consensus states: " + ", ".join(STATE_NAMES)
                      + " missing", "shape")
             fail(f"round-{rnd} consensus data carries {len(data)} bytes, expected {expected} "
-                 f"for M = {M}, n = {n}", "shape")
+                 f"for M = {M}, n = {n}" + (f", N = {reach} reach stamps" if reach and rnd == 0
+                                            else ""), "shape")
         _finite_block(data, layouts[rnd == 0])
     return check
 
@@ -871,7 +961,7 @@ class WireCodec:
     """
 
     def __init__(self, n_drones: int, n_targets: int, n_state: int, *,
-                 n_rounds: int | None = None,
+                 n_rounds: int | None = None, reach_stamps: bool = False,
                  max_payload_bytes: int = DEFAULT_MAX_PAYLOAD_BYTES) -> None:
         for name, value, upper in (("n_drones", n_drones, MAX_DRONES),
                                    ("n_targets", n_targets, MAX_TARGETS),
@@ -893,12 +983,15 @@ class WireCodec:
             cls: msgspec.msgpack.Decoder(cls) for cls in _KINDS}
         self._header = msgspec.msgpack.Decoder(_Header)
         self._telemetry_or_batch = msgspec.msgpack.Decoder(TelemetryWire | TelemetryBatchWire)
+        self.reach_stamps = reach_stamps
         sizes = {"drones": n_drones, "targets": n_targets, "state": n_state,
-                 "rounds": n_rounds}
+                 "rounds": n_rounds, "reach": n_drones if reach_stamps else 0}
         self._rules: dict[type, Check] = SwarmRules(
             sizes, tuple(_KINDS), array_type=F64Array,
             packings={"consensus": _consensus_block, "telemetry": _telemetry_block,
-                      "beacon_relay": _relay_block}).checks
+                      "beacon_relay": _relay_block,
+                      "radio_links": _drone_mask("radio_links"),
+                      "neighbours_heard": _drone_mask("neighbours_heard")}).checks
 
     # -- encode --------------------------------------------------------------------------
 
@@ -943,11 +1036,12 @@ class WireCodec:
     def encode_telemetry(self, diag: StepDiagnostics, position: ArrayLike,
                          counters: TelemetryCounters | None = None,
                          **counter_fields: Any) -> bytes:
-        """``encode(telemetry_from_diagnostics(diag, position, counters, **counter_fields))``;
-        a wrong counter argument raises ``TypeError`` as there."""
+        """``encode(telemetry_from_diagnostics(diag, position, counters, n_drones=N,
+        **counter_fields))`` (N: this codec's); a wrong counter argument raises ``TypeError``
+        as there."""
         totals = _counters(counters, counter_fields)
         return self._encode_fields("telemetry", TelemetryWire, _converted(
-            _telemetry_fields, "StepDiagnostics", diag, position, totals))
+            _telemetry_fields, "StepDiagnostics", diag, position, totals, self.n_drones))
 
     def encode_telemetry_batch(self, payloads: Sequence[bytes]) -> bytes:
         """One ``TelemetryBatchWire`` of these ``TelemetryWire`` payloads (each as

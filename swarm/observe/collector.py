@@ -70,6 +70,12 @@ class TelemetryCollector:
         self.bearing = np.full((k, n), np.nan)
         self.fallback = np.zeros((k, n), dtype=bool)
         self.safety_conflict = np.zeros((k, n), dtype=bool)
+        # The radio (network.topology = "range"): the world's links, each drone's reach and
+        # its keep-row conflicts; links stay all False where no truth step arrived.
+        self.ranged = config.network.ranged
+        self.links = np.zeros((k, n, n), dtype=bool)
+        self.reached = np.zeros((k, n), dtype=np.int64)
+        self.link_conflict = np.zeros((k, n), dtype=bool)
         self.step_us = np.full((k, n), np.nan)
         self.latest: dict[int, TelemetryWire] = {}
         self.telemetry_received = np.zeros(n, dtype=int)
@@ -95,6 +101,7 @@ class TelemetryCollector:
             self.detected[k, i] = tel.detected
             self.fallback[k, i] = tel.qp_fallback
             self.safety_conflict[k, i] = tel.safety_conflict
+            self.reached[k, i], self.link_conflict[k, i] = tel.reached, tel.link_conflict
             self.step_us[k, i] = tel.step_us
             if tel.bearing_error is not None:
                 self.bearing[k, i] = tel.bearing_error
@@ -108,6 +115,9 @@ class TelemetryCollector:
             self.positions[k] = arrays["drone_positions"]
             self.targets[k] = arrays["target_positions"]
             self.target_vel[k] = arrays["target_velocities"]
+            links = truth.radio_link_matrix()
+            if links is not None:
+                self.links[k] = links
             self.last_truth_step = max(self.last_truth_step, k)
 
     def record(self, seed: int, wall_time_s: float, *, fill: bool = True) -> RunRecord:
@@ -124,6 +134,8 @@ class TelemetryCollector:
             arrays = {name: getattr(self, name).copy() for name in _FLOAT_ARRAYS}
             detected, fallback = self.detected.copy(), self.fallback.copy()
             conflict = self.safety_conflict.copy()
+            links, reached = self.links.copy(), self.reached.copy()
+            link_conflict = self.link_conflict.copy()
             steps = max(self.last_truth_step + 1, 0)
         arrays = {name: values[:steps] for name, values in arrays.items()}
         self.missing_samples = (_missing_steps(arrays["positions"])
@@ -144,7 +156,10 @@ class TelemetryCollector:
             detected=detected[:steps], true_lambda_min=true_min,
             measured_lambda_min=measured_min, bearing_errors=arrays["bearing"],
             qp_fallback=fallback[:steps], step_us=arrays["step_us"], wall_time_s=wall_time_s,
-            safety_conflict=conflict[:steps])
+            safety_conflict=conflict[:steps],
+            links=links[:steps] if self.ranged else None,
+            reached=reached[:steps] if self.ranged else None,
+            link_conflict=link_conflict[:steps] if self.ranged else None)
 
     def _reference_lambdas(self, positions: Array, targets: Array,
                            detected: NDArray[np.bool_]) -> tuple[Array, Array]:

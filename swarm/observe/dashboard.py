@@ -46,16 +46,17 @@ from swarm.scenario.config import ScenarioConfig
 _EVENT_LABELS = {"late_steps": "late", "stale_neighbour_messages": "stale",
                  "qp_fallbacks": "fb", "rejected_messages": "rej", "vehicle_events": "veh",
                  "rate_limit_releases": "rel", "reference_resets": "rst",
-                 "lambda_breaches": "λ̄", "safety_conflicts": "env"}
+                 "lambda_breaches": "λ̄", "safety_conflicts": "env", "link_conflicts": "link",
+                 "splits_said": "split"}
 
 TARGET_COLUMNS = ("target", "min λ̄ (drone)", "λ̄−ε", "min ψ0", "sensing", "spread [m]")
 DRONE_COLUMNS = ("drone", "λ̄", "ψ0", "w", "‖u‖ [m/s]", "slack", "step [µs]", "nbr age [ms]",
-                 "MAVLink", "events")
+                 "nbrs", "MAVLink", "events")
 # The order in which a narrow console leaves columns out (first listed, first out); the
 # events and the vehicle's state are the last to go, the id never.
 TARGET_DROP_ORDER = ("spread [m]", "min ψ0", "sensing")
-DRONE_DROP_ORDER = ("step [µs]", "nbr age [ms]", "slack", "ψ0", "‖u‖ [m/s]", "w", "λ̄",
-                    "MAVLink")
+DRONE_DROP_ORDER = ("step [µs]", "nbr age [ms]", "slack", "ψ0", "‖u‖ [m/s]", "w", "nbrs",
+                    "λ̄", "MAVLink")
 PROGRESS_BAR_CELLS = 30
 
 
@@ -106,6 +107,8 @@ class DroneRow:
     neighbour_age_ms: float | None
     mavlink_state: str
     counters: TelemetryCounters
+    neighbours: int | None = None  # heard this step (None: not sent)
+    reached: int = 0  # drones its news reaches, itself included (0: not sent)
 
 
 @dataclass(frozen=True)
@@ -134,7 +137,9 @@ def drone_row(tel: TelemetryWire) -> DroneRow:
         speed_m_s=float(np.linalg.norm(velocity)),
         max_slack=float(slacks.max()) if slacks.size else 0.0,
         step_us=tel.step_us, neighbour_age_ms=tel.counters.neighbour_age_ms,
-        mavlink_state=tel.counters.mavlink_state, counters=tel.counters)
+        mavlink_state=tel.counters.mavlink_state, counters=tel.counters,
+        neighbours=None if tel.neighbours_heard is None else sum(tel.neighbours_heard),
+        reached=tel.reached)
 
 
 def target_rows(latest: Sequence[TelemetryWire], epsilon: float,
@@ -345,6 +350,7 @@ class Dashboard:
                 Text(f"{d.max_slack:.3f}", style="yellow" if d.max_slack > 1e-6 else ""),
                 Text(f"{d.step_us:.0f}"),
                 _age(d.neighbour_age_ms, stale_ms),
+                _neighbours(d, self.config.swarm.n_drones),
                 Text(d.counters.vehicle_status or d.mavlink_state or "—",
                      style="red" if d.counters.vehicle_status
                      or d.mavlink_state.startswith("disarmed") else ""),
@@ -479,6 +485,16 @@ def _values(values: Sequence[float], fmt: str, style: Callable[[float], str]) ->
     return text
 
 
+def _neighbours(d: DroneRow, n_drones: int) -> Text:
+    """The neighbours heard this step, and in bold red the part of the swarm the drone's news
+    reaches when the swarm has split."""
+    if d.neighbours is None:
+        return Text("—")
+    if 0 < d.reached < n_drones:
+        return Text(f"{d.neighbours} ({d.reached}/{n_drones})", style="bold red")
+    return Text(str(d.neighbours))
+
+
 def _age(age_ms: float | None, stale_ms: float) -> Text:
     if age_ms is None:
         return Text("—", style="dim")
@@ -534,6 +550,9 @@ class InProcessFeed:
         self._fallbacks = [0] * n
         self._missing = [0] * n
         self._rejected = [0] * n
+        self._link_conflicts = [0] * n
+        self._splits = [0] * n
+        self._reached = [n] * n
 
     def __call__(self, step: int, diagnostics: list[StepDiagnostics]) -> None:
         warned = False
@@ -542,15 +561,21 @@ class InProcessFeed:
             self._fallbacks[i] += int(d.qp_fallback)
             self._missing[i] += d.missing_neighbour_messages
             self._rejected[i] += d.rejected_inputs
-            warned = warned or bool(d.qp_fallback) or d.rejected_inputs > 0
+            self._link_conflicts[i] += int(d.link_conflict)
+            split = 0 < d.reached < self._reached[i] == len(self._reached)
+            self._splits[i] += int(split)
+            self._reached[i] = d.reached or len(self._reached)
+            warned = (warned or bool(d.qp_fallback) or d.rejected_inputs > 0
+                      or d.link_conflict or split)
         if self.dashboard.shows(step) or warned:
             nowhere = (math.nan, math.nan, math.nan)
             for d in diagnostics:
                 i = d.drone_id
                 self.dashboard.on_telemetry(telemetry_from_diagnostics(
-                    d, nowhere, qp_fallbacks=self._fallbacks[i],
+                    d, nowhere, n_drones=len(self._reached), qp_fallbacks=self._fallbacks[i],
                     missing_neighbour_messages=self._missing[i],
-                    rejected_messages=self._rejected[i], steps=step + 1))
+                    rejected_messages=self._rejected[i], steps=step + 1,
+                    link_conflicts=self._link_conflicts[i], splits_said=self._splits[i]))
         self.dashboard.advance(step)
 
 

@@ -19,10 +19,14 @@ WARNED_COUNTERS: tuple[tuple[str, str], ...] = (
     ("reference_resets", "reference resets"),
     ("lambda_breaches", "targets its λ̄ copy let fall below ε − tol"),
     ("safety_conflicts", "steps the safety envelope overruled localization"),
+    ("link_conflicts", "steps a keep row of the radio overruled localization"),
+    ("splits_said", "times its radio found the swarm split (docs/network.md)"),
 )
 # Of those, the ones whose every increase is printed at once (not held back by
-# ``warning_period_s``): a drone saying it cannot hold a target, its vehicle not as asked.
-URGENT_COUNTERS: frozenset[str] = frozenset({"lambda_breaches", "vehicle_events"})
+# ``warning_period_s``): a drone saying it cannot hold a target, its vehicle not as asked,
+# the swarm split.
+URGENT_COUNTERS: frozenset[str] = frozenset({"lambda_breaches", "vehicle_events",
+                                             "splits_said"})
 URGENT_LABELS = frozenset(label for name, label in WARNED_COUNTERS if name in URGENT_COUNTERS)
 
 

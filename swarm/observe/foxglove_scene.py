@@ -78,7 +78,9 @@ SENSING_COLOUR = (0.13, 0.70, 0.30, 1.0)
 IDLE_COLOUR = (0.55, 0.55, 0.55, 1.0)
 COLLISION_COLOUR = (0.95, 0.55, 0.10, 0.12)
 FOV_COLOUR = (0.25, 0.45, 0.90, 0.6)
-GRAPH_COLOUR = (0.13, 0.60, 0.25, 0.8)
+GRAPH_COLOUR = (0.13, 0.60, 0.25, 0.8)  # a link (the fixed graph's, or one in radio range)
+KEPT_COLOUR = (0.10, 0.35, 0.85, 0.9)  # a link the keep rows hold, in range
+LOST_COLOUR = (0.90, 0.10, 0.10, 0.9)  # a link the keep rows should hold, out of range
 TARGET_COLOUR = (0.85, 0.15, 0.15, 1.0)
 ESTIMATE_COLOUR = (0.10, 0.75, 0.20, 1.0)
 UNCERTAINTY_COLOUR = (0.10, 0.75, 0.20, 0.25)
@@ -105,6 +107,7 @@ class SceneState:
     slacks: Array | None = None  # (N, M)
     velocities_m_s: Array | None = None  # (N, 3) commanded
     counters: tuple[TelemetryCounters, ...] = ()  # each drone's running totals
+    links: NDArray[np.bool_] | None = None  # (N, N) the radio's links (None: the fixed graph)
 
     @property
     def sensing(self) -> NDArray[np.bool_]:
@@ -199,6 +202,33 @@ def _envelope_entity(config: ScenarioConfig, stamp: Timestamp) -> SceneEntity:
                    cylinders=cylinders)
 
 
+def _graph_lines(config: ScenarioConfig, state: SceneState,
+                 present: NDArray[np.bool_]) -> list[LinePrimitive]:
+    """The communication graph: the fixed graph's edges; with radios of limited range the
+    links in range (green), those the keep rows hold (blue) and kept links out of range (red,
+    docs/network.md)."""
+    drawn = [(i, j) for i, j in config.swarm.graph.edges if present[i] and present[j]]
+    if state.links is None or not config.network.ranged:
+        edges = [state.drones_m[[i, j]] for i, j in drawn]
+        return [_lines(edges, GRAPH_COLOUR, 2.0)] if edges else []
+    n = state.links.shape[0]
+    kept = {(i, j) for i, j in config.network.kept_edges(n, config.swarm.edges)}
+    groups: dict[tuple[float, float, float, float], list[Array]] = {
+        GRAPH_COLOUR: [], KEPT_COLOUR: [], LOST_COLOUR: []}
+    for i in range(n):
+        for j in range(i + 1, n):
+            if not (present[i] and present[j]):
+                continue
+            linked = bool(state.links[i, j])
+            colour = (KEPT_COLOUR if (i, j) in kept and linked else LOST_COLOUR
+                      if (i, j) in kept else GRAPH_COLOUR if linked else None)
+            if colour is not None:
+                groups[colour].append(state.drones_m[[i, j]])
+    thickness = {GRAPH_COLOUR: 1.5, KEPT_COLOUR: 3.0, LOST_COLOUR: 3.0}
+    return [_lines(segments, colour, thickness[colour])
+            for colour, segments in groups.items() if segments]
+
+
 def scene_update(config: ScenarioConfig, state: SceneState) -> SceneUpdate:
     """The scene of ``state`` (entities ``ENTITIES``, each replacing its previous self)."""
     stamp = _stamp(state.time_s)
@@ -212,8 +242,7 @@ def scene_update(config: ScenarioConfig, state: SceneState) -> SceneUpdate:
     fov = [segment for i in drones
            for segment in fov_segments(state.drones_m[i], camera.half_fov_deg,
                                        camera.range_max_m, ground_z)]
-    edges = [state.drones_m[[i, j]] for i, j in config.swarm.graph.edges
-             if present[i] and present[j]]
+    graph_lines = _graph_lines(config, state, present)
     estimates = state.estimates_m.reshape(-1, 3)
     known = np.all(np.isfinite(estimates), axis=1)
     ellipsoids = []
@@ -234,7 +263,7 @@ def scene_update(config: ScenarioConfig, state: SceneState) -> SceneUpdate:
                 spheres=[_sphere(state.drones_m[i], 2.0 * delta, COLLISION_COLOUR)
                          for i in drones]),
         _entity("fov", stamp, lines=[_lines(fov, FOV_COLOUR, 1.0)] if fov else []),
-        _entity("graph", stamp, lines=[_lines(edges, GRAPH_COLOUR, 2.0)] if edges else []),
+        _entity("graph", stamp, lines=graph_lines),
         _entity("targets", stamp,
                 spheres=[_sphere(state.targets_m[r], TARGET_DIAMETER_M, TARGET_COLOUR)
                          for r in targets],
@@ -377,6 +406,7 @@ class _Pending:
                           estimate_covariance_m2=stack("estimate_covariance", (n, m, 3, 3)),
                           psi0=stack("psi0", (n, m)), slacks=stack("slacks", (n, m)),
                           velocities_m_s=stack("velocity", (n, 3)),
-                          counters=tuple(t.counters for t in telemetry))
+                          counters=tuple(t.counters for t in telemetry),
+                          links=truth.radio_link_matrix())
 
 

@@ -34,6 +34,7 @@ from mpl_toolkits.mplot3d import Axes3D
 from mpl_toolkits.mplot3d.art3d import Line3DCollection
 from numpy.typing import NDArray
 
+from swarm.core.network import algebraic_connectivity, components
 from swarm.models.camera import fov_segments
 from swarm.runs.checks import (
     SENSING_WEIGHT,
@@ -43,6 +44,7 @@ from swarm.runs.checks import (
     nanmin,
     start_index,
 )
+from swarm.runs.network import kept_link_distances, kept_links
 from swarm.runs.record import RunRecord
 
 Array = NDArray[np.float64]
@@ -293,6 +295,54 @@ def plot_envelope(record: RunRecord) -> Figure:
     return figure
 
 
+def plot_network(record: RunRecord) -> Figure:
+    """Radios with a range (docs/network.md): the components of the radio's graph over time
+    with each drone's count of its part, λ₂ of that graph (0: split), and with keep rows each
+    kept link's length against R with the steps a keep row overruled localization."""
+    links = record.links
+    assert links is not None, "plot_network needs a record with the radio's links"
+    cfg = record.config
+    kept = kept_links(record)
+    rows = 3 if kept else 2
+    figure = _figure(rows)
+    axes = _time_panels(figure, record, rows)
+    times = record.times_s
+    parts = np.array([len(components(links[k])) for k in range(links.shape[0])])
+    ax = axes[0]
+    if record.reached is not None:
+        _per_drone_lines(ax, times, record.reached.astype(float))
+    ax.step(times, parts, where="post", color="k", lw=1.2)
+    ax.set_ylabel("components (black)\ndrones reached")
+    ax.set_ylim(0, cfg.swarm.n_drones + 0.5)
+    lambda2 = np.array([algebraic_connectivity(links[k]) for k in range(links.shape[0])])
+    axes[1].plot(times, lambda2, color="k", lw=1.0)
+    axes[1].set_ylabel("λ₂ of the\nradio graph")
+    axes[1].set_ylim(bottom=0.0)
+    handles = [Line2D([], [], color="k", lw=1.2, label="radio graph")]
+    if kept:
+        ax = axes[2]
+        distances = kept_link_distances(record)
+        for column, (i, j) in enumerate(kept):
+            ax.plot(times, distances[:, column], lw=0.8, label=f"{i}–{j}")
+        ax.axhline(cfg.network.range_m, ls="--", color="k", lw=0.8)
+        ax.axhline(cfg.network.kept_range_m, ls=":", color="k", lw=0.8)
+        ax.set_ylabel("kept link\nlength [m]")
+        conflict = record.link_conflict
+        if conflict is not None and conflict.any():
+            steps = np.flatnonzero(conflict.any(axis=1))
+            ax.scatter(times[steps], np.zeros(steps.shape), s=4, c="k", zorder=3)
+            handles.append(Line2D([], [], ls="", marker=".", color="k",
+                                  label="a keep row overruled localization"))
+        handles += [Line2D([], [], ls="--", color="k", lw=0.8, label="R"),
+                    Line2D([], [], ls=":", color="k", lw=0.8, label="R_keep")]
+        ax.legend(loc="upper left", fontsize="x-small", ncol=3)
+    for ax in axes:
+        _qp_start(ax, record)
+    _title(figure, record, f"radios of {cfg.network.range_m:g} m range")
+    _drone_legend(figure, record, [*handles, _qp_start_handle(record)])
+    return figure
+
+
 # -- 3D view -------------------------------------------------------------------------------
 
 
@@ -407,7 +457,7 @@ FigureMaker = Callable[[RunRecord], Figure]
 
 def figures_for(record: RunRecord) -> dict[str, FigureMaker]:
     """File name → figure maker; the bearing error only when a formation task ran, the
-    envelope's margins only when the run had one."""
+    envelope's margins only when the run had one, the radio's graph only with a range."""
     makers: dict[str, FigureMaker] = {
         "position_error.png": plot_position_error,
         "psi.png": plot_psi,
@@ -418,6 +468,8 @@ def figures_for(record: RunRecord) -> dict[str, FigureMaker]:
         makers["bearing_error.png"] = plot_bearing_error
     if not record.config.safety.params.empty:
         makers["envelope.png"] = plot_envelope
+    if record.links is not None:
+        makers["network.png"] = plot_network
     makers["view3d.png"] = plot_view3d
     return makers
 

@@ -75,6 +75,7 @@ class TargetReport:
     rms_position_error_m: float | None  # over drones and steps ≥ start
     drones_sensing_final: int  # drones with a final w > SENSING_WEIGHT for this target
     missing_samples: int  # drone-steps without this target's λ̄
+    lambda_copy_spread: float | None = None  # worst max_i λ̄ − min_i λ̄ after start
 
 
 @dataclass(frozen=True)
@@ -184,6 +185,7 @@ def _target_reports(record: RunRecord) -> tuple[TargetReport, ...]:
         rms_position_error_m=finite_or_none(s.rms_position_error_m),
         drones_sensing_final=s.drones_sensing_final,
         missing_samples=s.missing_samples,
+        lambda_copy_spread=finite_or_none(s.lambda_copy_spread),
     ) for s in summarize_targets(record))
 
 
@@ -328,6 +330,7 @@ def _target_json(t: TargetReport) -> dict[str, Any]:
         "rms_position_error_m": t.rms_position_error_m,
         "drones_sensing_final": t.drones_sensing_final,
         "missing_samples": t.missing_samples,
+        "lambda_copy_spread": t.lambda_copy_spread,
     }
 
 

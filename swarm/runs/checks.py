@@ -40,6 +40,9 @@ class TargetSummary:
     rms_position_error_m: float  # over drones and all steps after start
     drones_sensing_final: int  # drones whose last weight for this target is > SENSING_WEIGHT
     missing_samples: int = 0  # drone-steps without a λ̄ for this target (never received)
+    # max over steps after start of max_i λ̄_ir − min_i λ̄_ir: how far the drones' copies of
+    # the Gramian disagree (consensus; 0 for one drone)
+    lambda_copy_spread: float = float("nan")
 
 
 @dataclass(frozen=True)
@@ -211,6 +214,9 @@ def summarize_targets(record: RunRecord) -> list[TargetSummary]:
             if after.size else float("nan"),
             drones_sensing_final=int(np.sum(final_weights[:, r] > SENSING_WEIGHT)),
             missing_samples=int(np.isnan(record.lambda_bar[:, :, r]).sum()),
+            lambda_copy_spread=(nanmax(_quiet_nan(np.nanmax, lam, axis=1)
+                                       - _quiet_nan(np.nanmin, lam, axis=1))
+                                if lam.size else float("nan")),
         ))
     return out
 

@@ -113,7 +113,9 @@ def _check_split_said(record: RunRecord) -> list[Violation]:
     for k in range(links.shape[0]):
         unchanged = unchanged + 1 if k > 0 and np.array_equal(links[k], links[k - 1]) else 0
         settled[k] = unchanged >= window
-    wrong = settled[:, None] & (reached != sizes)
+    # A drone-step whose telemetry never arrived (realtime) says nothing either way.
+    present = ~np.isnan(record.velocities_m_s).any(axis=2)
+    wrong = settled[:, None] & present & (reached != sizes)
     if not wrong.any():
         return []
     k, i = (int(v) for v in np.argwhere(wrong)[0])

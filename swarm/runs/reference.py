@@ -20,7 +20,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from swarm.core.drone_step import Detection, DroneAgent, StepDiagnostics
-from swarm.core.network import RadioRange
 from swarm.messages.wire import (
     BeaconWire,
     CameraFrameWire,
@@ -65,7 +64,8 @@ def run_reference(config: ScenarioConfig, seed: int | None = None,
 def _record_step(recorder: MessageSink, agents: list[DroneAgent], step: int, time_s: float,
                  positions: Array, seen: list[Array], flying: Array,
                  detections: list[list[Detection]], targets: Array, target_vel: Array,
-                 communicated: Array | None, diags: list[StepDiagnostics]) -> None:
+                 communicated: Array | None, diags: list[StepDiagnostics],
+                 links: NDArray[np.bool_] | None) -> None:
     """One step as the process swarm's recorder would hear it: each agent's beacon (what it
     read from its autopilot and the velocity it flies) and telemetry, each camera frame, and
     the ground truth."""
@@ -73,17 +73,21 @@ def _record_step(recorder: MessageSink, agents: list[DroneAgent], step: int, tim
     for i, agent in enumerate(agents):
         recorder.put(CameraFrameWire.build(drone=i, step=step, time_s=time_s,
                                            vehicle_time_ms=stamp_ms, detections=detections[i],
-                                           target_velocities=communicated))
+                                           target_velocities=communicated,
+                                           radio_links=None if links is None else links[i]))
         recorder.put(BeaconWire.build(sender=i, step=step, time_s=time_s, position_m=seen[i],
                                       velocity_m_s=flying[i]))
         counters = TelemetryCounters(
             qp_fallbacks=agent.qp_fallbacks, rejected_messages=agent.rejected_inputs,
             missing_neighbour_messages=agent.missing_neighbour_messages, steps=step + 1,
             mavlink_state="in-process", rate_limit_releases=agent.rate_limit_releases,
-            safety_conflicts=agent.safety_conflicts)
-        recorder.put(telemetry_from_diagnostics(diags[i], seen[i], counters))
+            safety_conflicts=agent.safety_conflicts, link_conflicts=agent.link_conflicts,
+            splits_said=agent.splits_said)
+        recorder.put(telemetry_from_diagnostics(diags[i], seen[i], counters,
+                                                n_drones=len(agents)))
     recorder.put(TruthWire.build(step=step, time_s=time_s, drone_positions=positions,
-                                 target_positions=targets, target_velocities=target_vel))
+                                 target_positions=targets, target_velocities=target_vel,
+                                 radio_links=links))
 
 
 def _run(config: ScenarioConfig, seed: int, on_step: StepCallback | None,
@@ -103,9 +107,9 @@ def _run(config: ScenarioConfig, seed: int, on_step: StepCallback | None,
     flying = np.zeros((n, 3))  # the setpoint each drone flies (its beacon's velocity)
     response = config.vehicles.velocity_response
     vehicle_velocities = np.zeros((n, 3))  # every drone starts hovering
-    # The simulated radio (network.topology = "range"): each step's links from the true
-    # positions, as the world process makes them; else the configured graph.
-    radio = RadioRange(config.network) if config.network.ranged else None
+    # Who hears whom: the scene's radio (network.topology = "range"), else the configured
+    # graph.
+    ranged = config.network.ranged
     neighbours = graph.neighbours
 
     rec: dict[str, Any] = {
@@ -118,7 +122,7 @@ def _run(config: ScenarioConfig, seed: int, on_step: StepCallback | None,
         "true": np.zeros((steps, m)), "meas": np.zeros((steps, m)),
         "berr": np.full((steps, n), np.nan), "fb": np.zeros((steps, n), dtype=bool),
         "us": np.zeros((steps, n)), "conflict": np.zeros((steps, n), dtype=bool),
-        "links": np.zeros((steps, n, n), dtype=bool) if radio is not None else None,
+        "links": np.zeros((steps, n, n), dtype=bool) if ranged else None,
         "reached": np.zeros((steps, n), dtype=np.int64),
         "link_conflict": np.zeros((steps, n), dtype=bool),
     }
@@ -130,10 +134,9 @@ def _run(config: ScenarioConfig, seed: int, on_step: StepCallback | None,
         seen = [position_over_link(positions[i], origins[i]) for i in range(n)]
         messages = [agents[i].begin_step(k, seen[i], detections[i], communicated)
                     for i in range(n)]
-        if radio is not None:
-            links = radio.step(positions)
-            rec["links"][k] = links
-            neighbours = tuple(tuple(np.flatnonzero(row).tolist()) for row in links)
+        if view.links is not None:
+            rec["links"][k] = view.links
+            neighbours = tuple(view.radio_neighbours(i) or () for i in range(n))
         for _ in range(agents[0].n_rounds):
             inboxes = [{j: messages[j] for j in neighbours[i]} for i in range(n)]
             replies = [agents[i].consensus_round(inboxes[i]) for i in range(n)]
@@ -143,7 +146,7 @@ def _run(config: ScenarioConfig, seed: int, on_step: StepCallback | None,
         diags = [r.diagnostics for r in results]
         if recorder is not None:
             _record_step(recorder, agents, k, t, positions, seen, flying, detections, targets,
-                         target_vel, communicated, diags)
+                         target_vel, communicated, diags, view.links)
             flying = np.array([r.velocity for r in results])
 
         rec["pos"][k], rec["tpos"][k], rec["tvel"][k] = positions, targets, target_vel
@@ -179,6 +182,6 @@ def _run(config: ScenarioConfig, seed: int, on_step: StepCallback | None,
         detected=rec["det"], true_lambda_min=rec["true"], measured_lambda_min=rec["meas"],
         bearing_errors=rec["berr"], qp_fallback=rec["fb"], step_us=rec["us"],
         wall_time_s=time.perf_counter() - started, safety_conflict=rec["conflict"],
-        links=rec["links"], reached=rec["reached"] if radio is not None else None,
-        link_conflict=rec["link_conflict"] if radio is not None else None,
+        links=rec["links"], reached=rec["reached"] if ranged else None,
+        link_conflict=rec["link_conflict"] if ranged else None,
     )

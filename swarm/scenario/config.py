@@ -448,9 +448,10 @@ class ScenarioConfig:
         return icf.state_dimension(self.estimation.model)
 
     def wire_codec(self) -> WireCodec:
-        """The codec every process of this scenario speaks: N drones, M targets, and the
-        estimator's state size."""
-        return WireCodec(self.swarm.n_drones, len(self.targets), self.state_dimension)
+        """The codec every process of this scenario speaks: N drones, M targets, the
+        estimator's state size, and on a range graph the reach stamps of round 0."""
+        return WireCodec(self.swarm.n_drones, len(self.targets), self.state_dimension,
+                         reach_stamps=self.network.ranged)
 
     def with_seed(self, seed: int) -> ScenarioConfig:
         """The same scenario with another seed (``--seed``); ConfigError if invalid."""
@@ -493,16 +494,6 @@ def realtime_only_reason(vehicles: VehiclesSection, *, mode: str, inprocess: boo
     if vehicles.start == "ground":
         return ("vehicles.start = 'ground' needs --mode realtime: the take-off runs on the wall "
                 "clock (lockstep and --inprocess start the drones in the air, as the thesis)")
-    return None
-
-
-def process_swarm_problem(config: ScenarioConfig) -> str | None:
-    """Why this scenario cannot run as a process swarm (one line), else None: what only the
-    in-process runner does so far."""
-    if config.network.ranged:
-        return ("network.topology = 'range' runs in-process only so far (launch-swarm "
-                "--inprocess; a sweep's mode = 'inprocess'): the process swarm's radio is not "
-                "built yet")
     return None
 
 

@@ -1,6 +1,7 @@
-"""What the world shows at step k: the targets where their trajectories put them and each
-drone's camera frame (SPEC §2, §11). The in-process reference and the world process both step
-it, so the world's step is written once.
+"""What the world shows at step k: the targets where their trajectories put them, each
+drone's camera frame (SPEC §2, §11) and, with radios of limited range, who hears whom
+(``swarm.core.network.RadioRange``, docs/network.md). The in-process reference and the world
+process both step it, so the world's step is written once.
 
 Each drone's camera draws its image noise from its own stream (``swarm.scenario.setup``):
 drone i sees the same frames whichever process renders them.
@@ -14,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from swarm.core.drone_step import Detection
+from swarm.core.network import RadioRange
 from swarm.models.camera import detect
 from swarm.scenario.config import ScenarioConfig
 from swarm.scenario.setup import STREAM_CAMERA, stream
@@ -33,12 +35,19 @@ class SceneStep:
     # "single_integrator"); None otherwise.
     communicated_velocities_m_s: Array | None
     detections: list[list[Detection]]  # per drone, each visible target with its noise
+    # network.topology = "range": (N, N) bool, which drones hear each other at this step (from
+    # the drones' true positions); None for the fixed graph.
+    links: NDArray[np.bool_] | None = None
+
+    def radio_neighbours(self, drone: int) -> tuple[int, ...] | None:
+        """The drones ``drone``'s radio hears at this step (None: the fixed graph)."""
+        return None if self.links is None else tuple(np.flatnonzero(self.links[drone]).tolist())
 
 
 class Scene:
     """The targets and the cameras of a run seeded ``seed``; ``at(k, positions)`` is step k
-    seen from the drones at ``positions`` ((N, 3), world frame [m]). Call it once per step, in
-    order: each call draws the cameras' noise."""
+    seen from the drones at ``positions`` ((N, 3), world frame [m], the truth). Call it once
+    per step, in order: each call draws the cameras' noise and steps the radio."""
 
     def __init__(self, config: ScenarioConfig, seed: int) -> None:
         self.dt_s = config.scenario.dt_s
@@ -46,6 +55,7 @@ class Scene:
         self.trajectories = [t.build() for t in config.targets]
         self.cameras = [stream(seed, STREAM_CAMERA, i) for i in range(config.swarm.n_drones)]
         self.communicates_velocities = config.estimation.model == "single_integrator"
+        self.radio = RadioRange(config.network) if config.network.ranged else None
 
     def at(self, step: int, drone_positions: Array) -> SceneStep:
         t = step * self.dt_s
@@ -53,6 +63,7 @@ class Scene:
         target_velocities = np.array([traj.velocity(t) for traj in self.trajectories])
         detections = [detect(position, targets, self.camera, rng)
                       for position, rng in zip(drone_positions, self.cameras, strict=True)]
+        links = None if self.radio is None else self.radio.step(drone_positions)
         return SceneStep(step, t, targets, target_velocities,
                          target_velocities if self.communicates_velocities else None,
-                         detections)
+                         detections, links)

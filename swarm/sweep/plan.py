@@ -19,7 +19,6 @@ from swarm.scenario.config import (
     ConfigError,
     config_to_data,
     load_config,
-    process_swarm_problem,
     read_toml_file,
     realtime_only_reason,
 )
@@ -98,8 +97,6 @@ def plan_sweep(path: Path, out: Path, *, stop_event: str | None = None,
                 vehicles, mode="realtime" if spec.sitl else spec.mode,
                 inprocess=spec.mode == "inprocess", external=spec.sitl is not None,
                 kills_agents=bool(spec.kill_agents) or point.kill_at_s is not None)
-            if mode_problem is None and spec.mode != "inprocess":
-                mode_problem = process_swarm_problem(config)
             if mode_problem is not None:
                 raise ConfigError(mode_problem)
             for drone, _time_s in spec.kill_agents:

@@ -125,6 +125,7 @@ def report_row(task: MissionTask, report: RunReport, *, exit_code: int | None, w
         "min_true_lambda_margin": margins["true_lambda"],
         "final_error_m": _max([t.final_position_error_m for t in targets]),
         "rms_error_m": _max([t.rms_position_error_m for t in targets]),
+        "lambda_copy_spread": _max([t.lambda_copy_spread for t in targets]),
         "max_abs_velocity_m_s": velocity,
         "qp_fallbacks": report.qp_fallbacks,
         "late_steps": report.late_steps,

@@ -57,7 +57,8 @@ OPTIONAL_KEYS = ("margins", "violations", "min_true_lambda_margin", "final_error
                  "rms_error_m", "max_abs_velocity_m_s", "qp_fallbacks", "late_steps",
                  "rejected_messages", "safety_conflicts", "steps", "planned_steps",
                  "recording", "tracking", "rate_limit_releases", "reference_resets", "loss",
-                 "split_s", "split_said_s", "min_lambda2", "link_conflicts")
+                 "split_s", "split_said_s", "min_lambda2", "link_conflicts",
+                 "lambda_copy_spread")
 TOP_KEYS = ("base", "mode", "seeds", "record", "kill_agents", "timeout_s", "heatmap", "keep",
             "columns", "set", "axes", "samples", "gate")
 # Row keys every row has that a summary column may show (swarm.sweep.rows.REQUIRED_KEYS).

@@ -227,3 +227,16 @@ def test_a_split_is_counted_by_every_drone_within_its_window_and_healed_when_joi
     for step in range(20 + window + 1, 20 + 2 * window + 2):
         _flood(trackers, whole, step)
     assert all(tracker.reached(20 + 2 * window + 2).all() for tracker in trackers)
+
+
+def test_every_drone_counts_as_reached_at_the_first_step_whenever_it_comes() -> None:
+    """A realtime agent's first step is the world's step of its first frame, not 0: the
+    others count as reached from there, and age out only a window later."""
+    tracker = ReachTracker(1, 4, 2)
+    tracker.stamp(500)
+    assert tracker.reached(500).all()
+    for step in range(501, 506):
+        tracker.stamp(step)
+    assert tracker.reached(505).all()  # window 3 + 2 = 5 steps
+    tracker.stamp(506)
+    assert tracker.reached(506).tolist() == [False, True, False, False]

@@ -94,9 +94,17 @@ def valid_messages() -> dict[str, object]:
         "camera_lockstep": CameraFrameWire.build(3, 9, 0.18, 123456, [],
                                                  drone_positions=tricky(N, 3)),
         "camera_plain": CameraFrameWire.build(0, 0, 0.0, 0, []),
+        "camera_radio": CameraFrameWire.build(1, 9, 0.18, 123456, [],
+                                              radio_links=[True, False, True, True, False,
+                                                           False]),
         "truth": TruthWire.build(4, 0.08, tricky(N, 3), tricky(M, 3), tricky(M, 3)),
+        "truth_radio": TruthWire.build(4, 0.08, tricky(N, 3), tricky(M, 3), tricky(M, 3),
+                                       radio_links=np.eye(N, k=1, dtype=bool)
+                                       | np.eye(N, k=-1, dtype=bool)),
         "clock": ClockWire(step=7, time_s=0.14, state="running", mode="lockstep", detail="ok"),
         "telemetry": telemetry_message(),
+        "telemetry_radio": telemetry_from_diagnostics(
+            real_agent_outputs()[1], np.array([0.5, -0.0, 3.0]), n_drones=N),
     }
 
 

@@ -352,3 +352,26 @@ def process_ended_cleanly(out: str) -> bool:
     """The mission ran to its end: a report with a verdict (OK, or a violated invariant —
     PX4's tracking is issue 14's), not a failed or interrupted mission."""
     return "verdict:" in out and "mission failed" not in out
+
+
+def test_case1_on_arducopter_sitl_with_radios_of_limited_range(tmp_path: Path) -> None:
+    """Issue 44, point 6: the three-drone Case 1 on ArduCopter SITL with radios of 10 m that
+    keep their spanning tree: the agents take their neighbours from the world's radio, stamp
+    their reach in round 0, and the mission holds every invariant, the kept links' included;
+    the recording has the radio's links, and no drone ever counted the swarm split."""
+    firmware = firmware_or_skip("ardupilot")
+    process = launch(CASE1_THREE, firmware.path, tmp_path, "--set", "network.topology=range",
+                     "--set", "network.range_m=10", "--set", "network.keep=tree")
+    out = finish(process, 600)
+    assert process.returncode == 0, out
+    assert "verdict: OK" in out and "radio range 10 m, keeping tree: connected throughout" \
+        in out, out
+    recording = read_recording(tmp_path / "rec", fill_gaps=True)
+    record = recording.record
+    assert record.links is not None and record.reached is not None
+    assert record.links[-1].sum() == 6  # three drones, every pair in range, both ways
+    # Every drone counted all three in its part (0: a step whose telemetry did not come).
+    assert set(np.unique(record.reached).tolist()) <= {0, 3}
+    assert (record.reached == 3).mean() > 0.95
+    assert check_invariants(record) == []
+    assert sitl_processes(containing=str(tmp_path)) == []

@@ -242,7 +242,8 @@ COUNTERS = dict(qp_fallbacks=1, rejected_messages=2, missing_neighbour_messages=
 
 def check_telemetry(diag, position, counters=None, **fields) -> tuple[str, Any]:
     def long() -> bytes:
-        return CODEC.encode(telemetry_from_diagnostics(diag, position, counters, **fields))
+        return CODEC.encode(telemetry_from_diagnostics(diag, position, counters,
+                                                       n_drones=CODEC.n_drones, **fields))
 
     return same_outcome(lambda: CODEC.encode_telemetry(diag, position, counters, **fields), long)
 

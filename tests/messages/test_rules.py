@@ -69,7 +69,8 @@ def test_every_field_declares_its_rule(cls: type) -> None:
         elif isinstance(t, INSPECT.StructType):
             assert t.cls is not F64Array or "shape" in extra, name
         elif isinstance(t, INSPECT.BytesType):
-            assert extra.get("packed") in ("consensus", "telemetry"), name
+            assert extra.get("packed") in ("consensus", "telemetry", "radio_links",
+                                           "neighbours_heard"), name
         else:
             assert isinstance(t, INSPECT.BoolType | INSPECT.LiteralType), (name, t)
 

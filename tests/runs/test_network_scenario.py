@@ -18,7 +18,6 @@ from swarm.runs.network import network_summary
 from swarm.runs.reference import run_reference
 from swarm.scenario.config import load_config
 from swarm.scenario.overrides import parse_assignment
-from tests.helpers.cli_tools import launch_swarm_in_process
 
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 RANGE = CONFIGS / "case2_range.toml"
@@ -103,12 +102,3 @@ def test_the_fixed_graph_is_unchanged_by_the_network_section() -> None:
     np.testing.assert_array_equal(a.drone_positions_m, b.drone_positions_m)
     np.testing.assert_array_equal(a.estimates, b.estimates)
     assert a.links is None and a.reached is None and network_summary(a) is None
-
-
-def test_the_process_swarm_refuses_a_range_in_one_line() -> None:
-    result = launch_swarm_in_process(str(RANGE), "--duration", "2")
-    assert result.returncode == 2
-    lines = result.stderr.strip().splitlines()
-    assert len(lines) == 1 and "network.topology = 'range' runs in-process only" in lines[0]
-    ok = launch_swarm_in_process(str(RANGE), "--inprocess", "--duration", "2")
-    assert ok.returncode == 0, ok.stdout[-2000:] + ok.stderr[-2000:]

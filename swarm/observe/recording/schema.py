@@ -210,16 +210,19 @@ _TELEMETRY_ARRAYS: Final = TELEMETRY_ARRAYS
 _TELEMETRY_PLAIN: Final = ("drone", "step", "time_s", "control_active", "qp_status",
                            "qp_iterations", "qp_fallback", "qp_solve_us", "step_us",
                            "bearing_error", "missing_neighbour_messages", "rejected_inputs",
-                           "rate_limit_released", "safety_conflict")
+                           "rate_limit_released", "safety_conflict", "reached",
+                           "keep_margin_m", "link_conflict")
 _COUNTER_FIELDS: Final = TelemetryCounters.__struct_fields__
 # Fields that older recordings lack: read as their defaults.
 _ADDED_LATER: Final = {"rate_limit_released": False, "safety_conflict": False,
+                       "reached": 0, "keep_margin_m": None, "link_conflict": False,
                        **{name: getattr(TelemetryCounters(), name)
                           for name in ("rate_limit_releases", "reference_resets",
                                        "vehicle_events", "tracking_error_m",
                                        "velocity_error_m_s", "vehicle_status",
                                        "lambda_breaches", "first_lambda_breach_s",
-                                       "localization_status", "safety_conflicts")}}
+                                       "localization_status", "safety_conflicts",
+                                       "link_conflicts", "splits_said")}}
 
 
 def telemetry_to_json(tel: TelemetryWire) -> dict[str, Any]:
@@ -227,6 +230,9 @@ def telemetry_to_json(tel: TelemetryWire) -> dict[str, Any]:
     out["position_m"] = list(tel.position_m)
     out.update({name: _floats(getattr(tel, name)) for name in _TELEMETRY_ARRAYS})
     out["detected"] = list(tel.detected)
+    # one 0/1 per drone (the wire's mask), None when the agent sent none
+    out["neighbours_heard"] = (None if tel.neighbours_heard is None
+                               else list(tel.neighbours_heard))
     out["counters"] = {name: getattr(tel.counters, name) for name in _COUNTER_FIELDS}
     return out
 
@@ -244,7 +250,9 @@ def telemetry_from_json(data: dict[str, Any]) -> TelemetryWire:
            if name in data},
         **({} if "estimate_covariance" in data else  # absent before wire version 4: unknown
            {"estimate_covariance": np.full((len(data["lambda_bar"]), 3, 3), np.nan)}),
-        detected=tuple(bool(v) for v in data["detected"]), counters=counters)
+        detected=tuple(bool(v) for v in data["detected"]), counters=counters,
+        neighbours_heard=(None if data.get("neighbours_heard") is None  # absent before
+                          else bytes(data["neighbours_heard"])))
 
 
 def beacon_to_json(beacon: BeaconWire) -> dict[str, Any]:
@@ -283,14 +291,18 @@ def truth_to_json(truth: TruthWire) -> dict[str, Any]:
     return {"step": truth.step, "time_s": truth.time_s,
             "drone_positions": _floats(truth.drone_positions),
             "target_positions": _floats(truth.target_positions),
-            "target_velocities": _floats(truth.target_velocities)}
+            "target_velocities": _floats(truth.target_velocities),
+            "radio_links": (None if truth.radio_links is None
+                            else truth.radio_links.to_array().astype(bool).tolist())}
 
 
 def truth_from_json(data: dict[str, Any]) -> TruthWire:
     return TruthWire(step=data["step"], time_s=data["time_s"],
                      drone_positions=_array(data["drone_positions"]),
                      target_positions=_array(data["target_positions"]),
-                     target_velocities=_array(data["target_velocities"]))
+                     target_velocities=_array(data["target_velocities"]),
+                     radio_links=(None if data.get("radio_links") is None  # absent before
+                                  else _array(data["radio_links"])))
 
 
 def autopilot_to_json(state: AutopilotState) -> dict[str, Any]:
@@ -382,7 +394,9 @@ def schemas(n_targets: int, n_state: int) -> dict[str, dict[str, Any]]:
     telemetry = {
         "drone": _COUNT, "step": _COUNT, "time_s": _NUMBER, "control_active": _BOOL,
         "qp_status": {"type": "string"}, "qp_iterations": _COUNT, "qp_fallback": _BOOL,
-        "rate_limit_released": _BOOL, "safety_conflict": _BOOL,
+        "rate_limit_released": _BOOL, "safety_conflict": _BOOL, "reached": _COUNT,
+        "keep_margin_m": {"type": ["number", "null"]}, "link_conflict": _BOOL,
+        "neighbours_heard": {"anyOf": [_list(_COUNT), {"type": "null"}]},
         "qp_solve_us": _NUMBER, "step_us": _NUMBER,
         "bearing_error": {"type": ["number", "null"]},
         "missing_neighbour_messages": _COUNT, "rejected_inputs": _COUNT,
@@ -404,7 +418,8 @@ def schemas(n_targets: int, n_state: int) -> dict[str, dict[str, Any]]:
                                                                "velocity_error_m_s")},
             "vehicle_status": {"type": "string"}, "lambda_breaches": _COUNT,
             "first_lambda_breach_s": {"type": ["number", "null"]},
-            "localization_status": {"type": "string"}, "safety_conflicts": _COUNT}),
+            "localization_status": {"type": "string"}, "safety_conflicts": _COUNT,
+            "link_conflicts": _COUNT, "splits_said": _COUNT}),
     }
     return {
         "telemetry": _object(telemetry, "vigil.Telemetry",
@@ -426,7 +441,8 @@ def schemas(n_targets: int, n_state: int) -> dict[str, dict[str, Any]]:
                           "A drone's detections: image-plane points per target."),
         "truth": _object({"step": _COUNT, "time_s": _NUMBER,
                           "drone_positions": _list(vec3), "target_positions": _list(vec3),
-                          "target_velocities": _list(vec3)},
+                          "target_velocities": _list(vec3),
+                          "radio_links": {"anyOf": [_list(_list(_BOOL)), {"type": "null"}]}},
                          "vigil.Truth", "Ground truth of one step (world frame) [m], [m/s]."),
         "autopilot": _object({"drone": _COUNT, "time_s": _NUMBER, "position_m": vec3,
                               "velocity_m_s": vec3, "mode": {"type": "string"},
