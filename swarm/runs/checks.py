@@ -192,6 +192,13 @@ def max_abs_velocity(record: RunRecord) -> float:
     return nanmax(np.abs(record.velocities_m_s))
 
 
+def copy_spread(copies: FloatArray) -> float:
+    """The widest disagreement of the drones' copies at one step: the largest over the steps
+    (K, N) of max − min over the drones, NaN samples left out; NaN when no step has one."""
+    widths = _quiet_nan(np.nanmax, copies, axis=1) - _quiet_nan(np.nanmin, copies, axis=1)
+    return nanmax(widths)
+
+
 def summarize_targets(record: RunRecord) -> list[TargetSummary]:
     eps = record.config.gramian.epsilon
     dt = record.config.scenario.dt_s
@@ -214,9 +221,7 @@ def summarize_targets(record: RunRecord) -> list[TargetSummary]:
             if after.size else float("nan"),
             drones_sensing_final=int(np.sum(final_weights[:, r] > SENSING_WEIGHT)),
             missing_samples=int(np.isnan(record.lambda_bar[:, :, r]).sum()),
-            lambda_copy_spread=(nanmax(_quiet_nan(np.nanmax, lam, axis=1)
-                                       - _quiet_nan(np.nanmin, lam, axis=1))
-                                if lam.size else float("nan")),
+            lambda_copy_spread=copy_spread(lam),
         ))
     return out
 

@@ -536,12 +536,23 @@ def test_target_summaries_count_after_the_start_and_the_final_samples() -> None:
         target=0, min_lambda_bar_margin=0.03 - eps, time_below_epsilon_s=2 * 0.02,
         min_true_lambda_margin=0.5 - eps, min_measured_lambda=1.0,
         final_position_error_m=0.0, rms_position_error_m=math.sqrt(0.09 / (50 * 4)),
-        drones_sensing_final=2, missing_samples=100))  # drones 1, 2; 0 is at 0.1
+        drones_sensing_final=2, missing_samples=100,  # drones 1, 2; 0 is at 0.1
+        lambda_copy_spread=1.0 - 0.03))  # drone 2's 0.03 beside 1.0 (the warm-up's −1 not)
     assert_same(second, TargetSummary(
         target=1, min_lambda_bar_margin=1.0 - eps, time_below_epsilon_s=0.0,
         min_true_lambda_margin=1.0 - eps, min_measured_lambda=0.7,
         final_position_error_m=0.4, rms_position_error_m=math.sqrt(0.16 / (50 * 4)),
-        drones_sensing_final=1, missing_samples=101))
+        drones_sensing_final=1, missing_samples=101, lambda_copy_spread=0.0))
+
+
+def test_the_copy_spread_is_the_widest_step_its_missing_samples_left_out() -> None:
+    copies = np.array([[0.1, 0.3, np.nan], [0.2, 0.2, 0.25], [np.nan] * 3, [-0.5, 0.5, 0.0]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert checks.copy_spread(copies) == pytest.approx(1.0, abs=1e-15)
+        assert checks.copy_spread(copies[:3]) == pytest.approx(0.2, abs=1e-15)
+        assert math.isnan(checks.copy_spread(copies[2:3]))
+        assert math.isnan(checks.copy_spread(np.zeros((0, 3))))
 
 
 def test_a_record_cut_short_before_the_start_has_no_figure_after_it() -> None:

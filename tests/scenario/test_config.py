@@ -222,7 +222,7 @@ def _set_leaf(data: dict, path: str, value: object) -> None:
         node[last] = value  # type: ignore[index]
 
 
-@pytest.mark.parametrize("name", ["case2", "case3", "case2_envelope"])
+@pytest.mark.parametrize("name", ["case2", "case3", "case2_envelope", "case2_range"])
 def test_every_leaf_with_a_bad_value_is_refused_naming_its_key(name: str) -> None:
     """78-80 leaves × 5 bad values: each gives a one-line ConfigError naming the key path.
 
