@@ -736,9 +736,9 @@ class DroneAgent:
                        for x in row[ROW.PROJECTOR]]
         local_input += weights  # u_i = [w Π̂ (9M), w (M)]
         disagreement = self._disagreement
-        if self._reach is not None:
+        if self._reach is not None and self.setup.network.integral == "own":
             # A range graph: the integral enters s as it is, K_i η_i, where (3.30) has
-            # K_i Σ_j (η_i − η_j) over the neighbours (docs/network.md, "The consensus on a
+            # K_i Σ_j (η_i − η_j) over the neighbours (docs/network.md, "The filters on a
             # changing graph"): the operator's η-difference entries get η itself.
             disagreement = disagreement.copy()
             disagreement[self._layout.integrals] = self._cons_array[self._layout.integrals]

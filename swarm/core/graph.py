@@ -107,19 +107,21 @@ def pi_consensus_is_stable(
     return radius < 1.0, radius
 
 
-def switching_pi_consensus_is_stable(n_nodes: int, gains: ConsensusGains, dt_s: float,
-                                     samples: int = 2000) -> tuple[bool, float]:
-    """Spectral radius of the Euler-discretized PI consensus of a changing graph
-    (``dynamic_consensus.switching_pi_consensus_step``) on every graph of ``n_nodes``.
+def pi_consensus_is_stable_on_every_graph(
+        n_nodes: int, gains: ConsensusGains, dt_s: float, *, own_integral: bool = False,
+        samples: int = 2000) -> tuple[bool, float]:
+    """The spectral radius of ``pi_consensus_is_stable`` over every graph of ``n_nodes``
+    (a range graph may become any): each graph's Laplacian eigenvalues lie in [0, N], so λ
+    is sampled there (``samples`` points, N included), λ = 0 counting for its s-part only.
 
-    For a Laplacian eigenvalue λ the (s, η) pair evolves by [[1 − ΔT(ζ + K_pλ), ΔT K_i],
-    [−ΔT K_i λ, 1]] (for λ = 0 the η mode is neutral: its sum is invariant, so only the
-    s-part counts there, as in ``pi_consensus_is_stable``). Every graph of N nodes has its
-    eigenvalues in [0, N], so λ is sampled there (``samples`` points, N included)."""
+    ``own_integral``: the form of ``dynamic_consensus.switching_pi_consensus_step``, where
+    the integral enters as K_i η_i: its mode is [[1 − ΔT(ζ + K_pλ), ΔT K_i], [−ΔT K_i λ, 1]]
+    (3.30's has ΔT K_i λ in the corner)."""
     radius = abs(1.0 - dt_s * gains.zeta)
     for lam in np.linspace(0.0, float(n_nodes), samples)[1:]:
+        coupling = dt_s * gains.ki * (1.0 if own_integral else lam)
         mode = np.array(
-            [[1.0 - dt_s * (gains.zeta + gains.kp * lam), dt_s * gains.ki],
+            [[1.0 - dt_s * (gains.zeta + gains.kp * lam), coupling],
              [-dt_s * gains.ki * lam, 1.0]])
         radius = max(radius, float(np.max(np.abs(np.linalg.eigvals(mode)))))
     return radius < 1.0, radius

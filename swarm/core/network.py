@@ -35,6 +35,7 @@ Array = NDArray[np.float64]
 BoolMatrix = NDArray[np.bool_]
 Topology = Literal["fixed", "range"]
 KeepRule = Literal["none", "edges", "tree"]
+IntegralForm = Literal["differences", "own"]
 
 
 @dataclass(frozen=True)
@@ -52,6 +53,10 @@ class NetworkParams:
     # A drone not reached for N − 1 + this many steps is counted outside the component
     # (ReachTracker): room for lost or late messages (realtime, a real radio) [steps].
     reach_slack_steps: int = 25
+    # How the PI consensus's integral enters on a range graph: "differences", K_i Σ_j (η_i −
+    # η_j) as the thesis' (3.30), or "own", K_i η_i (dynamic_consensus.
+    # switching_pi_consensus_step; exact on links heard both ways, biased by one-way ones)
+    integral: IntegralForm = "differences"
 
     def __post_init__(self) -> None:
         require(self.topology in ("fixed", "range"), "topology", "must be 'fixed' or 'range'",
@@ -67,6 +72,8 @@ class NetworkParams:
         require_finite_positive("keep_gain", self.keep_gain)
         require(0 <= self.reach_slack_steps <= 10_000, "reach_slack_steps",
                 "must be an integer in [0, 10000]", self.reach_slack_steps)
+        require(self.integral in ("differences", "own"), "integral",
+                "must be 'differences' or 'own'", self.integral)
         require(self.topology == "range" or self.keep == "none", "keep",
                 "needs topology = 'range' (a fixed graph has no range to keep)", self.keep)
 

@@ -196,4 +196,6 @@ class TelemetryCollector:
             "reference_resets": sum(c.reference_resets for c in latest),
             "lambda_breaches": sum(c.lambda_breaches for c in latest),
             "safety_conflicts": sum(c.safety_conflicts for c in latest),
+            "link_conflicts": sum(c.link_conflicts for c in latest),
+            "splits_said": sum(c.splits_said for c in latest),
         }

@@ -198,5 +198,6 @@ def print_process_counters(collector: TelemetryCollector, console: Console) -> N
         f"events {counts['vehicle_events']}, rate-box releases "
         f"{counts['rate_limit_releases']}, reference resets {counts['reference_resets']}, "
         f"λ̄ breaches said by the agents {counts['lambda_breaches']}, steps the safety "
-        f"envelope overruled localization {counts['safety_conflicts']}",
+        f"envelope overruled localization {counts['safety_conflicts']}, a keep row "
+        f"{counts['link_conflicts']}, splits said {counts['splits_said']}",
         highlight=False)

@@ -25,7 +25,7 @@ from swarm.core import icf
 from swarm.core.graph import (
     CommunicationGraph,
     pi_consensus_is_stable,
-    switching_pi_consensus_is_stable,
+    pi_consensus_is_stable_on_every_graph,
 )
 from swarm.core.network import NetworkParams
 from swarm.core.params import (
@@ -535,8 +535,9 @@ def _cross_check(config: ScenarioConfig) -> None:
             raise ConfigError(
                 f"gramian.{name}.kp: K_p·λ_max(L)·ΔT = {gains.kp * lam_max * dt:.3g} must be "
                 f"< 2 for a stable Euler step on this graph (λ_max(L) = {lam_max:.3g})")
-        stable, radius = (switching_pi_consensus_is_stable(graph.n_nodes, gains, dt)
-                          if config.network.ranged else pi_consensus_is_stable(graph, gains, dt))
+        stable, radius = (pi_consensus_is_stable_on_every_graph(
+            graph.n_nodes, gains, dt, own_integral=config.network.integral == "own")
+            if config.network.ranged else pi_consensus_is_stable(graph, gains, dt))
         if not stable:
             where = ("some graph of swarm.n_drones (a range graph may become any)"
                      if config.network.ranged else "this graph")

@@ -15,7 +15,7 @@ from hypothesis import strategies as st
 
 from swarm.core.consensus_layout import ConsensusLayout
 from swarm.core.drone_step import DroneAgent
-from swarm.core.dynamic_consensus import switching_pi_consensus_step
+from swarm.core.dynamic_consensus import pi_consensus_step, switching_pi_consensus_step
 from swarm.core.network import keep_row
 from swarm.models.frames import position_over_link
 from swarm.scenario.config import config_from_dict
@@ -25,7 +25,7 @@ from swarm.scenario.world_step import Scene
 CONFIGS = Path(__file__).resolve().parents[2] / "configs"
 
 
-def still_targets_config(keep: str = "none"):
+def still_targets_config(keep: str = "none", integral: str = "differences"):
     """case2_range with both targets standing still (the inputs of the consensus settle)."""
     with (CONFIGS / "case2_range.toml").open("rb") as handle:
         data = tomllib.load(handle)
@@ -34,6 +34,7 @@ def still_targets_config(keep: str = "none"):
         target["velocity_m_s"] = [0.0, 0.0, 0.0]
         target.pop("amplitude_m", None)
     data["network"]["keep"] = keep
+    data["network"]["integral"] = integral
     return config_from_dict(data)
 
 
@@ -61,12 +62,13 @@ def step_all(agents: list[DroneAgent], scene: Scene, positions: np.ndarray, k: i
     return [agent.finish_step(beacons).diagnostics for agent in agents]
 
 
-def switching_run(seed: int, steps: int, dwell: tuple[int, int], final_hold: int = 0):
+def switching_run(seed: int, steps: int, dwell: tuple[int, int], final_hold: int = 0,
+                  integral: str = "differences"):
     """Drones standing still at 3 to 7.5 m (each its own weight) on connected graphs drawn
     anew every ``dwell`` steps (a random number in that range), the last one then held
     ``final_hold`` steps more; yields, per step from the second, the drones' diagnostics and
     their consensus states before and after the step (the first step sets s(0) = u(0))."""
-    config = still_targets_config()
+    config = still_targets_config(integral=integral)
     n = config.swarm.n_drones
     agents = [build_agent(config, 0, i) for i in range(n)]
     scene = Scene(config, 0)
@@ -85,15 +87,19 @@ def switching_run(seed: int, steps: int, dwell: tuple[int, int], final_hold: int
             yield config, diags, before, after, links
 
 
-@settings(max_examples=5, deadline=None)
-@given(st.integers(0, 2**32 - 1))
-def test_on_any_switching_graph_the_mean_of_the_copies_follows_the_mean_input(seed) -> None:
-    """Every step, whatever the graph (here a new one each step): the drones' mean s of w
-    moves exactly as (1 − ΔTζ)·mean s + ΔTζ·mean w (SPEC §6 summed over the drones: every
-    coupling cancels in pairs, and Σ η stays 0); each drone's step is the readable
-    ``switching_pi_consensus_step`` with the neighbours it heard."""
+@pytest.mark.parametrize("integral", ["differences", "own"])
+@settings(max_examples=4, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1))
+def test_on_any_switching_graph_the_mean_of_the_copies_follows_the_mean_input(
+        integral: str, seed: int) -> None:
+    """Every step, whatever the graph (here a new one each step, heard both ways): the
+    drones' mean s of w moves exactly as (1 − ΔTζ)·mean s + ΔTζ·mean w (SPEC §6 summed over
+    the drones: every coupling cancels in pairs, and Σ η stays 0); each drone's step is the
+    readable one with the neighbours it heard: ``pi_consensus_step`` (3.30) or, with the
+    integral entering as it is, ``switching_pi_consensus_step``."""
     layout = None
-    for config, diags, before, after, links in switching_run(seed, 150, (1, 1)):
+    for config, diags, before, after, links in switching_run(seed, 150, (1, 1),
+                                                             integral=integral):
         layout = layout or ConsensusLayout(len(config.targets))
         zeta, dt = config.gramian.weight_consensus.zeta, config.scenario.dt_s
         inputs = np.array([d.weights for d in diags])
@@ -106,21 +112,31 @@ def test_on_any_switching_graph_the_mean_of_the_copies_follows_the_mean_input(se
         assert all(d.reached == config.swarm.n_drones for d in diags)  # connected throughout
         gains = config.gramian.weight_consensus
         for i, d in enumerate(diags):  # the agent's packed step is the readable one
-            s_i, eta_i = switching_pi_consensus_step(
-                before[i, layout.weight_mean], before[i, layout.weight_integral], d.weights,
-                [before[j, layout.weight_mean] for j in np.flatnonzero(links[i])], gains, dt)
+            heard = np.flatnonzero(links[i])
+            means = [before[j, layout.weight_mean] for j in heard]
+            if integral == "own":
+                s_i, eta_i = switching_pi_consensus_step(
+                    before[i, layout.weight_mean], before[i, layout.weight_integral],
+                    d.weights, means, gains, dt)
+            else:
+                s_i, eta_i = pi_consensus_step(
+                    before[i, layout.weight_mean], before[i, layout.weight_integral],
+                    d.weights, means, [before[j, layout.weight_integral] for j in heard],
+                    gains, dt)
             np.testing.assert_allclose(after[i, layout.weight_mean], s_i, rtol=0, atol=1e-12)
             np.testing.assert_allclose(after[i, layout.weight_integral], eta_i, rtol=0,
                                        atol=1e-12)
 
 
-@settings(max_examples=4, deadline=None)
-@given(st.integers(0, 2**32 - 1))
-def test_on_switching_connected_graphs_every_copy_tracks_the_network_average(seed) -> None:
+@pytest.mark.parametrize("integral", ["differences", "own"])
+@settings(max_examples=3, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1))
+def test_on_switching_connected_graphs_every_copy_tracks_the_network_average(
+        integral: str, seed: int) -> None:
     """Graphs that hold for 0.2-1.2 s (a range graph as drones move), the last for 3 s: each
     drone's s of w is then the average of the drones' own w, as on a fixed graph."""
-    *_, (config, diags, _before, after, _links) = switching_run(seed, 400, (10, 60),
-                                                                final_hold=150)
+    *_, (config, diags, _before, after, _links) = switching_run(
+        seed, 400, (10, 60), final_hold=150, integral=integral)
     layout = ConsensusLayout(len(config.targets))
     inputs = np.array([d.weights for d in diags])  # w_ir of each drone, (N, M)
     copies = after[:, layout.weight_mean]  # s of w, (N, M)

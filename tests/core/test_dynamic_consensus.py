@@ -14,7 +14,7 @@ from swarm.core.dynamic_consensus import pi_consensus_step, switching_pi_consens
 from swarm.core.graph import (
     CommunicationGraph,
     pi_consensus_is_stable,
-    switching_pi_consensus_is_stable,
+    pi_consensus_is_stable_on_every_graph,
 )
 from swarm.core.icf import consensus_iteration
 from swarm.core.params import ConsensusGains, GramianParams
@@ -268,16 +268,21 @@ def _switching_map_radius(graph: CommunicationGraph, gains: ConsensusGains) -> f
 
 @pytest.mark.parametrize("gains", [PROJECTOR_GAINS, WEIGHT_GAINS, ConsensusGains(4.0, 30.0, 3.0),
                                    ConsensusGains(8.0, 12.0, 40.0)])
-def test_the_switching_stability_check_bounds_every_graph_of_n(gains) -> None:
+def test_the_every_graph_stability_check_bounds_the_graphs_of_n(gains) -> None:
     """Its radius is at least the network map's on the graphs of 6 drones tried (the complete
     one's λ = N is the largest of any graph's), so a graph that diverges is never passed."""
-    stable, radius = switching_pi_consensus_is_stable(6, gains, DT)
+    stable, radius = pi_consensus_is_stable_on_every_graph(6, gains, DT, own_integral=True)
     radii = [_switching_map_radius(graph, gains) for graph in (RING, PATH, SCENARIO,
                                                                 _complete(6))]
     assert radius >= max(radii) - 1e-9
     if max(radii) >= 1.0:
         assert not stable
     assert stable == (radius < 1.0)
+    # (3.30)'s form likewise, against its own network map on the same graphs.
+    stable, radius = pi_consensus_is_stable_on_every_graph(6, gains, DT)
+    exact = [pi_consensus_is_stable(graph, gains, DT)[1]
+             for graph in (RING, PATH, SCENARIO, _complete(6))]
+    assert radius >= max(exact) - 1e-9 and stable == (radius < 1.0)
 
 
 @settings(deadline=None, max_examples=20, derandomize=True)
