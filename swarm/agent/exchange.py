@@ -228,7 +228,8 @@ class LockstepExchange:
         (a message of a later round or step is kept for its own inbox). With radios of limited
         range the neighbours are those the step's camera frame says this drone hears; what the
         others sent is taken from their FIFOs and left to be pruned."""
-        heard = self._frame(step).radio_neighbours()
+        heard = (self._frame(step).radio_neighbours() if self.peers.config.network.ranged
+                 else None)
         if heard is None:
             return self._take(self.consensus_steps, step, rnd, self._consensus_from,
                               self._neighbour_order, f"round-{rnd} consensus")
