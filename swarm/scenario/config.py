@@ -532,9 +532,11 @@ def _cross_check(config: ScenarioConfig) -> None:
     for name, gains in (("projector_consensus", gram.projector_consensus),
                         ("weight_consensus", gram.weight_consensus)):
         if not gains.kp * lam_max * dt < 2.0:
+            where = ("every graph of swarm.n_drones (a range graph may become any)"
+                     if config.network.ranged else "this graph")
             raise ConfigError(
                 f"gramian.{name}.kp: K_p·λ_max(L)·ΔT = {gains.kp * lam_max * dt:.3g} must be "
-                f"< 2 for a stable Euler step on this graph (λ_max(L) = {lam_max:.3g})")
+                f"< 2 for a stable Euler step on {where} (λ_max(L) = {lam_max:.3g})")
         stable, radius = (pi_consensus_is_stable_on_every_graph(
             graph.n_nodes, gains, dt, own_integral=config.network.integral == "own")
             if config.network.ranged else pi_consensus_is_stable(graph, gains, dt))

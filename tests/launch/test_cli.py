@@ -210,6 +210,9 @@ def test_same_seed_gives_bit_identical_runs(seed0_twice: tuple[RunRecord, RunRec
         if field.name in TIMING_FIELDS | {"config", "seed"}:
             continue
         a, b = getattr(first, field.name), getattr(second, field.name)
+        if field.name in {"links", "reached", "link_conflict"}:  # the radio's: a range only
+            assert a is None and b is None, field.name
+            continue
         assert isinstance(a, np.ndarray), field.name
         assert np.array_equal(a, b, equal_nan=True), field.name
         compared += 1
