@@ -61,11 +61,11 @@ def test_lockstep_flies_the_range_scenario_as_the_in_process_run(keep: str,
 @pytest.mark.wallclock
 @pytest.mark.slow
 def test_realtime_agents_say_the_split_and_the_report_names_it(tmp_path: Path) -> None:
-    """R = 5 m without keeping, 31 s on the wall clock (in-process the swarm splits at
-    28.7 s): the world's links split the swarm, each agent logs that its part is smaller,
-    and the report's warning names the split."""
+    """R = 5 m without keeping, 36 s on the wall clock (in-process the swarm splits at
+    28.7 s; in realtime on a busy machine it came at 30.6 s): the world's links split the
+    swarm, each agent logs that its part is smaller, and the report's warning names it."""
     config, path = _config(tmp_path, "network.range_m=5", "network.keep=none",
-                           duration_s=31.0)
+                           duration_s=36.0)
     logs = tmp_path / "logs"
     launcher = SwarmLauncher(LaunchOptions(config=config, config_path=path, seed=0,
                                            mode="realtime", log_dir=logs),
