@@ -146,23 +146,8 @@ def test_stability_check_agrees_with_the_network_map() -> None:
         # is the slowest one).
         for gains in (PROJECTOR_GAINS, WEIGHT_GAINS, ConsensusGains(4.0, 30.0, 3.0),
                       ConsensusGains(0.1, 5.0, 3.0)):
-            n = graph.n_nodes
-            columns = []
-            for k in range(2 * n):
-                state = np.zeros(2 * n)
-                state[k] = 1.0
-                stepped = [pi_consensus_step(
-                    state[i], state[n + i], 0.0, [state[j] for j in graph.neighbours[i]],
-                    [state[n + j] for j in graph.neighbours[i]], gains, DT)
-                    for i in range(n)]
-                columns.append([s for s, _ in stepped] + [eta for _, eta in stepped])
-            network_map = np.array(columns).T
-            # Orthonormal basis of {Σ η = 0}: drop the invariant η-sum direction.
-            basis_eta = np.linalg.svd(np.ones((1, n)))[2][1:].T
-            basis = np.block([[np.eye(n), np.zeros((n, n - 1))],
-                              [np.zeros((n, n)), basis_eta]])
-            restricted = basis.T @ network_map @ basis
-            expected = float(np.max(np.abs(np.linalg.eigvals(restricted))))
+            expected = _map_radius(graph, lambda i, x, n, nb, g=gains: pi_consensus_step(
+                x[i], x[n + i], 0.0, [x[j] for j in nb], [x[n + j] for j in nb], g, DT))
             stable, radius = pi_consensus_is_stable(graph, gains, DT)
             assert radius == pytest.approx(expected, abs=1e-10)
             assert stable == (expected < 1.0)
@@ -248,22 +233,27 @@ def _complete(n: int) -> CommunicationGraph:
     return CommunicationGraph(n, tuple((a, b) for a in range(n) for b in range(a + 1, n)))
 
 
-def _switching_map_radius(graph: CommunicationGraph, gains: ConsensusGains) -> float:
-    """The spectral radius of the network's one-step map of (s, η) under
-    ``switching_pi_consensus_step`` with zero input, restricted to Σ η = 0."""
+def _map_radius(graph: CommunicationGraph, step) -> float:
+    """The spectral radius of the network's one-step map of (s, η), every node stepped by
+    ``step(i, state, n, neighbours)`` with zero input (state = [s, η]), restricted to
+    Σ η = 0 (the invariant η-sum direction dropped)."""
     n = graph.n_nodes
     columns = []
     for k in range(2 * n):
         state = np.zeros(2 * n)
         state[k] = 1.0
-        stepped = [switching_pi_consensus_step(
-            state[i], state[n + i], 0.0, [state[j] for j in graph.neighbours[i]], gains, DT)
-            for i in range(n)]
+        stepped = [step(i, state, n, graph.neighbours[i]) for i in range(n)]
         columns.append([x for x, _ in stepped] + [eta for _, eta in stepped])
     network_map = np.array(columns).T
     basis_eta = np.linalg.svd(np.ones((1, n)))[2][1:].T
     basis = np.block([[np.eye(n), np.zeros((n, n - 1))], [np.zeros((n, n)), basis_eta]])
     return float(np.max(np.abs(np.linalg.eigvals(basis.T @ network_map @ basis))))
+
+
+def _switching_map_radius(graph: CommunicationGraph, gains: ConsensusGains) -> float:
+    """``_map_radius`` under ``switching_pi_consensus_step``."""
+    return _map_radius(graph, lambda i, x, n, nb: switching_pi_consensus_step(
+        x[i], x[n + i], 0.0, [x[j] for j in nb], gains, DT))
 
 
 @pytest.mark.parametrize("gains", [PROJECTOR_GAINS, WEIGHT_GAINS, ConsensusGains(4.0, 30.0, 3.0),
