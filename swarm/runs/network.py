@@ -113,8 +113,10 @@ def _check_split_said(record: RunRecord) -> list[Violation]:
     for k in range(links.shape[0]):
         unchanged = unchanged + 1 if k > 0 and np.array_equal(links[k], links[k - 1]) else 0
         settled[k] = unchanged >= window
-    # A drone-step whose telemetry never arrived (realtime) says nothing either way.
-    present = ~np.isnan(record.velocities_m_s).any(axis=2)
+    # A drone-step whose telemetry never arrived (realtime) says nothing either way: its
+    # count is 0 (a drone counts itself, so every count sent is at least 1). The velocities
+    # cannot tell: the launcher's record fills their gaps.
+    present = reached > 0
     wrong = settled[:, None] & present & (reached != sizes)
     if not wrong.any():
         return []
@@ -140,7 +142,7 @@ class NetworkSummary:
     min_algebraic_connectivity: float | None  # λ₂ of the radio's graph, its smallest
     first_split_s: float | None  # the radio's graph first disconnected
     split_parts: tuple[tuple[int, ...], ...]  # its components then
-    first_said_s: float | None  # a drone first counted fewer than N drones reached
+    first_said_s: float | None  # a drone first counted fewer than N drones reached (0: unsent)
     min_kept_margin_m: float | None  # R − the longest kept link over the run [m]
     link_conflicts: int | None  # drone-steps a keep row overruled localization
 
@@ -162,7 +164,8 @@ def network_summary(record: RunRecord) -> NetworkSummary | None:
                else min(algebraic_connectivity(record.links[k])
                         for k in range(record.links.shape[0])))
     said = (None if record.reached is None
-            else np.flatnonzero((record.reached < cfg.swarm.n_drones).any(axis=1)))
+            else np.flatnonzero(((record.reached > 0)
+                                 & (record.reached < cfg.swarm.n_drones)).any(axis=1)))
     distances = kept_link_distances(record)
     kept_margin = (None if distances.shape[1] == 0 or np.isnan(distances).all()
                    else float(net.range_m - np.nanmax(distances)))

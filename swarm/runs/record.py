@@ -45,7 +45,8 @@ class RunRecord:
     # The radio (network.topology = "range", swarm.core.network; None otherwise or not
     # recorded): (K, N, N) bool the links of each step as the simulated radio made them,
     # (K, N) how many drones each drone's news reached (itself included: < N, it said the
-    # swarm had split), (K, N) bool a keep row held u back while localization slack was used.
+    # swarm had split; 0, its telemetry of that step never arrived), (K, N) bool a keep
+    # row held u back while localization slack was used.
     links: NDArray[np.bool_] | None = None
     reached: NDArray[np.int64] | None = None
     link_conflict: NDArray[np.bool_] | None = None

@@ -93,6 +93,24 @@ def test_a_split_the_drones_do_not_count_is_a_violation(unkept) -> None:
     assert violation.subject == "drone 3" and violation.first_time_s < 2.0
 
 
+def test_a_count_never_sent_says_nothing(unkept) -> None:
+    """A realtime record keeps 0 where a drone's telemetry of a step never arrived (the
+    launcher fills the velocities' gaps, not the counts): no split said, no violation, and
+    the summary's first said split is where a count below N arrived."""
+    reached = unkept.reached.copy()
+    reached[-1, 4] = 0  # the last sample of drone 4 lost, as in CI's realtime run
+    reached[:50, :] = 0  # and the first second of everyone's
+    record = dataclasses.replace(unkept, reached=reached)
+    assert not [v for v in check_invariants(record) if v.invariant == "split_said"]
+    summary, before = network_summary(record), network_summary(unkept)
+    assert summary is not None and before is not None
+    assert summary.first_said_s == before.first_said_s is not None
+    reached[60, 2] = 3  # a count below N that did arrive, where the radio had no split
+    (violation,) = [v for v in check_invariants(dataclasses.replace(unkept, reached=reached))
+                    if v.invariant == "split_said"]
+    assert violation.subject == "drone 2" and "counted 3 drones" in violation.detail
+
+
 def test_the_fixed_graph_is_unchanged_by_the_network_section() -> None:
     """case2 as shipped and with an explicit fixed [network] section: the same run bit for
     bit, with no radio in the record."""
