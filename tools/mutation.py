@@ -7,8 +7,9 @@ when that code is changed a little?
 
 Groups (each against its fast tests, never the slow scenario runs):
 
-- ``checks``: ``swarm/runs/checks.py``, the invariant checks every run is judged by,
-  against ``tests/runs/test_checks.py``;
+- ``checks``: ``swarm/runs/checks.py`` and ``swarm/runs/network.py``, the invariant checks
+  every run is judged by, against ``tests/runs/test_checks.py`` and
+  ``tests/runs/test_network_checks.py``;
 - ``watch``: the watchers of ``swarm/watch/`` against ``tests/watch``;
 - ``core``: the readable rows of ``swarm/core`` (barrier, safety, qp, smooth_min,
   perception) against ``tests/core``;
@@ -85,7 +86,8 @@ class CMutant:
 
 
 PYTHON_GROUPS = (
-    PythonGroup("checks", ("swarm/runs/checks.py",), ("tests/runs/test_checks.py",)),
+    PythonGroup("checks", ("swarm/runs/checks.py", "swarm/runs/network.py"),
+                ("tests/runs/test_checks.py", "tests/runs/test_network_checks.py")),
     PythonGroup("watch", ("swarm/models/command_reference.py",
                           "swarm/watch/localization_watch.py", "swarm/watch/vehicle_watch.py"),
                 ("tests/watch", "tests/models/test_command_reference.py", *FAST)),

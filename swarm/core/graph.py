@@ -117,11 +117,12 @@ def pi_consensus_is_stable_on_every_graph(
     ``own_integral``: the form of ``dynamic_consensus.switching_pi_consensus_step``, where
     the integral enters as K_i η_i: its mode is [[1 − ΔT(ζ + K_pλ), ΔT K_i], [−ΔT K_i λ, 1]]
     (3.30's has ΔT K_i λ in the corner)."""
-    radius = abs(1.0 - dt_s * gains.zeta)
-    for lam in np.linspace(0.0, float(n_nodes), samples)[1:]:
-        coupling = dt_s * gains.ki * (1.0 if own_integral else lam)
-        mode = np.array(
-            [[1.0 - dt_s * (gains.zeta + gains.kp * lam), coupling],
-             [-dt_s * gains.ki * lam, 1.0]])
-        radius = max(radius, float(np.max(np.abs(np.linalg.eigvals(mode)))))
+    lam = np.linspace(0.0, float(n_nodes), samples)[1:]
+    modes = np.empty((lam.shape[0], 2, 2))  # one mode per λ, their eigenvalues in one call
+    modes[:, 0, 0] = 1.0 - dt_s * (gains.zeta + gains.kp * lam)
+    modes[:, 0, 1] = dt_s * gains.ki * (1.0 if own_integral else lam)
+    modes[:, 1, 0] = -dt_s * gains.ki * lam
+    modes[:, 1, 1] = 1.0
+    radius = max(abs(1.0 - dt_s * gains.zeta),
+                 float(np.max(np.abs(np.linalg.eigvals(modes)), initial=0.0)))
     return radius < 1.0, radius

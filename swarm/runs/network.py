@@ -58,7 +58,10 @@ def component_series(record: RunRecord) -> list[list[list[int]]] | None:
 
 
 def check_network(record: RunRecord) -> list[Violation]:
-    """The ``kept_link`` and ``split_said`` invariants (module docstring)."""
+    """The ``kept_link`` and ``split_said`` invariants (module docstring); none on the fixed
+    graph."""
+    if not record.config.network.ranged:
+        return []
     return [*_check_kept_links(record), *_check_split_said(record)]
 
 
@@ -71,7 +74,7 @@ def _check_kept_links(record: RunRecord) -> list[Violation]:
     if np.isnan(distances).all():
         return [Violation("kept_link", "not checked: no step with the positions of a kept "
                                        "link's two drones")]
-    beyond = np.nan_to_num(distances, nan=-np.inf) > range_m
+    beyond = distances > range_m  # NaN (a position missing): not beyond
     if not beyond.any():
         return []
     worst_step, worst_link = np.unravel_index(
@@ -106,12 +109,13 @@ def _check_split_said(record: RunRecord) -> list[Violation]:
     for k in range(links.shape[0]):
         for members in components(links[k]):
             sizes[k, members] = len(members)
-    # Steps whose graph is the one of the window before them (the reach has settled); the
-    # first window counts as settled on the graph the swarm started with.
+    # Steps whose graph is the one of the window before them (the reach has settled). The
+    # first window is never settled: every drone counts the whole swarm at its first step
+    # (ReachTracker), whatever the graph.
     settled = np.zeros(links.shape[0], dtype=bool)
-    unchanged = 0
-    for k in range(links.shape[0]):
-        unchanged = unchanged + 1 if k > 0 and np.array_equal(links[k], links[k - 1]) else 0
+    unchanged = 0  # steps the graph has held, step 0 (never judged) not counted
+    for k in range(1, links.shape[0]):
+        unchanged = unchanged + 1 if np.array_equal(links[k], links[k - 1]) else 0
         settled[k] = unchanged >= window
     # A drone-step whose telemetry never arrived (realtime) says nothing either way: its
     # count is 0 (a drone counts itself, so every count sent is at least 1). The velocities
@@ -167,7 +171,7 @@ def network_summary(record: RunRecord) -> NetworkSummary | None:
             else np.flatnonzero(((record.reached > 0)
                                  & (record.reached < cfg.swarm.n_drones)).any(axis=1)))
     distances = kept_link_distances(record)
-    kept_margin = (None if distances.shape[1] == 0 or np.isnan(distances).all()
+    kept_margin = (None if np.isnan(distances).all()  # also: no kept link
                    else float(net.range_m - np.nanmax(distances)))
     return NetworkSummary(
         topology=net.topology, keep=net.keep, range_m=net.range_m,

@@ -11,6 +11,7 @@ the check says. Every record here is a handful of steps of plain arrays: seconds
 from __future__ import annotations
 
 import dataclasses
+import functools
 import io
 import itertools
 import json
@@ -47,6 +48,7 @@ DURATION_S = 2.0  # 100 steps of 0.02 s; control.start_s = 1 s is step 50
 SPACING_M = 2.0  # drones on a line along x, far from each other and from every boundary
 
 
+@functools.cache  # a frozen config, loaded once: the mutation judge runs these tests ~1000 times
 def scenario(case: str = "case1") -> ScenarioConfig:
     return load_config(CONFIGS / f"{case}.toml").with_duration(DURATION_S)
 
