@@ -1,9 +1,16 @@
-"""Downward gimballed camera: range, square field of view, image-plane noise (SPEC §2, 1.6-1.9)."""
+"""Downward gimballed camera: range, square field of view, image-plane noise (SPEC §2, 1.6-1.9).
+
+``model = "bearing"`` (the thesis', the default): the world hands each drone the image-plane
+point of every target in view plus Gaussian noise. ``model = "rendered"``: the world renders
+each drone's image and a marker detector turns its pixels into those points
+(``swarm.vision``, docs/camera.md); the settings below ``model`` are that camera's.
+"""
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -12,6 +19,11 @@ from swarm.core.drone_step import Detection
 from swarm.core.params import require, require_finite_positive
 
 Array = NDArray[np.float64]
+CameraModel = Literal["bearing", "rendered"]
+# OpenCV's predefined marker families a rendered camera may use (marker id = target index);
+# the smallest has 30 markers, more than the 16 targets a scenario may have.
+MARKER_DICTIONARIES = ("DICT_4X4_50", "DICT_5X5_50", "DICT_6X6_50", "DICT_APRILTAG_16h5",
+                       "DICT_APRILTAG_36h11")
 
 
 @dataclass(frozen=True)
@@ -20,6 +32,17 @@ class CameraParams:
     range_max_m: float = 8.0  # D_M, targets farther than this are not detected [m]
     half_fov_deg: float = 50.0  # α_M, half-angle of the square field of view [deg]
     image_noise_std: float = 0.005  # σ_img on the normalized image plane [1]; 0 = exact
+    # "bearing": the thesis' noisy image points; "rendered": images and a marker detector
+    model: CameraModel = "bearing"
+    # The rendered camera (model = "rendered"; ignored by "bearing"):
+    resolution_px: int = 480  # square image, this many pixels a side [px]
+    frame_rate_hz: float | None = None  # frames per second; None: one every step [Hz]
+    # OpenCV's (k1, k2, p1, p2, k3) lens distortion; zeros: an ideal pinhole [1]
+    distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    pixel_noise_std: float = 2.0  # Gaussian sensor noise on each pixel [grey levels]
+    marker_size_m: float = 0.5  # side of each target's marker (its black square) [m]
+    marker_dictionary: str = "DICT_4X4_50"  # OpenCV's marker family (MARKER_DICTIONARIES)
+    jpeg_quality: int = 90  # of the encoded frames [1-100]
 
     def __post_init__(self) -> None:
         require_finite_positive("range_min_m", self.range_min_m)
@@ -29,6 +52,26 @@ class CameraParams:
                 "half_fov_deg", "must lie in (0, 90) degrees", self.half_fov_deg)
         require(math.isfinite(self.image_noise_std) and self.image_noise_std >= 0,
                 "image_noise_std", "must be a finite number >= 0", self.image_noise_std)
+        require(self.model in ("bearing", "rendered"), "model",
+                "must be 'bearing' or 'rendered'", self.model)
+        require(32 <= self.resolution_px <= 4096, "resolution_px",
+                "must be an integer in [32, 4096]", self.resolution_px)
+        if self.frame_rate_hz is not None:
+            require_finite_positive("frame_rate_hz", self.frame_rate_hz)
+        require(all(math.isfinite(k) and abs(k) <= 1.0 for k in self.distortion),
+                "distortion", "must be five finite numbers in [-1, 1] (k1, k2, p1, p2, k3)",
+                self.distortion)
+        require(math.isfinite(self.pixel_noise_std) and 0 <= self.pixel_noise_std <= 64,
+                "pixel_noise_std", "must be a finite number in [0, 64]", self.pixel_noise_std)
+        require_finite_positive("marker_size_m", self.marker_size_m)
+        require(self.marker_dictionary in MARKER_DICTIONARIES, "marker_dictionary",
+                f"must be one of {', '.join(MARKER_DICTIONARIES)}", self.marker_dictionary)
+        require(1 <= self.jpeg_quality <= 100, "jpeg_quality", "must be an integer in [1, 100]",
+                self.jpeg_quality)
+
+    @property
+    def rendered(self) -> bool:
+        return self.model == "rendered"
 
     @property
     def image_half_width(self) -> float:

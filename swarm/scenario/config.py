@@ -58,6 +58,12 @@ from swarm.models.targets import (
 )
 from swarm.net.security import OBSERVER_ROLE, SecurityError, TlsIdentity, check_tls_dir
 from swarm.scenario.overrides import Override, OverrideError, apply_overrides
+from swarm.vision.geometry import (
+    CalibrationError,
+    calibration_for,
+    invertible_lens_rays,
+    pixel_grid,
+)
 from swarm.watch.vehicle_watch import VEHICLE_EVENT_POLICIES, VehicleEventPolicy
 
 Vector3 = tuple[float, float, float]
@@ -443,6 +449,12 @@ class ScenarioConfig:
         return round(self.scenario.duration_s / self.scenario.dt_s)
 
     @property
+    def camera_steps_per_frame(self) -> int:
+        """Steps between a rendered camera's frames (1: a frame every step)."""
+        rate = self.camera.frame_rate_hz
+        return 1 if rate is None else max(round(1.0 / (rate * self.scenario.dt_s)), 1)
+
+    @property
     def state_dimension(self) -> int:
         """The ICF state size of one target (``icf.state_dimension`` of the model)."""
         return icf.state_dimension(self.estimation.model)
@@ -503,6 +515,22 @@ def _cross_check(config: ScenarioConfig) -> None:
     if abs(dt_ms - round(dt_ms)) > 1e-9:
         raise ConfigError(f"scenario.dt_s must be a whole number of milliseconds (MAVLink "
                           f"time_boot_ms stamps the steps) (got {config.scenario.dt_s})")
+    rate = config.camera.frame_rate_hz
+    if rate is not None:
+        steps = 1.0 / (rate * config.scenario.dt_s)
+        if not (steps >= 1.0 - 1e-9 and abs(steps - round(steps)) <= 1e-6):
+            raise ConfigError(f"camera.frame_rate_hz must divide the step rate "
+                              f"{1.0 / config.scenario.dt_s:g} Hz (a frame every whole number "
+                              f"of steps) (got {rate})")
+    if config.camera.rendered:
+        # A lens whose polynomial folds over the image cannot be rendered or undistorted;
+        # checked on a 33 x 33 grid here (the renderer checks every pixel).
+        calibration = calibration_for(config.camera)
+        side = calibration.width_px
+        try:
+            invertible_lens_rays(calibration, pixel_grid(side, side, max(side // 32, 1)))
+        except CalibrationError as err:
+            raise ConfigError(f"camera.distortion: {err}") from None
     offsets = config.vehicles.origin_offsets_m
     if offsets and len(offsets) != config.swarm.n_drones:
         raise ConfigError(f"vehicles.origin_offsets_m needs one [x, y, z] per drone "
