@@ -57,6 +57,10 @@ class Profile:
     sweep_missions: int  # in-process Case 1 missions per timed sweep (bench_sweep)
     sweep_duration_s: float  # their simulated length
     cvxpy_mission_duration_s: float  # Case 2 in-process, ours against CVXPY (bench_sweep)
+    camera_frames: int = 300  # random frames per camera (bench_camera)
+    camera_swarm_duration_s: float = 10.0  # simulated s of each Case 1 swarm (bench_camera)
+    camera_frame_rates_hz: tuple[float, ...] = (50.0, 25.0, 10.0)
+    camera_modes: tuple[str, ...] = ("lockstep", "realtime")
 
 
 PROFILES: dict[str, Profile] = {
@@ -75,7 +79,8 @@ PROFILES: dict[str, Profile] = {
                      lockstep_duration_s=4.0, lockstep_repeats=2, realtime_duration_s=6.0,
                      realtime_repeats=2, startup_repeats=3, startup_duration_s=1.5,
                      import_repeats=3, host_round_trips=2000, host_timer_ticks=50,
-                     sweep_missions=16, sweep_duration_s=30.0, cvxpy_mission_duration_s=10.0),
+                     sweep_missions=16, sweep_duration_s=30.0, cvxpy_mission_duration_s=10.0,
+                     camera_frames=100, camera_swarm_duration_s=4.0),
     "smoke": Profile("smoke", step_duration_s=1.2, step_repeats=1, step_targets=(2,),
                      cvxpy_step_start_s=1.0, cvxpy_step_duration_s=0.1, qp_count=4,
                      qp_passes=1, qp_capture_duration_s=1.2, swarm_sizes=(6,),
@@ -83,7 +88,9 @@ PROFILES: dict[str, Profile] = {
                      lockstep_duration_s=1.2, lockstep_repeats=1, realtime_duration_s=2.0,
                      realtime_repeats=1, startup_repeats=1, startup_duration_s=1.2,
                      import_repeats=1, host_round_trips=300, host_timer_ticks=10,
-                     sweep_missions=4, sweep_duration_s=1.2, cvxpy_mission_duration_s=1.2),
+                     sweep_missions=4, sweep_duration_s=1.2, cvxpy_mission_duration_s=1.2,
+                     camera_frames=8, camera_swarm_duration_s=1.2,
+                     camera_frame_rates_hz=(25.0,), camera_modes=("lockstep",)),
 }
 
 

@@ -24,6 +24,10 @@ Sections (each also runs alone: ``python benchmarks/<module>.py``):
 - ``sweep``    (bench_sweep.py)    swarm-sweep's overhead per in-process mission, two local
                                    workers against one, and in-process Case 2 with our QP
                                    against the CVXPY QP rebuilt each step (issue 42).
+- ``camera``   (bench_camera.py)   the rendered camera (issue 45): cost per frame of each
+                                   stage, accuracy and detection against range and angle,
+                                   Case 1's six drones in lockstep and realtime at 50, 25
+                                   and 10 frames per second beside the bearing camera.
 
 Writes ``<out>/<section>.json`` and ``<out>/summary.json`` (machine, versions, load average
 before and after each section, the issue's targets against the newest figures of every
@@ -43,6 +47,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import bench_camera
 import bench_host
 import bench_lockstep
 import bench_qp
@@ -64,7 +69,7 @@ from common import (
 from plot_scaling import WORLD_TARGET_MS_PER_DRONE, write_scaling_plot
 from rich.table import Table
 
-SECTIONS = ("host", "step", "qp", "lockstep", "realtime", "startup", "sweep")
+SECTIONS = ("host", "step", "qp", "lockstep", "realtime", "startup", "sweep", "camera")
 MIB_PER_MB = 1e6 / 2**20
 
 
@@ -85,6 +90,8 @@ def run_section(name: str, profile: Any, done: dict[str, dict[str, Any]],
         return realtime_swarm.run(profile)
     if name == "sweep":
         return bench_sweep.run(profile)
+    if name == "camera":
+        return bench_camera.run(profile)
     return bench_startup.run(profile)
 
 
@@ -92,6 +99,7 @@ TABLES: dict[str, Callable[[dict[str, Any]], list[Table]]] = {
     "host": bench_host.tables, "step": bench_step.tables, "qp": bench_qp.tables,
     "lockstep": bench_lockstep.tables, "realtime": realtime_swarm.tables,
     "startup": bench_startup.tables, "sweep": bench_sweep.tables,
+    "camera": bench_camera.tables,
 }
 
 

@@ -42,6 +42,7 @@ from swarm.messages.wire import (
     BeaconRelayWire,
     BeaconWire,
     CameraFrameWire,
+    CameraImageWire,
     ClockState,
     ClockWire,
     F64Array,
@@ -162,7 +163,11 @@ class World:
         # Nothing the world publishes is dropped: lockstep peers wait for every message, and a
         # recording keeps every detection and truth sample. zenoh_config gives each link room
         # for a whole step's burst, so a put waits only if a link is stuck.
-        self._pub_camera = [declare(self.session, self.keys.camera(i), block=True)
+        # A rendered camera's frames go to the drone's detector as images (world/image/<i>);
+        # the detector publishes the camera frames (swarm-camera, docs/camera.md).
+        self.rendered = cfg.camera.rendered
+        self._pub_camera = [declare(self.session, self.keys.image(i) if self.rendered
+                                    else self.keys.camera(i), block=True)
                             for i in range(self.n)]
         self._pub_truth = declare(self.session, self.keys.truth, block=True)
         self._pub_clock = declare(self.session, self.keys.clock, block=True)
@@ -211,15 +216,17 @@ class World:
         stamped ``vehicle_times_ms[i]``, the time_boot_ms of the vehicle sample its camera
         was placed at (how an agent pairs the frame with that pose). ``drone_positions``
         (lockstep): every drone's reported position (N, 3), carried by every frame."""
-        view = self.scene.at(step, self.positions)
+        view = self.scene.at(step, self.positions, detect_markers=False)
         positions = None if drone_positions is None else F64Array.from_array(drone_positions)
         for i in range(self.n):
-            frame = self.codec.encode(CameraFrameWire.build(
+            wire = CameraFrameWire.build(
                 drone=i, step=step, time_s=view.time_s, vehicle_time_ms=vehicle_times_ms[i],
                 detections=view.detections[i],
                 target_velocities=view.communicated_velocities_m_s,
                 drone_positions=positions,
-                radio_links=None if view.links is None else view.links[i]))
+                radio_links=None if view.links is None else view.links[i])
+            frame = self.codec.encode(wire if not self.rendered else CameraImageWire.of_frame(
+                wire, b"" if view.images is None else view.images[i]))
             # Stamped: a realtime agent sets the phase of its loop from when frames leave.
             put_stamped(self.session, self._pub_camera[i], frame)
         self._pub_truth.put(self.codec.encode(TruthWire.build(

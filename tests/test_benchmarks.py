@@ -107,6 +107,17 @@ def test_every_section_runs_and_writes_its_fields(tmp_path: Path) -> None:
     issue42 = [t for t in summary["targets"] if "issue 42" in t["target"]]
     assert [t["status"] != "not measured" for t in issue42] == [True, True]
 
+    camera = load("camera")
+    assert [p["resolution_px"] for p in camera["pipelines"]] == [480, 480, 320]
+    for pipeline in camera["pipelines"]:
+        assert pipeline["frames"] == 8 and pipeline["wrong_ids"] == 0
+        assert all(pipeline["stage_ms"][s]["median"] > 0
+                   for s in ("render", "encode", "decode", "detect"))
+        assert sum(b["n"] for b in pipeline["by_distance_m"]) <= pipeline["in_view"]
+    assert [(r["mode"], r["camera"]) for r in camera["swarm"]] == [
+        ("lockstep", "bearing"), ("lockstep", "rendered")]
+    assert all(r["error"] is None and r["real_time_factor"] > 0 for r in camera["swarm"])
+
     # The host, at both ends of the run.
     for figures in (load("host")["figures"], summary["host_after"]):
         assert figures["python_loop_us_per_1000"] > 0

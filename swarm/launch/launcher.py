@@ -421,6 +421,13 @@ class SwarmLauncher(RunObserver):
         name = f"agent{drone_id}" + (f".restart{restarts}" if restarts else "")
         return self._spawn(name, argv, drone_id)
 
+    def start_camera(self, drone_id: int) -> Child:
+        """Drone ``drone_id``'s detector (camera.model = "rendered", docs/camera.md)."""
+        common = self._common_args()
+        argv = [sys.executable, "-m", "swarm.camera.cli", "--id", str(drone_id),
+                "--config", common[0], *common[1:], "--connect", self.endpoint]
+        return self._spawn(f"camera{drone_id}", argv)
+
     def stop_children(self) -> None:
         """SIGTERM every process group, SIGKILL what is left after the grace period. The
         agents go first (up to AGENT_END_GRACE_S): each commands its vehicle's end action on
@@ -720,6 +727,8 @@ class SwarmLauncher(RunObserver):
             world_started = time.monotonic()
             self.start_world()
             for i in range(self.n):
+                if self.config.camera.rendered:
+                    self.start_camera(i)
                 self.start_agent(i)
             self._connect(timeout_s=30.0)
             announced = False

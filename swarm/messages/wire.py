@@ -90,7 +90,7 @@ _W = TypeVar("_W")
 #    observer of an older build would reject the batches.
 # 10: radios with a range (docs/network.md): a frame's radio links, the truth's link matrix,
 #    telemetry's neighbours heard, reach and keep figures, round 0's reach stamps.
-WIRE_VERSION: Final = 10
+WIRE_VERSION: Final = 11
 
 MAX_DRONES: Final = 1024  # codec limits: a swarm larger than this is a configuration error
 MAX_TARGETS: Final = 1024
@@ -98,6 +98,7 @@ MAX_STATE: Final = 64
 MAX_LABEL_CHARS: Final = 64  # qp_status, mavlink_state
 MAX_TEXT_CHARS: Final = 512  # ClockWire.detail
 MAX_TELEMETRY_BATCH: Final = 64  # TelemetryBatchWire.items
+MAX_IMAGE_BYTES: Final = 1 << 19  # CameraImageWire.image: a 512 KiB JPEG (480 px: ~50 KiB)
 DEFAULT_MAX_PAYLOAD_BYTES: Final = 1 << 20  # nothing this swarm sends comes close to 1 MiB
 
 ClockState = Literal["waiting", "running", "done", "aborted"]
@@ -384,6 +385,41 @@ class CameraFrameWire(_Wire, tag="camera", kw_only=True, frozen=True):
         return None if self.drone_positions is None else self.drone_positions.to_list()
 
 
+class CameraImageWire(_Wire, tag="image", kw_only=True, frozen=True):
+    """Drone ``drone``'s rendered camera image at ``step`` on ``world/image/<i>``
+    (``camera.model = "rendered"``, docs/camera.md): the fields of its ``CameraFrameWire``
+    with the encoded frame (JPEG; empty on a step without a frame, ``camera.frame_rate_hz``)
+    in place of the detections. The drone's detector (``swarm-camera``) turns it into that
+    ``CameraFrameWire`` (``frame``) on ``world/camera/<i>``, where the agent reads it."""
+
+    drone: DroneId
+    step: NonNegativeInt
+    time_s: NonNegativeFinite
+    vehicle_time_ms: NonNegativeInt
+    image: Annotated[bytes, msgspec.Meta(max_length=MAX_IMAGE_BYTES)] = b""
+    target_velocities: TargetsBy3 | None = None
+    drone_positions: DronesBy3 | None = None  # (N, 3), lockstep only
+    radio_links: Annotated[bytes, msgspec.Meta(extra={"packed": "radio_links"})] | None = None
+
+    def frame(self, detections: Sequence[Detection]) -> CameraFrameWire:
+        """The camera frame of this image with ``detections``: every other field as is."""
+        return CameraFrameWire(
+            drone=self.drone, step=self.step, time_s=self.time_s,
+            vehicle_time_ms=self.vehicle_time_ms,
+            detections=tuple(DetectionWire(int(d.target), float(d.image_point[0]),
+                                           float(d.image_point[1])) for d in detections),
+            target_velocities=self.target_velocities, drone_positions=self.drone_positions,
+            radio_links=self.radio_links)
+
+    @classmethod
+    def of_frame(cls, frame: CameraFrameWire, image: bytes) -> CameraImageWire:
+        """The image message carrying ``frame``'s fields (its detections left out)."""
+        return cls(drone=frame.drone, step=frame.step, time_s=frame.time_s,
+                   vehicle_time_ms=frame.vehicle_time_ms, image=image,
+                   target_velocities=frame.target_velocities,
+                   drone_positions=frame.drone_positions, radio_links=frame.radio_links)
+
+
 class TruthWire(_Wire, tag="truth", kw_only=True, frozen=True):
     """Ground truth on ``world/truth`` (recorder only; agents never read it)."""
 
@@ -667,11 +703,12 @@ class TelemetryBatchWire(_Wire, tag="telemetry_batch", kw_only=True, frozen=True
                                                      max_length=MAX_TELEMETRY_BATCH)]
 
 
-WireMessage = (ConsensusWire | BeaconWire | BeaconRelayWire | CameraFrameWire | TruthWire
-               | ClockWire | TelemetryWire | TelemetryBatchWire)
+WireMessage = (ConsensusWire | BeaconWire | BeaconRelayWire | CameraFrameWire
+               | CameraImageWire | TruthWire | ClockWire | TelemetryWire | TelemetryBatchWire)
 _KINDS: Final[dict[type, str]] = {
     ConsensusWire: "consensus", BeaconWire: "beacon", BeaconRelayWire: "beacons",
-    CameraFrameWire: "camera", TruthWire: "truth", ClockWire: "clock",
+    CameraFrameWire: "camera", CameraImageWire: "image", TruthWire: "truth",
+    ClockWire: "clock",
     TelemetryWire: "telemetry", TelemetryBatchWire: "telemetry_batch",
 }
 
@@ -1092,6 +1129,9 @@ class WireCodec:
 
     def decode_camera(self, payload: bytes) -> CameraFrameWire:
         return self._decode(payload, CameraFrameWire)
+
+    def decode_image(self, payload: bytes) -> CameraImageWire:
+        return self._decode(payload, CameraImageWire)
 
     def decode_truth(self, payload: bytes) -> TruthWire:
         return self._decode(payload, TruthWire)

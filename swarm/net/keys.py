@@ -37,10 +37,11 @@ class Keys:
         self.all_beacons = f"{self.prefix}/agent/*/beacon"
         self.all_telemetry = f"{self.prefix}/agent/*/telemetry"
         self.all_cameras = f"{self.prefix}/world/camera/*"
+        self.all_images = f"{self.prefix}/world/image/*"
         self.everything = f"{self.prefix}/**"
         self._source = re.compile(
             rf"^{re.escape(self.prefix)}/(?:agent/(\d{{1,9}})/(?:consensus|beacon|telemetry)"
-            rf"|world/camera/(\d{{1,9}}))$")
+            rf"|world/(?:camera|image)/(\d{{1,9}}))$")
 
     def consensus(self, i: int) -> str:
         return f"{self.prefix}/agent/{_index('drone id', i)}/consensus"
@@ -54,8 +55,13 @@ class Keys:
     def camera(self, i: int) -> str:
         return f"{self.prefix}/world/camera/{_index('drone id', i)}"
 
+    def image(self, i: int) -> str:
+        """A rendered camera's images (camera.model = "rendered"), read by drone i's
+        detector, which publishes the frames on ``camera(i)``."""
+        return f"{self.prefix}/world/image/{_index('drone id', i)}"
+
     def source_id(self, key: str) -> int | None:
-        """The drone id in an agent or camera key of this run (None for other keys).
+        """The drone id in an agent, camera or image key of this run (None for other keys).
 
         A subscriber on a wildcard can check it against the id inside the payload.
         """

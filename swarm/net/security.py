@@ -152,10 +152,14 @@ def router_access_control(prefix: str, neighbours: Sequence[Iterable[int]]) -> d
     for i, adjacent in enumerate(neighbours):
         role = agent_role(i)
         own = [f"{prefix}/agent/{i}/{kind}" for kind in ("consensus", "beacon", "telemetry")]
+        # A rendered camera's detector runs on the drone under its identity: it reads the
+        # drone's images and publishes its camera frames (docs/camera.md).
+        own.append(f"{prefix}/world/camera/{i}")
         # Every other drone's beacon comes in the world's relay (world/beacons), which the
         # world builds from what it took on each sender's own key: an agent reads no
         # other agent's beacon key.
-        reads = [f"{prefix}/world/camera/{i}", f"{prefix}/world/clock",
+        reads = [f"{prefix}/world/camera/{i}", f"{prefix}/world/image/{i}",
+                 f"{prefix}/world/clock",
                  f"{prefix}/world/beacons",
                  *(f"{prefix}/agent/{j}/consensus" for j in sorted(set(adjacent)))]
         policy(role, [allow(f"{role}-publish", ["put"], "ingress", own),

@@ -1,0 +1,170 @@
+"""One drone's detector process: image in, camera frame out (docs/camera.md, "Where the
+detector runs").
+
+It runs beside the drone's agent, as a detector runs on a drone's companion computer: its
+own process, so that the agent's control loop neither waits on nor dies with OpenCV. It reads
+the drone's images on ``world/image/<i>`` (``CameraImageWire``), finds the markers
+(``swarm.vision.detect``) and publishes the same frame with its detections on
+``world/camera/<i>`` (``CameraFrameWire``), the key and message of the bearing camera: the
+agent does not know which camera it has. With ``[security]`` it speaks with the drone's own
+identity (``agent-<i>``), which may read that drone's images and write its frames.
+
+Lockstep: every image, in order (the agent waits for the frame of each step). Realtime: the
+newest image; any older one still waiting is dropped and counted (a frame late by a detection
+is worth less than the next one). What the detector cannot use is counted by reason
+(``RejectionCounter``, kind "image") and logged the first time, and the frame goes out with
+no detections: the agent's step then goes on without a measurement, as with a target out of
+view. The process ends when the world's clock says "done" (exit 0) or "aborted" (exit 1).
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Literal
+
+from swarm.errors import VigilError
+from swarm.messages.wire import CameraImageWire, ClockWire, WireCodec
+from swarm.net.keys import Keys
+from swarm.net.security import agent_role
+from swarm.net.session import (
+    TransportError,
+    declare_publisher,
+    open_session,
+    put_stamped,
+    zenoh_config,
+)
+from swarm.net.subscriptions import (
+    BlockingReceives,
+    DrainedSubscriber,
+    RejectionCounter,
+    subscribe,
+)
+from swarm.scenario.config import ScenarioConfig
+from swarm.vision.detect import MarkerDetector
+from swarm.vision.geometry import calibration_for
+
+IMAGE_BACKLOG = 64  # images waiting in zenoh at most (lockstep: one per step)
+ROUTER_RETRY_S = 0.2
+
+
+class CameraProcessError(VigilError, RuntimeError):
+    """The camera process cannot run (no router, a lost session); one line."""
+
+
+@dataclass(frozen=True)
+class CameraOptions:
+    config: ScenarioConfig
+    drone_id: int
+    run_id: str
+    connect: tuple[str, ...]
+    mode: Literal["lockstep", "realtime"]
+    log: Callable[[str], None]
+
+
+class CameraProcess:
+    """Drone ``drone_id``'s detector between the world's images and its agent."""
+
+    def __init__(self, options: CameraOptions) -> None:
+        config = options.config
+        self.options = options
+        self.id = options.drone_id
+        self.keys = Keys(options.run_id)
+        self.codec = WireCodec(config.swarm.n_drones, len(config.targets),
+                               config.state_dimension)
+        self.detector = MarkerDetector(config.camera, calibration_for(config.camera),
+                                       len(config.targets))
+        self.rejections = RejectionCounter()
+        self.frames = 0  # images turned into camera frames
+        self.skipped = 0  # realtime: older images dropped for a newer one
+        self._pending: list[CameraImageWire] = []
+        self._state: str = "waiting"
+        self._lock = threading.Lock()
+        self.session = self._open_session()
+        self._pub_camera = declare_publisher(self.session, self.keys.camera(self.id),
+                                             block=True)
+        sub = subscribe(self.session, self.keys.image(self.id), self.codec.decode_image,
+                        self._on_image, self.rejections, "image", backlog=IMAGE_BACKLOG,
+                        max_payload_bytes=self.codec.max_payload_bytes)
+        assert isinstance(sub, DrainedSubscriber)
+        self._images = sub
+        self._waits = BlockingReceives([sub])
+        self._clock_sub = subscribe(self.session, self.keys.clock, self.codec.decode_clock,
+                                    self._on_clock, self.rejections, "clock")
+
+    def _open_session(self):
+        opts = self.options
+        tls = opts.config.security.identity(agent_role(self.id))
+        deadline = time.monotonic() + opts.config.runtime.start_timeout_s
+        while True:
+            try:
+                return open_session(zenoh_config(mode="client", connect=opts.connect, tls=tls))
+            except TransportError as err:
+                if time.monotonic() > deadline:
+                    raise CameraProcessError(
+                        f"camera {self.id}: cannot reach the world's Zenoh router at "
+                        f"{', '.join(opts.connect)} within "
+                        f"{opts.config.runtime.start_timeout_s} s ({err})") from None
+                time.sleep(ROUTER_RETRY_S)
+
+    # -- zenoh's side ---------------------------------------------------------------------
+
+    def _on_image(self, key: str, image: CameraImageWire) -> None:
+        if image.drone != self.id:
+            self.rejections.reject("image", f"image of drone {image.drone} on {key}")
+            return
+        self._pending.append(image)  # this process's own thread, in drain/receive_one
+
+    def _on_clock(self, _key: str, clock: ClockWire) -> None:
+        if clock.state in ("done", "aborted"):
+            with self._lock:
+                self._state = clock.state
+            self._waits.close()  # whatever the loop waits for is not coming
+
+    # -- the loop -------------------------------------------------------------------------
+
+    def run(self) -> int:
+        """Detect until the mission ends; 0 when it ended "done", 1 when "aborted"."""
+        opts = self.options
+        opts.log(f"camera {self.id}: detecting {opts.config.camera.marker_dictionary} "
+                 f"markers of {opts.config.camera.marker_size_m:g} m in "
+                 f"{self.detector.calibration.width_px} px frames ({opts.mode})")
+        while self._images.receive_one():
+            if opts.mode == "realtime":
+                self._images.drain()  # anything newer that came meanwhile
+            images, self._pending = self._pending, []
+            if not images:
+                continue
+            if opts.mode == "realtime":
+                self.skipped += len(images) - 1
+                images = images[-1:]
+            for image in images:
+                self._detect_and_publish(image)
+        with self._lock:
+            state = self._state
+        opts.log(f"camera {self.id}: mission {state}: {self.frames} frames, "
+                 f"{self.rejections.total()} rejected inputs, {self.skipped} images skipped "
+                 f"for newer ones")
+        for line in self.rejections.lines():
+            opts.log(f"camera {self.id}: {line}")
+        return 0 if state == "done" else 1
+
+    def _detect_and_publish(self, image: CameraImageWire) -> None:
+        found = self.detector.detect_encoded(image.image) if image.image else None
+        if found is not None:
+            for reason, count in found.rejected.items():
+                if not self.rejections.snapshot().get("image", {}).get("rules", {}).get(reason):
+                    self.options.log(f"camera {self.id}: step {image.step}: {reason} "
+                                     f"(counted; further ones only in the summary)")
+                for _ in range(count):
+                    self.rejections.reject("image", f"step {image.step}: {reason}", reason)
+        frame = image.frame([] if found is None else found.detections)
+        put_stamped(self.session, self._pub_camera, self.codec.encode(frame))
+        self.frames += 1
+
+    def close(self) -> None:
+        self._waits.close()
+        self._images.undeclare()
+        self.session.close()
