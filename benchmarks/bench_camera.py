@@ -25,6 +25,7 @@ what frame rate six drones sustain on this machine.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import tempfile
 import time
 from pathlib import Path
@@ -108,7 +109,7 @@ def pipeline(camera: CameraParams, frames: int, seed: int = 45) -> dict[str, Any
 
     def rate(column: int, bins: tuple[float, ...]) -> list[dict[str, Any]]:
         out = []
-        for low, high in zip(bins[:-1], bins[1:], strict=True):
+        for low, high in itertools.pairwise(bins):
             chosen = in_view[(in_view[:, column] >= low) & (in_view[:, column] < high)]
             out.append({"from": low, "to": high, "n": int(chosen.shape[0]),
                         "detected": (float(chosen[:, 3].mean()) if chosen.shape[0] else None)})
