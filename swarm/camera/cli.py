@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import sys
 from collections.abc import Sequence
+from pathlib import Path
 
 from swarm.children import follow_parent
 from swarm.errors import run_main
@@ -36,8 +37,19 @@ def _main(argv: list[str]) -> int:
     parser.add_argument("--config", required=True, metavar="FILE", help="scenario file")
     parser.add_argument("--connect", action="append", default=None, metavar="ENDPOINT",
                         help="Zenoh endpoint of the world's router (default tcp/127.0.0.1:7447)")
+    parser.add_argument("--source", default=None, metavar="URL",
+                        help="take the pixels from this OpenCV VideoCapture source (a device "
+                             "number, a video file, an image pattern such as frame_%%05d.png, "
+                             "a GStreamer pipeline, an RTSP URL) instead of the world's images")
+    parser.add_argument("--calibration", type=Path, default=None, metavar="FILE",
+                        help="that camera's OpenCV calibration file (YAML or XML: "
+                             "image_width, image_height, camera_matrix, "
+                             "distortion_coefficients); needed with --source")
     add_run_arguments(parser, run_id_help="the world's --run-id (default: vigil)")
     args = parser.parse_args(argv)
+    if (args.source is None) != (args.calibration is None):
+        raise UsageError("--source and --calibration go together: a camera's frames need its "
+                         "calibration")
     config = load_scenario(args.config, args.duration)
     if not 0 <= args.id < config.swarm.n_drones:
         raise UsageError(f"--id {args.id} is out of range 0..{config.swarm.n_drones - 1} "
@@ -50,7 +62,8 @@ def _main(argv: list[str]) -> int:
     process = CameraProcess(CameraOptions(
         config=config, drone_id=args.id, run_id=args.run_id,
         connect=tuple(args.connect or [local_endpoint(7447, tls=config.security.enabled)]),
-        mode=args.mode, log=lambda line: print(line, flush=True)))
+        mode=args.mode, log=lambda line: print(line, flush=True), source=args.source,
+        calibration_file=args.calibration))
     try:
         return process.run()
     finally:

@@ -9,6 +9,12 @@ the drone's images on ``world/image/<i>`` (``CameraImageWire``), finds the marke
 agent does not know which camera it has. With ``[security]`` it speaks with the drone's own
 identity (``agent-<i>``), which may read that drone's images and write its frames.
 
+A real camera (``source``): the pixels come from OpenCV's ``VideoCapture`` (a device, a file,
+an image sequence, a GStreamer or RTSP URL) with its calibration from a file, in place of the
+images' own: each image message that carries a frame takes the source's next frame (its
+other fields, the step and the poses, still come from the message). When the source ends, the
+frames go out without detections, said once in the log.
+
 Lockstep: every image, in order (the agent waits for the frame of each step). Realtime: the
 newest image; any older one still waiting is dropped and counted (a frame late by a detection
 is worth less than the next one). What the detector cannot use is counted by reason
@@ -23,6 +29,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Literal
 
 from swarm.errors import VigilError
@@ -43,6 +50,8 @@ from swarm.net.subscriptions import (
     subscribe,
 )
 from swarm.scenario.config import ScenarioConfig
+from swarm.vision.calibration import read_calibration
+from swarm.vision.capture import CaptureSource
 from swarm.vision.detect import MarkerDetector
 from swarm.vision.geometry import calibration_for
 
@@ -62,6 +71,8 @@ class CameraOptions:
     connect: tuple[str, ...]
     mode: Literal["lockstep", "realtime"]
     log: Callable[[str], None]
+    source: str | None = None  # a VideoCapture source in place of the images' pixels
+    calibration_file: Path | None = None  # its calibration (needed with ``source``)
 
 
 class CameraProcess:
@@ -74,8 +85,11 @@ class CameraProcess:
         self.keys = Keys(options.run_id)
         self.codec = WireCodec(config.swarm.n_drones, len(config.targets),
                                config.state_dimension)
-        self.detector = MarkerDetector(config.camera, calibration_for(config.camera),
-                                       len(config.targets))
+        calibration = (calibration_for(config.camera) if options.calibration_file is None
+                       else read_calibration(options.calibration_file))
+        self.detector = MarkerDetector(config.camera, calibration, len(config.targets))
+        self.capture = None if options.source is None else CaptureSource(options.source)
+        self._source_ended = False
         self.rejections = RejectionCounter()
         self.frames = 0  # images turned into camera frames
         self.skipped = 0  # realtime: older images dropped for a newer one
@@ -128,9 +142,11 @@ class CameraProcess:
     def run(self) -> int:
         """Detect until the mission ends; 0 when it ended "done", 1 when "aborted"."""
         opts = self.options
+        source = ("the world's images" if self.capture is None
+                  else f"{self.capture.source!r} calibrated by {opts.calibration_file}")
         opts.log(f"camera {self.id}: detecting {opts.config.camera.marker_dictionary} "
                  f"markers of {opts.config.camera.marker_size_m:g} m in "
-                 f"{self.detector.calibration.width_px} px frames ({opts.mode})")
+                 f"{self.detector.calibration.width_px} px frames of {source} ({opts.mode})")
         while self._images.receive_one():
             if opts.mode == "realtime":
                 self._images.drain()  # anything newer that came meanwhile
@@ -152,7 +168,18 @@ class CameraProcess:
         return 0 if state == "done" else 1
 
     def _detect_and_publish(self, image: CameraImageWire) -> None:
-        found = self.detector.detect_encoded(image.image) if image.image else None
+        found = None
+        if image.image and self.capture is None:
+            found = self.detector.detect_encoded(image.image)
+        elif image.image and self.capture is not None and not self._source_ended:
+            pixels = self.capture.read()
+            if pixels is None:
+                self._source_ended = True
+                self.options.log(f"camera {self.id}: step {image.step}: the source "
+                                 f"{self.capture.source!r} ended after {self.capture.frames} "
+                                 f"frames; frames go out without detections")
+            else:
+                found = self.detector.detect(pixels)
         if found is not None:
             for reason, count in found.rejected.items():
                 if not self.rejections.snapshot().get("image", {}).get("rules", {}).get(reason):
@@ -165,6 +192,8 @@ class CameraProcess:
         self.frames += 1
 
     def close(self) -> None:
+        if self.capture is not None:
+            self.capture.close()
         self._waits.close()
         self._images.undeclare()
         self.session.close()

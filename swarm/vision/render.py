@@ -11,9 +11,9 @@ points projected by ``cv2.projectPoints``; the lens is then applied by ``cv2.rem
 the map of ``cv2.undistortPoints`` (each output pixel looks up its ideal position), on an
 ideal canvas wide enough for what the lens pulls in from beyond the edges. Everything is
 drawn at ``SUPERSAMPLING`` times the resolution and averaged down (``cv2.INTER_AREA``), as a
-sensor's pixel integrates its light: one interpolation alone blurs a marker of 15 pixels past
-reading, and the lens's second one more so (measured: with k1 = −0.15, 63 % of markers at
-3.5-4.5 m were read, against all of them without the lens).
+sensor's pixel integrates its light: drawn once at the sensor's resolution, the warp's and
+the lens's interpolations blur a marker of 15 pixels past reading (measured at 320 px with
+k1 = −0.15: 63 % of the markers at 3.5-4.5 m read drawn once, 83 % supersampled).
 """
 
 from __future__ import annotations
