@@ -7,8 +7,8 @@ test for the next, and at most one SITL instance may run), never two at once; th
 takes the CPU-bound tests (numerics, property tests, lockstep swarms) beside them. ``-n 0``
 runs everything in one process. A wallclock test also marked ``alone`` (three PX4 SITL
 instances) runs with the other worker idle: it waits for that worker's test in progress, and
-the next one waits for it (``tests.helpers.machine_share``); those tests run first, when the
-other worker's tests are short.
+the next one waits for it (``tests.helpers.machine_share``); those tests run last, when the
+other worker has mostly run out of tests.
 
 pytest-xdist marks a test's group by appending ``@group`` to its node id. pytest 9.2 keeps node
 ids elsewhere, and the grouping silently stops (pytest-xdist issue 1386): pyproject.toml pins
@@ -32,10 +32,12 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if item.get_closest_marker("wallclock") is not None:
             item.add_marker(pytest.mark.xdist_group(WALLCLOCK_GROUP))
-    # ``alone`` tests first (the rest keep their order): at the start the other worker runs
-    # short tests, so the wait for its test in progress is seconds, where in the middle of
-    # the suite it was a gate sweep's 85 s of an idle core (CI, 2 cores).
-    items.sort(key=lambda item: item.get_closest_marker("alone") is None)
+    # ``alone`` tests last (the rest keep their order): by then the other worker has mostly
+    # run out of tests, so its idle time costs little. In the middle of the suite the other
+    # worker idled for a gate sweep's 85 s plus the test's own 75 s (CI, 2 cores); first in
+    # the session, three PX4 SIH instances ran beside the other worker's test collection and
+    # one of them failed its climb.
+    items.sort(key=lambda item: item.get_closest_marker("alone") is not None)
 
 
 def pytest_runtest_setup(item: pytest.Item) -> None:
