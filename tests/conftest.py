@@ -7,8 +7,7 @@ test for the next, and at most one SITL instance may run), never two at once; th
 takes the CPU-bound tests (numerics, property tests, lockstep swarms) beside them. ``-n 0``
 runs everything in one process. A wallclock test also marked ``alone`` (three PX4 SITL
 instances) runs with the other worker idle: it waits for that worker's test in progress, and
-the next one waits for it (``tests.helpers.machine_share``); those tests run last, when the
-other worker has mostly run out of tests.
+the next one waits for it (``tests.helpers.machine_share``); those tests run first.
 
 pytest-xdist marks a test's group by appending ``@group`` to its node id. pytest 9.2 keeps node
 ids elsewhere, and the grouping silently stops (pytest-xdist issue 1386): pyproject.toml pins
@@ -32,12 +31,11 @@ def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     for item in items:
         if item.get_closest_marker("wallclock") is not None:
             item.add_marker(pytest.mark.xdist_group(WALLCLOCK_GROUP))
-    # ``alone`` tests last (the rest keep their order): by then the other worker has mostly
-    # run out of tests, so its idle time costs little. In the middle of the suite the other
-    # worker idled for a gate sweep's 85 s plus the test's own 75 s (CI, 2 cores); first in
-    # the session, three PX4 SIH instances ran beside the other worker's test collection and
-    # one of them failed its climb.
-    items.sort(key=lambda item: item.get_closest_marker("alone") is not None)
+    # ``alone`` tests first (the rest keep their order): the wallclock group, which sets the
+    # suite's length on 2 cores, then starts at once instead of waiting for the other
+    # worker's test in progress (CI: 85 s for a gate sweep in the middle of the suite, 28 s at
+    # its end; the other worker's idle time is the same anywhere).
+    items.sort(key=lambda item: item.get_closest_marker("alone") is None)
 
 
 def pytest_runtest_setup(item: pytest.Item) -> None:

@@ -21,9 +21,9 @@ ROOT = Path(__file__).resolve().parents[2]
 
 @pytest.mark.slow
 def test_lockstep_with_rendered_cameras_is_the_in_process_run(tmp_path: Path) -> None:
-    """Case 1, 4 s (200 steps, a frame each), seed 0."""
+    """Case 1, 3 s (150 steps, a frame each), seed 0."""
     config = load_config(ROOT / "configs" / "case1.toml", overrides=[
-        parse_assignment('camera.model="rendered"')]).with_duration(4.0)
+        parse_assignment('camera.model="rendered"')]).with_duration(3.0)
     path = str(write_resolved_config(config, tmp_path / "config.json"))
     logs = tmp_path / "logs"
     launcher = SwarmLauncher(LaunchOptions(config=config, config_path=path, seed=0,
