@@ -97,15 +97,10 @@ def project_to_pixels(points_w: Array, camera_position_w: Array,
 
 def image_points_from_pixels(pixels: Array, calibration: Calibration) -> Array:
     """The thesis' image-plane points [x̄, ȳ] (K, 2) of pixels (K, 2) seen through the lens:
-    undistorted to OpenCV's normalized coordinates (``cv2.undistortPoints``, iterated to
-    convergence), then [x_n, −y_n] (module docstring)."""
-    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
-    normalized = cv2.undistortPoints(np.asarray(pixels, dtype=np.float64).reshape(-1, 1, 2),
-                                     calibration.camera_matrix, calibration.distortion,
-                                     criteria=criteria)
-    points = np.asarray(normalized, dtype=np.float64).reshape(-1, 2).copy()
-    points[:, 1] = -points[:, 1]
-    return points
+    their ``undistorted_rays`` (OpenCV's normalized coordinates), then [x_n, −y_n] (module
+    docstring)."""
+    rays = undistorted_rays(pixels, calibration)
+    return np.column_stack([rays[:, 0], -rays[:, 1]])
 
 
 def pixel_grid(width_px: int, height_px: int, step_px: int = 1) -> Array:
