@@ -52,9 +52,8 @@ from swarm.net.security import agent_role
 from swarm.net.session import (
     TransportError,
     declare_publisher,
-    open_session,
+    join_router,
     put_stamped,
-    zenoh_config,
 )
 from swarm.net.stores import LatestValues
 from swarm.net.subscriptions import DrainedSubscriber, RejectionCounter, subscribe
@@ -215,25 +214,18 @@ class AgentProcess:
             # Links between peers would bypass the router's access control.
             raise LinkError(f"drone {self.id}: --listen (peer mode) is not available with "
                             "[security]: agents join the world's router as clients")
-        tls = security.identity(agent_role(self.id))
-        deadline = time.monotonic() + opts.config.runtime.start_timeout_s
-        announced = False
-        while True:
-            try:
-                return open_session(zenoh_config(mode=mode, listen=opts.listen,
-                                                 connect=opts.connect, tls=tls))
-            except TransportError as err:
-                if time.monotonic() > deadline:
-                    raise LinkError(
-                        f"drone {self.id}: cannot reach the world's Zenoh router at "
-                        f"{', '.join(opts.connect)} within "
-                        f"{opts.config.runtime.start_timeout_s} s: is sim-world running? "
-                        f"({err})") from None
-                if not announced:
-                    announced = True
-                    opts.log(f"drone {self.id}: waiting for the world's Zenoh router at "
-                             f"{', '.join(opts.connect)}")
-                time.sleep(ROUTER_RETRY_S)
+        try:
+            return join_router(
+                opts.connect, opts.config.runtime.start_timeout_s, mode=mode,
+                listen=opts.listen, tls=security.identity(agent_role(self.id)),
+                retry_s=ROUTER_RETRY_S,
+                on_wait=lambda: opts.log(f"drone {self.id}: waiting for the world's Zenoh "
+                                         f"router at {', '.join(opts.connect)}"))
+        except TransportError as err:
+            raise LinkError(
+                f"drone {self.id}: cannot reach the world's Zenoh router at "
+                f"{', '.join(opts.connect)} within {opts.config.runtime.start_timeout_s} s: "
+                f"is sim-world running? ({err})") from None
 
     # -- subscriptions (zenoh threads) ------------------------------------------------------
 

@@ -26,7 +26,6 @@ view. The process ends when the world's clock says "done" (exit 0) or "aborted" 
 from __future__ import annotations
 
 import threading
-import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -39,9 +38,8 @@ from swarm.net.security import agent_role
 from swarm.net.session import (
     TransportError,
     declare_publisher,
-    open_session,
+    join_router,
     put_stamped,
-    zenoh_config,
 )
 from swarm.net.subscriptions import (
     BlockingReceives,
@@ -110,18 +108,15 @@ class CameraProcess:
 
     def _open_session(self):
         opts = self.options
-        tls = opts.config.security.identity(agent_role(self.id))
-        deadline = time.monotonic() + opts.config.runtime.start_timeout_s
-        while True:
-            try:
-                return open_session(zenoh_config(mode="client", connect=opts.connect, tls=tls))
-            except TransportError as err:
-                if time.monotonic() > deadline:
-                    raise CameraProcessError(
-                        f"camera {self.id}: cannot reach the world's Zenoh router at "
-                        f"{', '.join(opts.connect)} within "
-                        f"{opts.config.runtime.start_timeout_s} s ({err})") from None
-                time.sleep(ROUTER_RETRY_S)
+        try:
+            return join_router(opts.connect, opts.config.runtime.start_timeout_s,
+                               tls=opts.config.security.identity(agent_role(self.id)),
+                               retry_s=ROUTER_RETRY_S)
+        except TransportError as err:
+            raise CameraProcessError(
+                f"camera {self.id}: cannot reach the world's Zenoh router at "
+                f"{', '.join(opts.connect)} within {opts.config.runtime.start_timeout_s} s "
+                f"({err})") from None
 
     # -- zenoh's side ---------------------------------------------------------------------
 

@@ -1,7 +1,8 @@
 """An observer's view of a run, in one place: a client session on the world's router and
 the subscriptions an observer holds (the launcher, the dashboard, a remote recorder).
 
-``join_router(endpoints, timeout_s, ...)`` retries while the world starts up;
+``join_router(endpoints, timeout_s, ...)`` (``swarm.net.session``) retries while the world
+starts up;
 ``subscribe_observer(session, keys, codec, rejections, ...)`` subscribes to telemetry and the
 clock, and to the truth, the beacons and the camera frames for whoever passes a callback;
 ``ObserverFeed`` takes the same subscriptions made as FIFOs inside zenoh and hands their
@@ -12,7 +13,6 @@ and a wake-up per message was most of what it cost).
 from __future__ import annotations
 
 import threading
-import time
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -27,30 +27,13 @@ from swarm.messages.wire import (
     WireCodec,
 )
 from swarm.net.keys import Keys
-from swarm.net.security import TlsIdentity
-from swarm.net.session import TransportError, open_session, zenoh_config
+from swarm.net.session import join_router
 from swarm.net.subscriptions import DrainedSubscriber, RejectionCounter, subscribe
 
+__all__ = ["FEED_BACKLOG", "ObserverFeed", "drain_in_turn", "join_router",
+           "subscribe_observer"]
+
 OnMessage = Callable[[str, Any], None]
-
-
-def join_router(endpoints: Sequence[str], timeout_s: float, *, tls: TlsIdentity | None = None,
-                connect_timeout_s: float | None = None,
-                before_each_try: Callable[[], None] = lambda: None,
-                pause: Callable[[float], Any] = time.sleep) -> zenoh.Session:
-    """A client session on the router at ``endpoints``, tried every 0.1 s (``pause``) until
-    ``timeout_s`` has passed; then the last ``TransportError``. ``before_each_try`` may raise
-    to give up sooner (the launcher: a child died)."""
-    deadline = time.monotonic() + timeout_s
-    while True:
-        before_each_try()
-        try:
-            return open_session(zenoh_config(mode="client", connect=list(endpoints),
-                                             connect_timeout_s=connect_timeout_s, tls=tls))
-        except TransportError:
-            if time.monotonic() > deadline:
-                raise
-        pause(0.1)
 
 
 def subscribe_observer(session: zenoh.Session, keys: Keys, codec: WireCodec,

@@ -19,7 +19,8 @@ import ipaddress
 import json
 import os
 import re
-from collections.abc import Iterable, Sequence
+import time
+from collections.abc import Callable, Iterable, Sequence
 from typing import Any, Final, Literal
 
 import zenoh
@@ -223,6 +224,33 @@ def open_session(config: zenoh.Config) -> zenoh.Session:
         message = re.sub(r" at /\S+\.rs:\d+\.?", "", message)
         raise TransportError(f"cannot open zenoh session: {message[:MAX_REASON_CHARS]}"
                              ) from None
+
+
+def join_router(endpoints: Sequence[str], timeout_s: float, *, mode: Mode = "client",
+                listen: Sequence[str] = (), tls: TlsIdentity | None = None,
+                connect_timeout_s: float | None = None, retry_s: float = 0.1,
+                before_each_try: Callable[[], None] = lambda: None,
+                on_wait: Callable[[], None] = lambda: None,
+                pause: Callable[[float], Any] = time.sleep) -> zenoh.Session:
+    """A session (a client by default) on the router at ``endpoints``, tried every ``retry_s``
+    (``pause``) until ``timeout_s`` has passed; then the last ``TransportError``. Every
+    process of the swarm joins the world's router this way, since the world may still be
+    starting. ``before_each_try`` may raise to give up sooner (the launcher: a child died);
+    ``on_wait`` is called once, after the first try that failed (a process says it waits)."""
+    deadline = time.monotonic() + timeout_s
+    waited = False
+    while True:
+        before_each_try()
+        try:
+            return open_session(zenoh_config(mode=mode, listen=listen, connect=list(endpoints),
+                                             connect_timeout_s=connect_timeout_s, tls=tls))
+        except TransportError:
+            if time.monotonic() > deadline:
+                raise
+        if not waited:
+            waited = True
+            on_wait()
+        pause(retry_s)
 
 
 def put_stamped(session: zenoh.Session, publisher: zenoh.Publisher, payload: bytes) -> None:
