@@ -4,7 +4,8 @@ the subscriptions an observer holds (the launcher, the dashboard, a remote recor
 ``join_router(endpoints, timeout_s, ...)`` (``swarm.net.session``) retries while the world
 starts up;
 ``subscribe_observer(session, keys, codec, rejections, ...)`` subscribes to telemetry and the
-clock, and to the truth, the beacons and the camera frames for whoever passes a callback;
+clock, and to the truth, the beacons, the camera frames and images for whoever passes a
+callback;
 ``ObserverFeed`` takes the same subscriptions made as FIFOs inside zenoh and hands their
 samples to the callbacks in batches, on one thread of its own (the launcher: nothing may be lost,
 and a wake-up per message was most of what it cost).
@@ -21,6 +22,7 @@ import zenoh
 from swarm.messages.wire import (
     BeaconWire,
     CameraFrameWire,
+    CameraImageWire,
     ClockWire,
     TelemetryWire,
     TruthWire,
@@ -43,14 +45,16 @@ def subscribe_observer(session: zenoh.Session, keys: Keys, codec: WireCodec,
                        on_truth: Callable[[str, TruthWire], None] | None = None,
                        on_beacon: Callable[[str, BeaconWire], None] | None = None,
                        on_camera: Callable[[str, CameraFrameWire], None] | None = None,
+                       on_image: Callable[[str, CameraImageWire], None] | None = None,
                        backlog: int | None = None) -> list[Any]:
     """Subscribe to every drone's telemetry and the world's clock, and to the truth, the
-    beacons and the camera frames where a callback is given; each payload decoded by
-    ``codec``, each rejection counted in ``rejections`` under its kind. Keep the returned
-    subscribers: a subscription lives as long as its handle. ``backlog``: FIFOs of that many
-    samples, handed to the callbacks by ``drain()`` (``subscribe``), instead of a Python
-    thread of zenoh's per subscription. A telemetry sample may carry several steps
-    (``TelemetryBatchWire``): ``on_telemetry`` gets each step's message, in order."""
+    beacons, the camera frames and the rendered cameras' images where a callback is given;
+    each payload decoded by ``codec``, each rejection counted in ``rejections`` under its
+    kind. Keep the returned subscribers: a subscription lives as long as its handle.
+    ``backlog``: FIFOs of that many samples, handed to the callbacks by ``drain()``
+    (``subscribe``), instead of a Python thread of zenoh's per subscription. A telemetry
+    sample may carry several steps (``TelemetryBatchWire``): ``on_telemetry`` gets each
+    step's message, in order."""
 
     def on_telemetry_items(key: str, items: tuple[TelemetryWire, ...]) -> None:
         for tel in items:
@@ -62,6 +66,7 @@ def subscribe_observer(session: zenoh.Session, keys: Keys, codec: WireCodec,
         (keys.clock, codec.decode_clock, on_clock, "clock"),
         (keys.all_beacons, codec.decode_beacon, on_beacon, "beacon"),
         (keys.all_cameras, codec.decode_camera, on_camera, "camera"),
+        (keys.all_images, codec.decode_image, on_image, "image"),
     ]
     return [subscribe(session, key, decode, callback, rejections, kind, backlog=backlog)
             for key, decode, callback, kind in wanted if callback is not None]

@@ -231,7 +231,7 @@ def _graph_lines(config: ScenarioConfig, state: SceneState,
 
 def scene_update(config: ScenarioConfig, state: SceneState) -> SceneUpdate:
     """The scene of ``state`` (entities ``ENTITIES``, each replacing its previous self)."""
-    stamp = _stamp(state.time_s)
+    stamp = sim_stamp(state.time_s)
     present = np.all(np.isfinite(state.drones_m), axis=1)
     drones = [i for i in range(state.drones_m.shape[0]) if present[i]]
     sensing = state.sensing
@@ -304,7 +304,8 @@ def plot_values(state: SceneState, drone: int) -> dict[str, Any]:
             "speed_m_s": speed}
 
 
-def _stamp(time_s: float) -> Timestamp:
+def sim_stamp(time_s: float) -> Timestamp:
+    """Foxglove's timestamp of a simulated time (the clock every topic is stamped in)."""
     seconds, nanoseconds = divmod(round(time_s * 1e9), 1_000_000_000)
     return Timestamp(sec=seconds, nsec=nanoseconds)
 
@@ -329,7 +330,7 @@ class LogBook:
             what = ", ".join(f"+{inc} {label} ({total} total)"
                              for label, inc, total in increases)
             status = counters.vehicle_status or counters.localization_status
-            out.append(Log(timestamp=_stamp(state.time_s),
+            out.append(Log(timestamp=sim_stamp(state.time_s),
                            level=LogLevel.Error if urgent else LogLevel.Warning,
                            message=what + (f"; now: {status}" if status else ""),
                            name=f"drone {drone}"))

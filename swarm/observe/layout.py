@@ -3,9 +3,11 @@
 ``foxglove_layout(config)`` builds it with Foxglove's own SDK (``foxglove.layouts``): the 3D
 panel on the ``scene`` topic, following the ``world`` frame, and three Plot panels over every
 drone's ``drone/<i>/plot`` channel — λ̄ − ε per target (the localization margin: the barrier
-keeps it at or above 0), the sensing weights and ‖u‖ — above the Log panel of ``log``. The
-same topics are served live (``--foxglove``) and written in every recording, so one layout
-fits both.
+keeps it at or above 0), the sensing weights and ‖u‖ — above the Log panel of ``log``, and an
+Image panel of drone 0's rendered camera (its image, calibration and detections,
+``swarm.observe.camera_view``; empty with the bearing camera, which has no pixels). The same
+topics are served live (``--foxglove``) and written in every recording, so one layout fits
+both.
 
     python -m swarm.observe.layout configs/case2.toml docs/foxglove_layout.json
 
@@ -26,6 +28,10 @@ from typing import Any, Final
 
 from foxglove.layouts import (
     BaseRendererSceneUpdateTopicSettings,
+    ImageAnnotationSettings,
+    ImageConfig,
+    ImageModeConfig,
+    ImagePanel,
     Layout,
     LogConfig,
     LogPanel,
@@ -39,6 +45,7 @@ from foxglove.layouts import (
 )
 
 from swarm.errors import EXIT_OK, run_main
+from swarm.observe.camera_view import annotations_topic, calibration_topic, image_topic
 from swarm.observe.foxglove_scene import FRAME, LOG_TOPIC, SCENE_TOPIC, plot_topic
 from swarm.scenario.cli_common import OneLineParser
 from swarm.scenario.config import ScenarioConfig, load_config
@@ -70,13 +77,21 @@ def foxglove_layout(config: ScenarioConfig) -> Layout:
     plots = SplitContainer(direction="column", items=[
         SplitItem(content=margins), SplitItem(content=weights), SplitItem(content=speeds),
         SplitItem(content=log)])
+    camera = ImagePanel(title='drone 0\'s camera (camera.model = "rendered")',
+                        config=ImageConfig(image_mode=ImageModeConfig(
+                            image_topic=image_topic(0), calibration_topic=calibration_topic(0),
+                            annotations={annotations_topic(0):
+                                         ImageAnnotationSettings(visible=True)})))
+    left = SplitContainer(direction="column", items=[
+        SplitItem(proportion=2, content=scene), SplitItem(proportion=1, content=camera)])
     return Layout(content=SplitContainer(direction="row", items=[
-        SplitItem(proportion=3, content=scene), SplitItem(proportion=2, content=plots)]))
+        SplitItem(proportion=3, content=left), SplitItem(proportion=2, content=plots)]))
 
 
 # Lichtblick's name of each panel type of the SDK (its panel registry), and what its panels
 # expect in their config beside the SDK's fields.
-LICHTBLICK_PANEL_TYPES: Final = {"ThreeDee": "3D", "Plot": "Plot", "Log": "RosOut"}
+LICHTBLICK_PANEL_TYPES: Final = {"ThreeDee": "3D", "Plot": "Plot", "Log": "RosOut",
+                                  "Image": "Image"}
 LICHTBLICK_TITLE_KEY: Final = "lichtblickPanelTitle"
 _LICHTBLICK_DEFAULTS: Final[dict[str, dict[str, Any]]] = {
     "RosOut": {"searchTerms": [], "minLogLevel": 1}}

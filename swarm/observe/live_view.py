@@ -8,6 +8,8 @@
 * ``log``: ``foxglove.Log`` lines when a drone's warned counters rise (``LogBook``);
 * ``drone/<i>/plot`` (JSON): per drone, at the scene's rate, what a Plot panel shows —
   ``lambda_margin`` (λ̄ − ε per target), ``weights``, ``slacks`` and ``speed_m_s`` (‖u‖);
+* with rendered cameras, each drone's images, calibration and detections every
+  ``LIVE_IMAGE_PERIOD_S`` and the cameras' frames (``swarm.observe.camera_view``);
 
 stamped in sim time (ns since the mission started), which the server also broadcasts as its
 clock. It is fed like any observer, by ``put`` with the telemetry and truth messages the
@@ -41,10 +43,19 @@ from typing import Any, Final
 
 import foxglove
 from foxglove import Capability
-from foxglove.channels import LogChannel, SceneUpdateChannel
+from foxglove.channels import (
+    CameraCalibrationChannel,
+    CompressedImageChannel,
+    FrameTransformsChannel,
+    ImageAnnotationsChannel,
+    LogChannel,
+    SceneUpdateChannel,
+)
+from foxglove.messages import CameraCalibration, CompressedImage, FrameTransforms, ImageAnnotations
 
 from swarm.errors import UsageError, VigilError
-from swarm.messages.wire import TelemetryWire, TruthWire
+from swarm.messages.wire import CameraFrameWire, CameraImageWire, TelemetryWire, TruthWire
+from swarm.observe.camera_view import LIVE_IMAGE_PERIOD_S, CameraMessage, CameraView
 from swarm.observe.foxglove_scene import (
     LOG_TOPIC,
     SCENE_TOPIC,
@@ -67,6 +78,10 @@ VIEWERS: Final = "Lichtblick 1.22.0 or later, or a current Foxglove app"
 OLD_VIEWERS: Final = ("older Lichtblick and tools on @foxglove/ws-protocol offer only "
                       "foxglove.websocket.v1")
 _STOP: Final = object()
+# The SDK's typed channel of each camera message (swarm.observe.camera_view).
+_CAMERA_CHANNELS: Final[dict[type, Any]] = {
+    CompressedImage: CompressedImageChannel, CameraCalibration: CameraCalibrationChannel,
+    ImageAnnotations: ImageAnnotationsChannel, FrameTransforms: FrameTransformsChannel}
 # Where and how foxglove-sdk 0.30 logs a connection whose WebSocket handshake it refused.
 _SDK_SERVER_LOGGER: Final = "foxglove.websocket.server"
 _HANDSHAKE_FAILED: Final = re.compile(r"Dropping client (?P<host>.+):\d+: handshake failed$")
@@ -160,6 +175,11 @@ class LiveView:
         self._plots = [foxglove.Channel(plot_topic(i), schema=schema, context=self._context)
                        for i in range(config.swarm.n_drones)]
         self._assembler = SceneAssembler(config, self._send)
+        self._camera = (CameraView(config, LIVE_IMAGE_PERIOD_S) if config.camera.rendered
+                        else None)
+        self._camera_channels: dict[str, Any] = {
+            name: _CAMERA_CHANNELS[kind](name, context=self._context)
+            for name, kind in (self._camera.topics() if self._camera is not None else [])}
         self._queue: queue.SimpleQueue[Any] = queue.SimpleQueue()
         self._thread = threading.Thread(target=self._run, name="vigil-live-view", daemon=True)
         self._closed = False
@@ -201,12 +221,28 @@ class LiveView:
         if not self._closed and self._assembler.wants(message.step):
             self._queue.put(message)
 
+    def put_camera(self, message: CameraImageWire | CameraFrameWire) -> None:
+        """Hand over a rendered camera's image or its detector's frame (any thread; returns at
+        once); only the frames the view shows are queued."""
+        if not self._closed and self._camera is not None and self._camera.wants(message.step):
+            self._queue.put(message)
+
     def _run(self) -> None:
         while (message := self._queue.get()) is not _STOP:
             if isinstance(message, TelemetryWire):
                 self._assembler.on_telemetry(message)
             elif isinstance(message, TruthWire):
                 self._assembler.on_truth(message)
+            elif self._camera is not None:
+                self._log_camera(message.step, self._camera.of_image(message)
+                                 if isinstance(message, CameraImageWire)
+                                 else self._camera.of_frame(message))
+
+    def _log_camera(self, step: int, items: list[tuple[str, CameraMessage]]) -> None:
+        for name, item in items:
+            channel = self._camera_channels.get(name)
+            if channel is not None:  # a drone outside the config: the codec refuses it
+                channel.log(item, log_time=step * self._dt_ns)
 
     def _send(self, state: SceneState) -> None:
         stamp = state.step * self._dt_ns
@@ -216,6 +252,8 @@ class LiveView:
             channel.log(plot_values(state, i), log_time=stamp)
         for line in self._log_book.lines(state):
             self._log.log(line, log_time=stamp)
+        if self._camera is not None:
+            self._log_camera(state.step, self._camera.of_scene(state.drones_m, state.time_s))
         self.sent += 1
 
     def close(self) -> None:

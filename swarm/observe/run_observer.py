@@ -23,6 +23,7 @@ from rich.console import Console
 from swarm.messages.wire import (
     BeaconWire,
     CameraFrameWire,
+    CameraImageWire,
     ClockWire,
     TelemetryCounters,
     TelemetryWire,
@@ -100,15 +101,18 @@ class RunObserver:
                                    before_each_try=before_each_try, pause=pause)
 
     def subscribe(self) -> None:
-        """Telemetry, truth and clock (and, when recording, beacons and camera frames), taken
+        """Telemetry, truth and clock (and, when recording, beacons and camera frames; with
+        rendered cameras and a recording or a live view, the images and camera frames), taken
         in batches by one thread (``ObserverFeed``): nothing received is dropped."""
         assert self.session is not None, "connect first"
         recording = self.recorder is not None
+        cameras = self.config.camera.rendered and (recording or self.live_view is not None)
         self._feed = ObserverFeed(subscribe_observer(
             self.session, self.keys, self.codec, self.rejections,
             on_telemetry=self._on_telemetry, on_truth=self._on_truth, on_clock=self._on_clock,
             on_beacon=self._record if recording else None,
-            on_camera=self._record if recording else None, backlog=FEED_BACKLOG))
+            on_camera=self._on_camera if recording or cameras else None,
+            on_image=self._on_camera if cameras else None, backlog=FEED_BACKLOG))
 
     def _on_clock(self, _key: str, clock: ClockWire) -> None:
         latest = self.clock.get(0)
@@ -131,8 +135,13 @@ class RunObserver:
         if self.live_view is not None:
             self.live_view.put(truth)
 
-    def _record(self, _key: str,
-                message: TelemetryWire | TruthWire | BeaconWire | CameraFrameWire) -> None:
+    def _on_camera(self, key: str, message: CameraFrameWire | CameraImageWire) -> None:
+        self._record(key, message)
+        if self.live_view is not None:
+            self.live_view.put_camera(message)
+
+    def _record(self, _key: str, message: TelemetryWire | TruthWire | BeaconWire
+                | CameraFrameWire | CameraImageWire) -> None:
         """Hand a message to the recorder's queue (its own thread writes it)."""
         if self.recorder is not None:
             self.recorder.put(message)

@@ -23,6 +23,7 @@ from swarm.core.drone_step import Detection, DroneAgent, StepDiagnostics
 from swarm.messages.wire import (
     BeaconWire,
     CameraFrameWire,
+    CameraImageWire,
     TelemetryCounters,
     TelemetryWire,
     TruthWire,
@@ -45,7 +46,8 @@ class MessageSink(Protocol):
     """Where a run's messages go as the process swarm's recorder would hear them (a
     ``swarm.observe.recording.writer.Recorder``)."""
 
-    def put(self, message: BeaconWire | CameraFrameWire | TelemetryWire | TruthWire) -> None:
+    def put(self, message: BeaconWire | CameraFrameWire | CameraImageWire | TelemetryWire
+            | TruthWire) -> None:
         ...
 
 
@@ -55,7 +57,8 @@ def run_reference(config: ScenarioConfig, seed: int | None = None,
     """Run the scenario in one process and return every time series.
 
     ``sink``: also hand it, every step, the messages a process swarm's recording holds
-    (telemetry, beacons, camera frames, truth; ``swarm.observe.recording.writer.record_reference``).
+    (telemetry, beacons, camera frames, truth, and rendered cameras' images;
+    ``swarm.observe.recording.writer.record_reference``).
     """
     seed = config.scenario.seed if seed is None else seed
     return _run(config, seed, on_step, sink)
@@ -65,16 +68,19 @@ def _record_step(recorder: MessageSink, agents: list[DroneAgent], step: int, tim
                  positions: Array, seen: list[Array], flying: Array,
                  detections: list[list[Detection]], targets: Array, target_vel: Array,
                  communicated: Array | None, diags: list[StepDiagnostics],
-                 links: NDArray[np.bool_] | None) -> None:
+                 links: NDArray[np.bool_] | None, images: list[bytes] | None) -> None:
     """One step as the process swarm's recorder would hear it: each agent's beacon (what it
-    read from its autopilot and the velocity it flies) and telemetry, each camera frame, and
-    the ground truth."""
+    read from its autopilot and the velocity it flies) and telemetry, each camera frame (and
+    rendered image), and the ground truth."""
     stamp_ms = round(time_s * 1000)
     for i, agent in enumerate(agents):
-        recorder.put(CameraFrameWire.build(drone=i, step=step, time_s=time_s,
-                                           vehicle_time_ms=stamp_ms, detections=detections[i],
-                                           target_velocities=communicated,
-                                           radio_links=None if links is None else links[i]))
+        frame = CameraFrameWire.build(drone=i, step=step, time_s=time_s,
+                                      vehicle_time_ms=stamp_ms, detections=detections[i],
+                                      target_velocities=communicated,
+                                      radio_links=None if links is None else links[i])
+        if images is not None:
+            recorder.put(CameraImageWire.of_frame(frame, images[i]))
+        recorder.put(frame)
         recorder.put(BeaconWire.build(sender=i, step=step, time_s=time_s, position_m=seen[i],
                                       velocity_m_s=flying[i]))
         counters = TelemetryCounters(
@@ -146,7 +152,7 @@ def _run(config: ScenarioConfig, seed: int, on_step: StepCallback | None,
         diags = [r.diagnostics for r in results]
         if recorder is not None:
             _record_step(recorder, agents, k, t, positions, seen, flying, detections, targets,
-                         target_vel, communicated, diags, view.links)
+                         target_vel, communicated, diags, view.links, view.images)
             flying = np.array([r.velocity for r in results])
 
         rec["pos"][k], rec["tpos"][k], rec["tvel"][k] = positions, targets, target_vel

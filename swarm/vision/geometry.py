@@ -103,6 +103,17 @@ def image_points_from_pixels(pixels: Array, calibration: Calibration) -> Array:
     return np.column_stack([rays[:, 0], -rays[:, 1]])
 
 
+def pixels_from_image_points(image_points: Array, calibration: Calibration) -> Array:
+    """Pixels (K, 2) of the thesis' image-plane points [x̄, ȳ] (K, 2), through the lens: the
+    inverse of ``image_points_from_pixels`` (the rays (x̄, −ȳ, 1) in the camera frame,
+    ``cv2.projectPoints``)."""
+    points = np.asarray(image_points, dtype=np.float64).reshape(-1, 2)
+    rays = np.column_stack([points[:, 0], -points[:, 1], np.ones(points.shape[0])])
+    pixels, _ = cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
+                                  calibration.camera_matrix, calibration.distortion)
+    return np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+
+
 def pixel_grid(width_px: int, height_px: int, step_px: int = 1) -> Array:
     """Pixel centres (K, 2) every ``step_px`` across the image, its last row and column
     always included."""

@@ -2,15 +2,25 @@
 drone's images, each drone's own ``swarm-camera`` process detects the markers, and the
 agents read its frames as they read the bearing camera's. In lockstep the record equals the
 in-process run bit for bit (the in-process scene runs the same renderer and detector on the
-same encoded frames); every detector saw every step and rejected nothing."""
+same encoded frames); every detector saw every step and rejected nothing. The launcher's
+recording holds each drone's kept images and the detections its detector sent for them
+(point 4; what they show: tests/observe/test_camera_view.py)."""
 
 from __future__ import annotations
 
+from collections import defaultdict
 from pathlib import Path
 
 import pytest
+from mcap.reader import make_reader
 
 from swarm.launch.launcher import LaunchOptions, SwarmLauncher
+from swarm.observe.camera_view import (
+    RECORDED_IMAGE_PERIOD_S,
+    ImageSchedule,
+    annotations_topic,
+    image_topic,
+)
 from swarm.runs.checks import check_invariants
 from swarm.scenario.config import load_config, write_resolved_config
 from swarm.scenario.overrides import parse_assignment
@@ -27,7 +37,8 @@ def test_lockstep_with_rendered_cameras_is_the_in_process_run(tmp_path: Path) ->
     path = str(write_resolved_config(config, tmp_path / "config.json"))
     logs = tmp_path / "logs"
     launcher = SwarmLauncher(LaunchOptions(config=config, config_path=path, seed=0,
-                                           log_dir=logs), log=lambda _line: None)
+                                           log_dir=logs, record_dir=tmp_path / "rec"),
+                             log=lambda _line: None)
     record = launcher.run()
     assert record.n_steps == config.n_steps
     reference = assert_matches_reference(config, record, seed=0)
@@ -37,3 +48,15 @@ def test_lockstep_with_rendered_cameras_is_the_in_process_run(tmp_path: Path) ->
         text = (logs / f"camera{i}.log").read_text()
         assert f"mission done: {config.n_steps} frames, 0 rejected inputs" in text, text
     assert check_invariants(record) == []
+
+    kept = [k for k in range(config.n_steps)
+            if ImageSchedule(config, RECORDED_IMAGE_PERIOD_S).wants(k)]
+    dt_ns = round(config.scenario.dt_s * 1e9)
+    steps: dict[str, list[int]] = defaultdict(list)
+    with (tmp_path / "rec" / "run.mcap").open("rb") as handle:
+        for _schema, channel, message in make_reader(handle).iter_messages():
+            if channel.topic.startswith("camera/"):
+                steps[channel.topic].append(message.log_time // dt_ns)
+    for i in range(config.swarm.n_drones):
+        for name in (image_topic(i), annotations_topic(i)):
+            assert steps[name] == kept, name

@@ -9,6 +9,7 @@ from pathlib import Path
 
 from mcap.reader import make_reader
 
+from swarm.observe.camera_view import annotations_topic, calibration_topic, image_topic
 from swarm.observe.foxglove_scene import LOG_TOPIC, SCENE_TOPIC
 from swarm.observe.layout import layout_json, lichtblick_layout, main
 from swarm.observe.recording.writer import record_reference
@@ -97,8 +98,9 @@ def test_the_lichtblick_layout_passes_lichtblicks_import_rules_and_holds_the_sam
     assert all(leaf.split("!")[0] in LICHTBLICK_TYPES for leaf in leaves)
 
     sdk = _panels(json.loads(layout_json(config))["content"])
-    assert [leaf.split("!")[0] for leaf in leaves] == ["3D", "Plot", "Plot", "Plot", "RosOut"]
-    assert [p["panelType"] for p in sdk] == ["ThreeDee", "Plot", "Plot", "Plot", "Log"]
+    assert [leaf.split("!")[0] for leaf in leaves] == [
+        "3D", "Image", "Plot", "Plot", "Plot", "RosOut"]
+    assert [p["panelType"] for p in sdk] == ["ThreeDee", "Image", "Plot", "Plot", "Plot", "Log"]
     for leaf, panel in zip(leaves, sdk, strict=True):
         converted = data["configById"][leaf]
         assert converted["lichtblickPanelTitle"] == panel["title"]
@@ -111,9 +113,14 @@ def test_the_lichtblick_layout_passes_lichtblicks_import_rules_and_holds_the_sam
             assert {path["timestampMethod"] for path in converted["paths"]} == {"receiveTime"}
     assert data["configById"][leaves[-1]]["topicToRender"] == LOG_TOPIC
     assert data["configById"][leaves[0]]["topics"] == {SCENE_TOPIC: {"visible": True}}
-    # 3 : 2 between the 3D panel and the column of four equal panels
+    assert data["configById"][leaves[1]]["imageMode"] == {
+        "imageTopic": image_topic(0), "calibrationTopic": calibration_topic(0),
+        "annotations": {annotations_topic(0): {"visible": True}}}
+    # 3 : 2 between the column of the 3D and Image panels (2 : 1) and that of four equal panels
     layout = data["layout"]
     assert (layout["direction"], layout["splitPercentage"]) == ("row", 60.0)
+    assert (layout["first"]["direction"], layout["first"]["splitPercentage"]) == (
+        "column", 66.667)
     column = layout["second"]
     assert [column["splitPercentage"], column["second"]["splitPercentage"],
             column["second"]["second"]["splitPercentage"]] == [25.0, 33.333, 50.0]

@@ -3,7 +3,8 @@ of the thesis' image-plane points, and back (issue 45, point 6).
 
 On random poses and lenses: a world point projected by ``cv2.projectPoints`` through the
 calibration and undistorted back (``image_points_from_pixels``) is the bearing model's ideal
-image point (``swarm.models.camera.ideal_image_point``, SPEC §2 1.8) to 1e-9; the pinhole's
+image point (``swarm.models.camera.ideal_image_point``, SPEC §2 1.8) to 1e-9, and that point
+goes back to its pixel (``pixels_from_image_points``) to 1e-6 px; the pinhole's
 pixels are K times those points, written out; the field of view's edge is the image's edge.
 """
 
@@ -27,6 +28,7 @@ from swarm.vision.geometry import (
     image_points_from_pixels,
     invertible_lens_rays,
     pixel_grid,
+    pixels_from_image_points,
     project_to_pixels,
     undistorted_rays,
 )
@@ -64,6 +66,9 @@ def test_projection_and_undistortion_round_trip_to_the_thesis_image_point(
     pixels = project_to_pixels(target[None, :], drone, calibration)
     back = image_points_from_pixels(pixels, calibration)
     assert np.allclose(back[0], expected, atol=1e-9, rtol=0.0)
+    # and the image point back to its pixel (how a recording draws a detection)
+    assert np.allclose(pixels_from_image_points(back, calibration), pixels, atol=1e-6,
+                       rtol=0.0)
     if not calibration.distorted:  # the pinhole: u = f x̄ + c, v = −f ȳ + c
         f, c = calibration.camera_matrix[0, 0], calibration.camera_matrix[0, 2]
         assert np.allclose(pixels[0], [f * expected[0] + c, -f * expected[1] + c],

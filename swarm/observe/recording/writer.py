@@ -7,7 +7,9 @@ progress and flushes the file at least every ``FLUSH_PERIOD_S`` (also when nothi
 so a launcher killed with ``kill -9`` leaves a file that holds everything up to about that
 long before the kill. ``Recorder.close`` writes the summary and footer. Besides the messages,
 the recorder writes the 3D scene, the log lines and each drone's plot values
-(``swarm.observe.foxglove_scene``) of every ``SCENE_PERIOD_S`` of sim time.
+(``swarm.observe.foxglove_scene``) of every ``SCENE_PERIOD_S`` of sim time, and with rendered
+cameras each drone's images, calibration and detections every ``RECORDED_IMAGE_PERIOD_S``
+and the cameras' frames (``swarm.observe.camera_view``).
 """
 
 from __future__ import annotations
@@ -27,7 +29,8 @@ import msgspec
 from foxglove.messages import Log, SceneUpdate
 from mcap.writer import CompressionType, Writer
 
-from swarm.messages.wire import TelemetryWire, TruthWire
+from swarm.messages.wire import CameraFrameWire, CameraImageWire, TelemetryWire, TruthWire
+from swarm.observe.camera_view import RECORDED_IMAGE_PERIOD_S, CameraMessage, CameraView
 from swarm.observe.foxglove_scene import (
     LOG_TOPIC,
     SCENE_TOPIC,
@@ -85,12 +88,18 @@ _STOP: Final = object()
 # What a recording takes on disk per drone and simulated second, with room to spare: Case 2
 # (6 drones, 2 targets) writes ~160 kB per simulated second, i.e. ~27 kB per drone.
 RECORDING_BYTES_PER_DRONE_SECOND: Final = 40_000
+# A recorded camera image, generously: a 480 px JPEG at quality 90 is ~27 KiB; the bytes grow
+# with the pixels and the quality (8 bits a pixel is an uncompressed grey image).
+IMAGE_BYTES_PER_PIXEL: Final = 0.25
 
 
 def estimated_recording_bytes(cfg: ScenarioConfig) -> int:
     """Disk space a recording of ``cfg`` needs, generously (checked before a run starts)."""
     n_targets = len(cfg.targets)
     per_drone_s = RECORDING_BYTES_PER_DRONE_SECOND * max(1.0, n_targets / 2)
+    if cfg.camera.rendered:
+        images_per_s = CameraView(cfg, RECORDED_IMAGE_PERIOD_S).schedule.rate_hz
+        per_drone_s += images_per_s * IMAGE_BYTES_PER_PIXEL * cfg.camera.resolution_px ** 2
     return int(per_drone_s * cfg.swarm.n_drones * cfg.scenario.duration_s) + 1_000_000
 
 
@@ -127,6 +136,8 @@ class Recorder:
                                  ) from None
         self._dt_ns = round(cfg.scenario.dt_s * 1e9)
         self._scene = SceneAssembler(cfg, self._write_scene)
+        self._camera = (CameraView(cfg, RECORDED_IMAGE_PERIOD_S) if cfg.camera.rendered
+                        else None)
         self._log_book = LogBook()
         self._channels: dict[str, int] = {}
         self._sequence: dict[int, int] = {}
@@ -184,9 +195,23 @@ class Recorder:
         for i in range(cfg.swarm.n_drones):
             self._channels[plot_topic(i)] = self._writer.register_channel(
                 topic=plot_topic(i), message_encoding="json", schema_id=plot_id)
+        if self._camera is not None:
+            schema_ids: dict[str, int] = {}
+            for name, message_type in self._camera.topics():
+                schema = message_type.get_schema()
+                if schema.name not in schema_ids:
+                    schema_ids[schema.name] = self._writer.register_schema(
+                        name=schema.name, encoding="protobuf", data=schema.data)
+                self._channels[name] = self._writer.register_channel(
+                    topic=name, message_encoding=schema.encoding,
+                    schema_id=schema_ids[schema.name])
 
-    def put(self, message: Recordable, received_ns: int | None = None) -> None:
-        """Queue a message for writing; ``received_ns``: wall time of receipt (default now)."""
+    def put(self, message: Recordable | CameraImageWire, received_ns: int | None = None) -> None:
+        """Queue a message for writing; ``received_ns``: wall time of receipt (default now).
+        A camera image is kept only on the steps the recording's ``ImageSchedule`` keeps."""
+        if isinstance(message, CameraImageWire) and not (
+                self._camera is not None and self._camera.wants(message.step)):
+            return
         stamp = time.time_ns() if received_ns is None else received_ns
         with self._lock:
             if self._closed:
@@ -194,25 +219,42 @@ class Recorder:
                 return
             self._queue.put((message, stamp))
 
-    def _write(self, message: Recordable, received_ns: int) -> None:
-        kind = KIND_OF_TYPE[type(message)]
-        channel = self._channels.get(topic(kind.name, kind.source(message)))
-        if channel is None:  # a drone id outside the config: the codec would have refused it
-            self._count_dropped()
-            return
-        data = _JSON_ENCODER.encode(kind.to_json(message))
+    def _add(self, name: str, data: bytes, log_time: int, publish_time: int) -> None:
+        channel = self._channels[name]
         sequence = self._sequence.get(channel, 0)
         self._sequence[channel] = sequence + 1
+        self._writer.add_message(channel_id=channel, log_time=log_time, data=data,
+                                 publish_time=publish_time, sequence=sequence)
+
+    def _add_camera(self, items: list[tuple[str, CameraMessage]], step: int,
+                    publish_time: int) -> None:
+        for name, message in items:
+            if name not in self._channels:  # a drone outside the config: the codec refuses it
+                self._count_dropped()
+                continue
+            self._add(name, message.encode(), step * self._dt_ns, publish_time)
+
+    def _write(self, message: Recordable | CameraImageWire, received_ns: int) -> None:
+        if isinstance(message, CameraImageWire):
+            if self._camera is not None:
+                self._add_camera(self._camera.of_image(message), message.step, received_ns)
+                self.written += 1
+            return
+        kind = KIND_OF_TYPE[type(message)]
+        name = topic(kind.name, kind.source(message))
+        if name not in self._channels:  # a drone outside the config: the codec refuses it
+            self._count_dropped()
+            return
         log_time = (round(message.time_s * 1e9) if isinstance(message, AutopilotState)
                     else message.step * self._dt_ns)
-        self._writer.add_message(channel_id=channel, log_time=log_time,
-                                 data=data, publish_time=received_ns,
-                                 sequence=sequence)
+        self._add(name, _JSON_ENCODER.encode(kind.to_json(message)), log_time, received_ns)
         self.written += 1
         if isinstance(message, TelemetryWire):
             self._scene.on_telemetry(message)
         elif isinstance(message, TruthWire):
             self._scene.on_truth(message)
+        elif isinstance(message, CameraFrameWire) and self._camera is not None:
+            self._add_camera(self._camera.of_frame(message), message.step, received_ns)
 
     def _write_scene(self, state: SceneState) -> None:
         """The 3D scene of one instant and each drone's plot values, beside the messages
@@ -222,12 +264,11 @@ class Recorder:
         items += [(plot_topic(i), _JSON_ENCODER.encode(plot_values(state, i)))
                   for i in range(state.weights.shape[0])]
         items += [(LOG_TOPIC, line.encode()) for line in self._log_book.lines(state)]
+        if self._camera is not None:
+            items += [(name, message.encode())
+                      for name, message in self._camera.of_scene(state.drones_m, state.time_s)]
         for name, data in items:
-            channel = self._channels[name]
-            sequence = self._sequence.get(channel, 0)
-            self._sequence[channel] = sequence + 1
-            self._writer.add_message(channel_id=channel, log_time=log_time, data=data,
-                                     publish_time=now, sequence=sequence)
+            self._add(name, data, log_time, now)
 
     def _run(self) -> None:
         """Writer thread: every ``DRAIN_PERIOD_S`` write what is queued, flush on schedule,
