@@ -1,6 +1,7 @@
 """What each drone's rendered camera sees, in Foxglove's well-known schemas
-(``camera.model = "rendered"``, docs/camera.md, "Seen"): live (``swarm.observe.live_view``)
-and in recordings (``swarm.observe.recording.writer``) alike.
+(``camera.model = "rendered"``; docs/camera.md, "Seen: images in Foxglove and in
+recordings"): live (``swarm.observe.live_view``) and in recordings
+(``swarm.observe.recording.writer``) alike.
 
 Per drone i, on the frames ``ImageSchedule`` picks:
 
