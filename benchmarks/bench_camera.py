@@ -18,8 +18,9 @@ what frame rate six drones sustain on this machine.
 - Swarm: Case 1 with rendered cameras through the process swarm (six agents, six
   ``swarm-camera`` detectors, the world rendering), lockstep at 50, 25 and 10 frames per
   second (real-time factor: simulated s per wall s), and realtime at the same rates (late
-  steps, the agents' CPU). The bearing camera's lockstep run is measured beside them, in the
-  same run, for the ratio.
+  steps, the agents' CPU), each with the share of the frames the agents measured with (agent
+  steps that measured a target, per drone and frame: lockstep is the reference) and the final
+  estimate error. The bearing camera's runs are measured beside them, in the same run.
 """
 
 from __future__ import annotations
@@ -143,8 +144,13 @@ def swarm_runs(profile: Profile, out_dir: Path) -> list[dict[str, Any]]:
             path = write_resolved_config(config, out_dir / f"{name}-{rate}.json")
             result = attempt_swarm(path, config, mode)
             mission = result.get("mission", {})
+            frames = config.swarm.n_drones * config.n_steps // config.camera_steps_per_frame
+            measured = result.get("measured_steps")
+            errors = result.get("final_position_error_m")
             runs.append({"mode": mode, "camera": name, "frame_rate_hz": rate,
                          "real_time_factor": mission.get("real_time_factor"),
+                         "frames_measured": None if measured is None else measured / frames,
+                         "final_error_m": None if not errors else max(errors),
                          "late_fraction": result.get("late_fraction"),
                          "agent_cores": result.get("cpu", {}).get("agent_cores", {}),
                          "error": result.get("error")})
@@ -195,12 +201,13 @@ def tables(result: dict[str, Any]) -> list[Table]:
                       *(fmt(b["detected"], 2) for b in p["by_angle_deg"]))
     swarm = new_table("camera: Case 1, six drones, process swarm",
                       ["mode", "camera", "frames/s", "real-time factor", "late steps",
-                       "agent cores (median)"])
+                       "frames measured", "final error [m]", "agent cores (median)"])
     for r in result["swarm"]:
         swarm.add_row(r["mode"], r["camera"], fmt(r["frame_rate_hz"], 0),
                       fmt(r["real_time_factor"], 2),
                       fmt(None if r["late_fraction"] is None else 100 * r["late_fraction"],
                           1, " %"),
+                      fmt(r.get("frames_measured"), 2), fmt(r.get("final_error_m"), 3),
                       fmt((r["agent_cores"] or {}).get("median"), 2))
     return [stages, reach, swarm]
 

@@ -395,6 +395,8 @@ def run_swarm(config_path: Path, config: Any, mode: str, *, seed: int = 0,
         result["violations"] = [str(v) for v in check_invariants(record)]
         result["final_position_error_m"] = [t.final_position_error_m
                                             for t in summarize_targets(record)]
+        # Agent steps that measured some target: how many camera frames the agents used.
+        result["measured_steps"] = int(record.detected.any(axis=2).sum())
     return result
 
 

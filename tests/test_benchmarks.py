@@ -117,6 +117,8 @@ def test_every_section_runs_and_writes_its_fields(tmp_path: Path) -> None:
     assert [(r["mode"], r["camera"]) for r in camera["swarm"]] == [
         ("lockstep", "bearing"), ("lockstep", "rendered")]
     assert all(r["error"] is None and r["real_time_factor"] > 0 for r in camera["swarm"])
+    assert all(0 < r["frames_measured"] <= 1 and r["final_error_m"] >= 0
+               for r in camera["swarm"])
 
     # The host, at both ends of the run.
     for figures in (load("host")["figures"], summary["host_after"]):

@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 import pytest
 
+from swarm.camera.process import realtime_choice
 from swarm.messages.wire import (
     CameraFrameWire,
     CameraImageWire,
@@ -210,3 +211,19 @@ def test_a_replayed_video_of_the_worlds_frames_gives_the_live_detections(
         text = camera.log.read_text()
     assert "frame_%05d.png" in text and "calibrated by" in text, text
     assert f"the source '{frames_dir / 'frame_%05d.png'}' ended after 12 frames" in text, text
+
+
+def test_a_realtime_detector_sends_the_newest_frame_and_never_an_image_less_step_after_it(
+) -> None:
+    """The images that waited, in order: the newest that carries a frame is detected, alone;
+    older frames are skipped for it; image-less steps (between frames) are never sent, since
+    sent after a frame they would hide it from the agent (which reads the newest)."""
+    image, empty = b"\xff\xd8 a frame", b""
+    waited = [image_message(k, data) for k, data in
+              ((10, image), (11, empty), (12, empty), (15, image), (16, empty))]
+    chosen, skipped, between = realtime_choice(waited)
+    assert [m.step for m in chosen] == [15] and (skipped, between) == (1, 3)
+    assert realtime_choice(waited[1:3]) == ([], 0, 2)
+    assert realtime_choice([]) == ([], 0, 0)
+    chosen, skipped, between = realtime_choice(waited[:1])
+    assert [m.step for m in chosen] == [10] and (skipped, between) == (0, 0)
