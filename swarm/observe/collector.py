@@ -9,6 +9,7 @@ reference does it (``swarm.runs.ground_truth``).
 from __future__ import annotations
 
 import threading
+import time
 
 import numpy as np
 from numpy.typing import NDArray
@@ -23,6 +24,11 @@ Array = NDArray[np.float64]
 # The float arrays of the record, by collector attribute (bool arrays are handled apart).
 _FLOAT_ARRAYS = ("positions", "targets", "target_vel", "velocities", "estimates", "lambda_bar",
                  "psi0", "psi1", "weights", "slacks", "weight_slacks", "bearing", "step_us")
+
+
+# The world's clock rate is taken over at least this much wall time (the truth comes in
+# batches every 20 ms, ``swarm.net.observer.FEED_PERIOD_S``).
+CLOCK_RATE_MIN_WALL_S = 1.0
 
 
 def fill_gaps(values: Array) -> None:
@@ -81,6 +87,10 @@ class TelemetryCollector:
         self.telemetry_received = np.zeros(n, dtype=int)
         self.last_truth_step = -1
         self.missing_samples = 0  # truth or telemetry steps that never arrived (realtime)
+        # (step, wall time it arrived [s]) of the first and the newest truth: how fast the
+        # world's clock ran against the wall's (``RunRecord.world_clock_rate``).
+        self._first_truth: tuple[int, float] | None = None
+        self._newest_truth: tuple[int, float] | None = None
 
     def on_telemetry(self, _key: str, tel: TelemetryWire) -> None:
         with self.lock:
@@ -106,11 +116,18 @@ class TelemetryCollector:
             if tel.bearing_error is not None:
                 self.bearing[k, i] = tel.bearing_error
 
-    def on_truth(self, _key: str, truth: TruthWire) -> None:
+    def on_truth(self, _key: str, truth: TruthWire, received_s: float | None = None) -> None:
+        """``received_s``: the wall time it arrived [s] (default now; a recording's reader
+        passes the time the recorder received it)."""
+        arrived_s = time.monotonic() if received_s is None else received_s
         with self.lock:
             k = truth.step
             if not 0 <= k < self.positions.shape[0]:
                 return
+            if self._first_truth is None or k < self._first_truth[0]:
+                self._first_truth = (k, arrived_s)
+            if self._newest_truth is None or k > self._newest_truth[0]:
+                self._newest_truth = (k, arrived_s)
             arrays = truth.arrays()
             self.positions[k] = arrays["drone_positions"]
             self.targets[k] = arrays["target_positions"]
@@ -137,6 +154,7 @@ class TelemetryCollector:
             links, reached = self.links.copy(), self.reached.copy()
             link_conflict = self.link_conflict.copy()
             steps = max(self.last_truth_step + 1, 0)
+            clock_rate = self._world_clock_rate()
         arrays = {name: values[:steps] for name, values in arrays.items()}
         self.missing_samples = (_missing_steps(arrays["positions"])
                                 + _missing_steps(arrays["velocities"]))
@@ -159,7 +177,18 @@ class TelemetryCollector:
             safety_conflict=conflict[:steps],
             links=links[:steps] if self.ranged else None,
             reached=reached[:steps] if self.ranged else None,
-            link_conflict=link_conflict[:steps] if self.ranged else None)
+            link_conflict=link_conflict[:steps] if self.ranged else None,
+            world_clock_rate=clock_rate)
+
+    def _world_clock_rate(self) -> float | None:
+        """Simulated seconds per wall second between the first and the newest truth, when
+        they came at least ``CLOCK_RATE_MIN_WALL_S`` apart (None otherwise)."""
+        if self._first_truth is None or self._newest_truth is None:
+            return None
+        wall_s = self._newest_truth[1] - self._first_truth[1]
+        if wall_s < CLOCK_RATE_MIN_WALL_S:
+            return None
+        return (self._newest_truth[0] - self._first_truth[0]) * self.config.scenario.dt_s / wall_s
 
     def _reference_lambdas(self, positions: Array, targets: Array,
                            detected: NDArray[np.bool_]) -> tuple[Array, Array]:

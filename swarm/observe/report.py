@@ -44,6 +44,9 @@ Mode = Literal["lockstep", "realtime", "inprocess"]
 MODES: tuple[str, ...] = ("lockstep", "realtime", "inprocess")
 EXIT_VIOLATION = EXIT_FAILED
 MISSING = "—"  # how a figure without any sample is shown in a table
+# A realtime run whose world ran slower than this (simulated s per wall s) is said to have
+# fallen behind: its agents' wall-clock steps no longer match the world's.
+REALTIME_CLOCK_RATE_FLOOR = 0.95
 
 
 def finite_or_none(value: float | None) -> float | None:
@@ -259,6 +262,12 @@ def _warnings(record: RunRecord, mode: str, cov: Coverage, drones: Sequence[Dron
                            f"breach(es) by target; the agent log has each)"
                            + (f"; at the end: {d.localization_status}"
                               if d.localization_status else ""))
+    rate = record.world_clock_rate
+    if mode == "realtime" and rate is not None and rate < REALTIME_CLOCK_RATE_FLOOR:
+        out.append(f"the world's clock ran at {rate:.2f} of the wall's: this machine could not "
+                   f"keep up in realtime. The agents count their steps on the wall clock, so "
+                   f"their filters predicted the targets ahead of the world; estimates and "
+                   f"margins are not those of a real-time mission (run it in lockstep)")
     network = network_summary(record)
     if network is not None and network.first_split_s is not None:
         parts = " and ".join(str(list(part)) for part in network.split_parts)

@@ -50,6 +50,9 @@ class RunRecord:
     links: NDArray[np.bool_] | None = None
     reached: NDArray[np.int64] | None = None
     link_conflict: NDArray[np.bool_] | None = None
+    # Simulated seconds per wall second of the world's clock as an observer received its
+    # truth (None: in process, or too short to tell); realtime holds it at 1.
+    world_clock_rate: float | None = None
 
     @property
     def n_steps(self) -> int:

@@ -493,3 +493,18 @@ def test_cli_exit_1_when_the_recording_violates_an_invariant(
     document = json.loads(captured.out)
     assert document["verdict"] == "violated" and document["truncated"] is True
     assert "warning: the recording is truncated" in captured.err
+
+
+def test_a_realtime_world_that_fell_behind_the_wall_is_said(case2: RunRecord) -> None:
+    """Realtime agents count steps on the wall clock: a world running slower than it (a
+    machine that could not keep up) leaves their filters ahead of the targets."""
+    def warned(record: RunRecord, mode: str) -> list[str]:
+        return [w for w in build_report(record, mode).warnings if "world's clock ran" in w]
+
+    behind = dataclasses.replace(case2, world_clock_rate=0.52)
+    (line,) = warned(behind, "realtime")
+    assert "ran at 0.52 of the wall's" in line and "lockstep" in line
+    assert build_report(behind, "realtime").ok  # said, not a SPEC invariant
+    assert warned(dataclasses.replace(case2, world_clock_rate=0.96), "realtime") == []
+    assert warned(behind, "lockstep") == []  # lockstep runs as fast as it can
+    assert warned(case2, "realtime") == []  # not measured (in process)

@@ -214,7 +214,8 @@ def read_recording(path: Path, *, fill_gaps: bool = False) -> Recording:
                                                         f"{file}: {name}"))
             elif kind == "truth":
                 collector.on_truth(name, _decode_as(TruthWire, kind, record.data, codec,
-                                                    f"{file}: {name}"))
+                                                    f"{file}: {name}"),
+                                   received_s=record.publish_time / 1e9)
     if metadata is None or collector is None:
         raise RecordingFileError(f"{file}: no Vigil metadata (an MCAP file, but not a "
                                  "recording made by launch-swarm --record)")
