@@ -188,7 +188,7 @@ def test_config_whose_drones_cannot_be_placed_exits_2(tmp_path: Path) -> None:
 
 # -- determinism ---------------------------------------------------------------------------
 
-TIMING_FIELDS = {"step_us", "wall_time_s"}
+TIMING_FIELDS = {"step_us", "wall_time_s", "world_clock_rate"}  # wall-clock measurements
 
 
 def _short_record(seed: int | None) -> RunRecord:
