@@ -157,6 +157,13 @@ def firmware_from_env(kind: Kind) -> Firmware | None:
     value = os.environ.get(ENV_VARIABLE[kind], "")
     if not value:
         return None
+    path = Path(value).expanduser()
+    if kind == "ardupilot" and path.is_dir() and not (path / "bin" / "px4").is_file():
+        inside = path / "arducopter"
+        hint = (f" ({inside} is there)" if inside.is_file()
+                else " (build it with ./waf copter: build/sitl/bin/arducopter)")
+        raise FirmwareError(f"{ENV_VARIABLE[kind]}={value} is a directory: it names the "
+                            f"arducopter SITL binary itself{hint}")
     firmware = Firmware.at(value)
     if firmware.kind != kind:
         raise FirmwareError(f"{ENV_VARIABLE[kind]}={value} is a {firmware.name}, not {kind}")

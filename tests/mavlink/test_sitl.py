@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import shutil
 import socket
 import stat
@@ -84,6 +85,19 @@ def test_environment_variables_name_the_builds(tmp_path: Path,
     monkeypatch.setenv(ENV_ARDUCOPTER, str(px4))  # a PX4 build where ArduPilot was meant
     with pytest.raises(SitlError, match="is a PX4 SITL"):
         firmware_from_env("ardupilot")
+    # The directory that holds the binary, where the binary was meant: said so, not "not a
+    # PX4 SITL build directory".
+    arducopter = _binary(tmp_path / "ap" / "arducopter")
+    monkeypatch.setenv(ENV_ARDUCOPTER, str(arducopter.parent))
+    with pytest.raises(SitlError, match=re.escape(
+            f"is a directory: it names the arducopter SITL binary itself ({arducopter} is "
+            f"there)")):
+        firmware_from_env("ardupilot")
+    monkeypatch.setenv(ENV_ARDUCOPTER, str(tmp_path / "px4" / "etc"))
+    with pytest.raises(SitlError, match=r"is a directory: .*\(build it with \./waf copter"):
+        firmware_from_env("ardupilot")
+    monkeypatch.setenv(ENV_ARDUCOPTER, str(arducopter))
+    assert firmware_from_env("ardupilot") == Firmware("ardupilot", arducopter.resolve())
 
 
 def test_copter_defaults_beside_the_binary_or_in_its_waf_source_tree(tmp_path: Path) -> None:
