@@ -64,9 +64,11 @@ def realtime_choice(pending: list[CameraImageWire]) -> tuple[list[CameraImageWir
     An image-less message (a step between two frames, ``camera.frame_rate_hz``) has no
     detections to give. Sent, it would hide the frame before it: a realtime agent reads the
     newest camera frame at each tick (``RealtimeExchange``), and measures from the pose that
-    frame was taken at, however old. At 10 frames per second in realtime, sending every step
-    lost 39 % of the frames' detections this way (they came late, the world being busy
-    rendering, right before the next step's message). Without them the agent's step has no
+    frame was taken at, however old. At 10 frames per second in realtime (Case 1, 10 s),
+    sending every step let the agents measure with none of the 600 frames (the world, busy
+    rendering, sends a frame late and the next step's message right after it; the detector
+    also skipped a third of the frames for such a newer message). Without them the agent's
+    step has no
     new frame, as between the bearing camera's frames in realtime; its radio neighbours are
     those of the newest frame.
     """

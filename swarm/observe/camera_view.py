@@ -42,17 +42,23 @@ from foxglove.messages import (
     Vector3,
 )
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
 from swarm.messages.wire import CameraFrameWire, CameraImageWire
 from swarm.observe.foxglove_scene import FRAME, sim_stamp
 from swarm.scenario.config import ScenarioConfig
-from swarm.vision.geometry import Calibration, calibration_for, pixels_from_image_points
+from swarm.vision.geometry import (
+    CAMERA_FROM_WORLD,
+    Calibration,
+    calibration_for,
+    pixels_from_image_points,
+)
 
 Array = NDArray[np.float64]
 
 TRANSFORMS_TOPIC: Final = "transforms"
 # A recording keeps about two images per drone and simulated second (a 480 px JPEG is ~27 KiB:
-# ~0.3 MB per simulated second for six drones, twice the rest of a Case 2 recording); the live
+# ~0.35 MB per simulated second for six drones, 1.7 times the rest of a Case 2 recording); the live
 # view, whose images go nowhere but the screen, ten (the 3D scene's rate).
 RECORDED_IMAGE_PERIOD_S: Final = 0.5
 LIVE_IMAGE_PERIOD_S: Final = 0.1
@@ -60,8 +66,12 @@ DETECTION_DIAMETER_PX: Final = 14.0
 DETECTION_COLOUR: Final = Color(r=0.10, g=0.90, b=0.20, a=1.0)
 LABEL_BACKGROUND: Final = Color(r=0.0, g=0.0, b=0.0, a=0.6)
 FONT_SIZE_PX: Final = 14.0
-# R_wc as a quaternion (x, y, z, w): the half turn about x that diag(1, −1, −1) is.
-CAMERA_IN_WORLD: Final = Quaternion(x=1.0, y=0.0, z=0.0, w=0.0)
+# R_wc = R_cwᵀ as a quaternion (x, y, z, w): the half turn about x that diag(1, −1, −1) is.
+_QUATERNION: Final = Rotation.from_matrix(CAMERA_FROM_WORLD.T).as_quat()
+CAMERA_IN_WORLD: Final = Quaternion(x=float(_QUATERNION[0]), y=float(_QUATERNION[1]),
+                                    z=float(_QUATERNION[2]), w=float(_QUATERNION[3]))
+# Foxglove's (ROS's) name of OpenCV's lens model by its number of coefficients.
+DISTORTION_MODELS: Final = {5: "plumb_bob", 8: "rational_polynomial"}
 
 
 def image_topic(drone: int) -> str:
@@ -108,17 +118,18 @@ def compressed_image(image: CameraImageWire) -> CompressedImage:
 
 def camera_calibration(calibration: Calibration, drone: int, time_s: float
                        ) -> CameraCalibration:
-    """The camera's calibration in ROS's CameraInfo form, as Foxglove reads it: K, the
-    (k1, k2, p1, p2, k3) ``plumb_bob`` distortion, R = I and P = [K | 0] (a monocular camera)."""
+    """The camera's calibration in ROS's CameraInfo form, as Foxglove reads it: K, the lens
+    (OpenCV's k1, k2, p1, p2, k3: ``plumb_bob``; with k4-k6: ``rational_polynomial``; four
+    coefficients are five with k3 = 0), R = I and P = [K | 0] (a monocular camera)."""
     matrix = calibration.camera_matrix
     projection = np.zeros((3, 4))
     projection[:, :3] = matrix
-    distortion = np.zeros(5)
-    distortion[:min(5, calibration.distortion.size)] = calibration.distortion[:5]
+    distortion = np.pad(calibration.distortion, (0, max(5 - calibration.distortion.size, 0)))
     return CameraCalibration(
         timestamp=sim_stamp(time_s), frame_id=camera_frame_id(drone),
         width=calibration.width_px, height=calibration.height_px,
-        distortion_model="plumb_bob", D=distortion.tolist(), K=matrix.reshape(-1).tolist(),
+        distortion_model=DISTORTION_MODELS[distortion.size], D=distortion.tolist(),
+        K=matrix.reshape(-1).tolist(),
         R=np.eye(3).reshape(-1).tolist(), P=projection.reshape(-1).tolist())
 
 

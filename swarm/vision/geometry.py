@@ -108,9 +108,17 @@ def pixels_from_image_points(image_points: Array, calibration: Calibration) -> A
     inverse of ``image_points_from_pixels`` (the rays (x̄, −ȳ, 1) in the camera frame,
     ``cv2.projectPoints``)."""
     points = np.asarray(image_points, dtype=np.float64).reshape(-1, 2)
-    rays = np.column_stack([points[:, 0], -points[:, 1], np.ones(points.shape[0])])
-    pixels, _ = cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
-                                  calibration.camera_matrix, calibration.distortion)
+    return pixels_of_rays(np.column_stack([points[:, 0], -points[:, 1],
+                                           np.ones(points.shape[0])]), calibration)
+
+
+def pixels_of_rays(rays: Array, calibration: Calibration, *, lens: bool = True) -> Array:
+    """Pixels (K, 2) of rays (K, 3) in the camera frame (``cv2.projectPoints``), through the
+    lens or, ``lens=False``, through the bare pinhole."""
+    distortion = calibration.distortion if lens else np.zeros(5)
+    pixels, _ = cv2.projectPoints(np.asarray(rays, dtype=np.float64).reshape(-1, 1, 3),
+                                  np.zeros(3), np.zeros(3), calibration.camera_matrix,
+                                  distortion)
     return np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
 
 
@@ -141,9 +149,7 @@ def invertible_lens_rays(calibration: Calibration, pixels: Array) -> Array:
     rays = undistorted_rays(pixels, calibration)
     if not calibration.distorted:
         return rays
-    back, _ = cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
-                                calibration.camera_matrix, calibration.distortion)
-    worst = float(np.max(np.abs(np.asarray(back).reshape(-1, 2) - pixels)))
+    worst = float(np.max(np.abs(pixels_of_rays(rays, calibration) - pixels)))
     if not worst < 0.01:
         raise CalibrationError(f"the lens (distortion {calibration.distortion.tolist()}) "
                                f"cannot be inverted over the image: a pixel's ray comes back "

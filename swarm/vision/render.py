@@ -31,6 +31,7 @@ from swarm.vision.geometry import (
     Calibration,
     calibration_for,
     invertible_lens_rays,
+    pixels_of_rays,
     project_to_pixels,
 )
 
@@ -164,9 +165,7 @@ def lens_ideal_positions(calibration: Calibration, knot_spacing_px: int = LENS_K
     grid_x, grid_y = np.meshgrid(xs, ys)
     knots = np.stack([grid_x.ravel(), grid_y.ravel()], axis=1)
     rays = invertible_lens_rays(calibration, knots)
-    ideal_px, _ = cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
-                                    calibration.camera_matrix, np.zeros(5))
-    ideal = np.asarray(ideal_px, dtype=np.float64).reshape(ys.size, xs.size, 2)
+    ideal = pixels_of_rays(rays, calibration, lens=False).reshape(ys.size, xs.size, 2)
     order = min(3, xs.size - 1, ys.size - 1)
     every_x, every_y = np.arange(width, dtype=float), np.arange(height, dtype=float)
     tables = [RectBivariateSpline(ys, xs, ideal[:, :, axis], kx=order, ky=order)(every_y,

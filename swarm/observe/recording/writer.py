@@ -30,7 +30,12 @@ from foxglove.messages import Log, SceneUpdate
 from mcap.writer import CompressionType, Writer
 
 from swarm.messages.wire import CameraFrameWire, CameraImageWire, TelemetryWire, TruthWire
-from swarm.observe.camera_view import RECORDED_IMAGE_PERIOD_S, CameraMessage, CameraView
+from swarm.observe.camera_view import (
+    RECORDED_IMAGE_PERIOD_S,
+    CameraMessage,
+    CameraView,
+    ImageSchedule,
+)
 from swarm.observe.foxglove_scene import (
     LOG_TOPIC,
     SCENE_TOPIC,
@@ -98,7 +103,7 @@ def estimated_recording_bytes(cfg: ScenarioConfig) -> int:
     n_targets = len(cfg.targets)
     per_drone_s = RECORDING_BYTES_PER_DRONE_SECOND * max(1.0, n_targets / 2)
     if cfg.camera.rendered:
-        images_per_s = CameraView(cfg, RECORDED_IMAGE_PERIOD_S).schedule.rate_hz
+        images_per_s = ImageSchedule(cfg, RECORDED_IMAGE_PERIOD_S).rate_hz
         per_drone_s += images_per_s * IMAGE_BYTES_PER_PIXEL * cfg.camera.resolution_px ** 2
     return int(per_drone_s * cfg.swarm.n_drones * cfg.scenario.duration_s) + 1_000_000
 
